@@ -1,0 +1,131 @@
+"""Configuration: one pydantic model per component, ``extra="forbid"`` everywhere.
+
+A misspelled key is an error naming the key, never silently ignored. ``load_config`` reads
+YAML; ``dump_config`` writes the effective configuration back.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from .errors import ConfigError
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class OdometryConfig(_Strict):
+    """KISS-ICP scan-to-map registration, seeded by wheel odometry when the log has it."""
+
+    voxel_size: float | None = Field(None, gt=0, description="[m]; None: max_range / 100")
+    max_range: float = Field(80.0, gt=0, description="drop points farther than this [m]")
+    min_range: float = Field(0.3, ge=0, description="drop points closer than this [m]")
+    max_points_per_voxel: int = Field(20, ge=1)
+    deskew: bool = False
+    use_wheel_odometry: bool = Field(True, description="wheel odometry as the ICP initial guess")
+    initial_threshold: float = Field(2.0, gt=0)
+    min_motion_threshold: float = Field(0.1, ge=0)
+    max_iterations: int = Field(500, ge=1)
+    convergence_criterion: float = Field(1e-4, gt=0)
+
+
+class SubmapConfig(_Strict):
+    """How consecutive scans are fused into submaps (virtual sensors)."""
+
+    max_distance: float = Field(10.0, gt=0, description="cut after this much travel [m]")
+    max_scans: int = Field(400, ge=1)
+    voxel_size: float | None = Field(None, gt=0, description="[m]; None: odometry voxel / 2")
+    max_points: int = Field(200_000, ge=100)
+
+
+class LoopConfig(_Strict):
+    """Cycle hypotheses: proposal, correspondence test, consistency check."""
+
+    enabled: bool = True
+    spatial_sigma: float = Field(3.0, gt=0, description="Mahalanobis gate on anchor distance")
+    spatial_min_radius: float = Field(5.0, gt=0, description="[m] search radius floor")
+    spatial_max_radius: float = Field(60.0, gt=0, description="[m] search radius ceiling")
+    use_descriptor: bool = True
+    descriptor_max_distance: float = Field(0.25, gt=0, le=2.0)
+    descriptor_top_k: int = Field(3, ge=0)
+    min_submap_gap: int = Field(3, ge=1, description="skip neighbours closer than this in the chain")
+    min_fitness: float = Field(0.6, ge=0, le=1)
+    max_inlier_rmse: float = Field(0.15, gt=0)
+    min_overlap: float = Field(0.35, ge=0, le=1)
+    consistency_tolerance_m: float = Field(0.6, gt=0)
+    consistency_tolerance_deg: float = Field(4.0, gt=0)
+    hints_file: Path | None = None
+
+
+class BackendConfig(_Strict):
+    """GTSAM pose graph."""
+
+    robust_kernel: Literal["huber", "cauchy", "gm", "none"] = "cauchy"
+    robust_scale: float = Field(1.0, gt=0)
+    incremental: bool = Field(True, description="iSAM2 update at every submap")
+    final_batch: bool = Field(True, description="Levenberg-Marquardt pass at the end")
+    odometry_sigma_floor_m: float = Field(0.02, gt=0)
+    odometry_sigma_floor_deg: float = Field(0.2, gt=0)
+    loop_sigma_floor_m: float = Field(0.05, gt=0)
+    loop_sigma_floor_deg: float = Field(0.5, gt=0)
+
+
+class MappingConfig(_Strict):
+    """Fused output map and evidence grids."""
+
+    map_voxel_size: float = Field(0.1, gt=0, description="[m] voxel size of map.ply")
+    grid_resolution: float = Field(0.05, gt=0, description="[m] cell size of occupancy grids")
+    write_grid: bool = True
+
+
+class PipelineConfig(_Strict):
+    """The whole run."""
+
+    odometry: OdometryConfig = Field(default_factory=OdometryConfig)
+    submaps: SubmapConfig = Field(default_factory=SubmapConfig)
+    loops: LoopConfig = Field(default_factory=LoopConfig)
+    backend: BackendConfig = Field(default_factory=BackendConfig)
+    mapping: MappingConfig = Field(default_factory=MappingConfig)
+    max_scans: int | None = Field(None, ge=1, description="stop after this many scans")
+
+
+def _format_validation_error(exc: ValidationError, source: str) -> str:
+    first = exc.errors()[0]
+    loc = ".".join(str(p) for p in first["loc"]) or "<root>"
+    if first["type"] == "extra_forbidden":
+        return f"{source}: unknown config key {loc!r}"
+    return f"{source}: config key {loc!r}: {first['msg']}"
+
+
+def config_from_dict(data: dict[str, Any] | None, source: str = "<config>") -> PipelineConfig:
+    """Validate a plain dict into a :class:`PipelineConfig`; raise :class:`ConfigError`."""
+    try:
+        return PipelineConfig.model_validate(data or {})
+    except ValidationError as exc:
+        raise ConfigError(_format_validation_error(exc, source)) from None
+
+
+def load_config(path: str | Path | None) -> PipelineConfig:
+    """Read a YAML config file (``None``: defaults)."""
+    if path is None:
+        return PipelineConfig()
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such config file") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+    if data is not None and not isinstance(data, dict):
+        raise ConfigError(f"{path}: a config file must be a YAML mapping")
+    return config_from_dict(data, str(path))
+
+
+def dump_config(config: PipelineConfig) -> str:
+    """The config as YAML text (every key, defaults included)."""
+    return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)
