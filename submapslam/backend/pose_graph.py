@@ -1,0 +1,159 @@
+"""Submap pose graph on GTSAM: Pose3 between-factors, robust loop edges, iSAM2 and batch LM.
+
+This is the only module (with ``landmark_graph``) that touches gtsam. Poses go in and come out
+as ``(4, 4)`` numpy arrays ``T_world_submap``; information matrices are ``(6, 6)`` in GTSAM's
+Pose3 tangent order ``(rx, ry, rz, tx, ty, tz)``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..config import BackendConfig
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class GraphEdge:
+    """One between-factor ``T_i_j`` with its information (GTSAM order) and kind."""
+
+    i: int
+    j: int
+    T_i_j: np.ndarray
+    information: np.ndarray
+    kind: str  # "odometry" | "loop"
+
+
+def floor_information(information: np.ndarray, sigma_m: float, sigma_rad: float) -> np.ndarray:
+    """Cap an information matrix so no direction is more certain than the given floor sigmas.
+
+    Keeps the registration's shape while refusing over-confident edges; ``(6, 6)`` GTSAM order.
+    """
+    info = 0.5 * (information + information.T)
+    cov = np.linalg.pinv(info)
+    floor = np.diag([sigma_rad**2] * 3 + [sigma_m**2] * 3)
+    w, V = np.linalg.eigh(cov + floor)
+    w = np.maximum(w, 1e-12)
+    return (V / w) @ V.T
+
+
+class PoseGraph:
+    """Incremental submap pose graph (iSAM2) with an optional final batch LM pass."""
+
+    def __init__(self, config: BackendConfig) -> None:
+        import gtsam
+
+        self._gtsam = gtsam
+        self.config = config
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(0.01)
+        params.relinearizeSkip = 1
+        self._isam = gtsam.ISAM2(params)
+        self._graph = gtsam.NonlinearFactorGraph()  # everything, for batch and export
+        self._pending_graph = gtsam.NonlinearFactorGraph()
+        self._pending_values = gtsam.Values()
+        self._estimate = gtsam.Values()
+        self._initial: dict[int, np.ndarray] = {}
+        self.edges: list[GraphEdge] = []
+        self.n_updates = 0
+
+    # ------------------------------------------------------------------ building
+    def _noise(self, information: np.ndarray, robust: bool):
+        gtsam = self._gtsam
+        info = 0.5 * (information + information.T)
+        base = gtsam.noiseModel.Gaussian.Information(info)
+        kernel = self.config.robust_kernel
+        if not robust or kernel == "none":
+            return base
+        k = self.config.robust_scale
+        est = {
+            "huber": gtsam.noiseModel.mEstimator.Huber,
+            "cauchy": gtsam.noiseModel.mEstimator.Cauchy,
+            "gm": gtsam.noiseModel.mEstimator.GemanMcClure,
+        }[kernel].Create(k)
+        return gtsam.noiseModel.Robust.Create(est, base)
+
+    def add_node(self, key: int, T_world_node: np.ndarray, prior_information: np.ndarray | None = None) -> None:
+        """Add a node with its initial estimate; anchor it with a prior when given."""
+        gtsam = self._gtsam
+        self._initial[key] = np.array(T_world_node, dtype=np.float64)
+        self._pending_values.insert(key, gtsam.Pose3(self._initial[key]))
+        if prior_information is not None:
+            f = gtsam.PriorFactorPose3(key, gtsam.Pose3(self._initial[key]), self._noise(prior_information, False))
+            self._pending_graph.add(f)
+            self._graph.add(f)
+
+    def add_between(self, i: int, j: int, T_i_j: np.ndarray, information: np.ndarray, kind: str) -> None:
+        """Add ``T_i_j`` (pose of node j in node i's frame); loop edges get the robust kernel."""
+        gtsam = self._gtsam
+        f = gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(np.asarray(T_i_j, dtype=np.float64)),
+                                     self._noise(information, robust=(kind == "loop")))
+        self._pending_graph.add(f)
+        self._graph.add(f)
+        self.edges.append(GraphEdge(i, j, np.array(T_i_j), np.array(information), kind))
+
+    # ------------------------------------------------------------------ solving
+    def update(self, extra_iterations: int = 0) -> None:
+        """One iSAM2 step with everything added since the last call."""
+        self._isam.update(self._pending_graph, self._pending_values)
+        for _ in range(extra_iterations):
+            self._isam.update()
+        self._pending_graph = self._gtsam.NonlinearFactorGraph()
+        self._pending_values = self._gtsam.Values()
+        self._estimate = self._isam.calculateEstimate()
+        self.n_updates += 1
+
+    def optimize_batch(self, max_iterations: int = 100) -> None:
+        """Levenberg-Marquardt on the whole graph from the current estimate."""
+        gtsam = self._gtsam
+        if self._pending_graph.size() or self._pending_values.size():
+            self.update()
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(max_iterations)
+        params.setVerbosityLM("SILENT")
+        opt = gtsam.LevenbergMarquardtOptimizer(self._graph, self._estimate, params)
+        self._estimate = opt.optimize()
+        self._batch_done = True
+
+    def pose(self, key: int) -> np.ndarray:
+        """Current ``T_world_node`` of one node (initial guess if not yet optimised)."""
+        if self._estimate.exists(key):
+            return self._estimate.atPose3(key).matrix()
+        return self._initial[key].copy()
+
+    def poses(self) -> dict[int, np.ndarray]:
+        return {k: self.pose(k) for k in self._initial}
+
+    def marginal_covariance(self, key: int) -> np.ndarray:
+        """``(6, 6)`` marginal covariance of a node (GTSAM order), from iSAM2."""
+        return np.asarray(self._isam.marginalCovariance(key))
+
+    def all_marginal_covariances(self) -> dict[int, np.ndarray]:
+        """Marginal covariances of every node at the current estimate (batch Marginals)."""
+        gtsam = self._gtsam
+        try:
+            marg = gtsam.Marginals(self._graph, self._estimate)
+            return {k: np.asarray(marg.marginalCovariance(k)) for k in self._initial}
+        except RuntimeError as exc:  # indeterminant system; fall back to iSAM2's
+            log.warning("batch marginals failed (%s); using iSAM2 marginals", exc)
+            return {k: self.marginal_covariance(k) for k in self._initial}
+
+    def loop_residual_weights(self) -> dict[tuple[int, int], float]:
+        """Robust-kernel weight of every loop edge at the current estimate (1 = fully trusted)."""
+        weights = {}
+        for idx in range(self._graph.size()):
+            f = self._graph.at(idx)
+            if not isinstance(f, self._gtsam.BetweenFactorPose3):
+                continue
+            i, j = f.keys()
+            nm = f.noiseModel()
+            if isinstance(nm, self._gtsam.noiseModel.Robust):
+                err = f.unwhitenedError(self._estimate)
+                w = nm.robust().weight(float(np.sqrt(max(0.0, 2 * f.error(self._estimate)))))
+                weights[(int(i), int(j))] = float(w)
+                _ = err
+        return weights

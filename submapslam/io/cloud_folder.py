@@ -1,0 +1,170 @@
+"""Folders of point-cloud scans: KITTI ``.bin``, ``.ply``, ``.pcd``.
+
+Accepted layouts (``LOG`` is the path given):
+    LOG/*.bin|*.ply|*.pcd                      scans directly in the folder
+    LOG/{scans,Scans,velodyne,points}/*.ext    scans in a subfolder (synthetic logs, KITTI, MulRan)
+Optional beside the scans (in LOG or the scans folder):
+    times.txt           one timestamp [s] per scan (plain or ``.xz``); else the index is used
+    odometry_tum.txt    wheel odometry ``T_odom_base`` per scan, TUM format
+    meta.yaml           ``planar: true`` marks 2D laser logs; ``T_base_sensor`` (4x4 list)
+Scans are sorted by file name. Per-point times come from a PLY/PCD ``time``/``t`` field.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from ..errors import InputError
+from .compression import open_text
+from .registry import register_reader
+from .scan import Scan
+
+SCAN_SUFFIXES = (".bin", ".ply", ".pcd")
+_SUBFOLDERS = ("scans", "Scans", "velodyne", "points", "clouds")
+_TIME_FIELDS = ("time", "t", "timestamp")
+
+
+def _scan_files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.iterdir() if p.suffix.lower() in SCAN_SUFFIXES and p.is_file())
+
+
+def _find_scans(root: Path) -> tuple[Path, list[Path]]:
+    files = _scan_files(root)
+    if files:
+        return root, files
+    for sub in _SUBFOLDERS:
+        if (root / sub).is_dir():
+            files = _scan_files(root / sub)
+            if files:
+                return root / sub, files
+    raise InputError(root, f"no {'/'.join(SCAN_SUFFIXES)} scans in the folder or its scans/ subfolder")
+
+
+def _find_file(names: tuple[str, ...], folders: tuple[Path, ...]) -> Path | None:
+    for folder in folders:
+        for name in names:
+            if (folder / name).is_file():
+                return folder / name
+    return None
+
+
+def read_bin(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """KITTI velodyne ``.bin``: float32 ``(x, y, z, intensity)`` records -> ``(N, 3)`` points."""
+    raw = np.fromfile(path, dtype=np.float32)
+    if raw.size % 4 != 0:
+        raise InputError(path, f"size {raw.size * 4} bytes is not a whole number of float32 x4 records")
+    return raw.reshape(-1, 4)[:, :3].astype(np.float64), None
+
+
+def read_cloud(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """PLY/PCD -> ``(N, 3)`` float64 points and ``(N,)`` per-point times (or None)."""
+    from .._deps import open3d
+
+    o3d = open3d()
+    if path.stat().st_size == 0:
+        raise InputError(path, "empty file")
+    pcd = o3d.t.io.read_point_cloud(str(path))
+    if "positions" not in pcd.point:
+        raise InputError(path, "no x/y/z points could be read (not a valid PLY/PCD file?)")
+    points = pcd.point.positions.numpy().astype(np.float64).reshape(-1, 3)
+    times = None
+    for name in _TIME_FIELDS:
+        if name in pcd.point:
+            times = pcd.point[name].numpy().astype(np.float64).reshape(-1)
+            break
+    return points, times
+
+
+class CloudFolderReader:
+    """Iterate a folder of scans (see module docstring) as :class:`Scan` objects."""
+
+    name = "cloud_folder"
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self.scan_dir, self.files = _find_scans(self.path)
+        folders = (self.path, self.scan_dir)
+        self.meta = self._read_meta(_find_file(("meta.yaml",), folders))
+        self.planar = bool(self.meta.get("planar", False))
+        self.timestamps = self._read_times(_find_file(("times.txt", "times.txt.xz"), folders))
+        self.odometry = self._read_odometry(_find_file(("odometry_tum.txt",), folders))
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def _read_meta(self, path: Path | None) -> dict:
+        if path is None:
+            return {}
+        try:
+            meta = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise InputError(path, f"not valid YAML ({str(exc).splitlines()[0]})") from None
+        if not isinstance(meta, dict):
+            raise InputError(path, "meta.yaml must be a mapping")
+        return meta
+
+    def _read_times(self, path: Path | None) -> np.ndarray:
+        if path is None:
+            return np.arange(len(self.files), dtype=np.float64)
+        values = []
+        with open_text(path) as fh:
+            for lineno, line in enumerate(fh, start=1):
+                tok = line.split()
+                if not tok or tok[0].startswith("#"):
+                    continue
+                try:
+                    values.append(float(tok[0]))
+                except ValueError:
+                    raise InputError(path, f"not a timestamp: {tok[0][:30]!r}", lineno) from None
+        times = np.asarray(values)
+        if len(times) < len(self.files):
+            raise InputError(path, f"{len(times)} timestamps for {len(self.files)} scans")
+        return times[: len(self.files)]
+
+    def _read_odometry(self, path: Path | None) -> np.ndarray | None:
+        if path is None:
+            return None
+        from .trajectory import read_tum
+
+        traj = read_tum(path)
+        if len(traj.poses) < len(self.files):
+            raise InputError(path, f"{len(traj.poses)} odometry poses for {len(self.files)} scans")
+        return traj.poses[: len(self.files)]
+
+    def __iter__(self) -> Iterator[Scan]:
+        for index, path in enumerate(self.files):
+            if path.suffix.lower() == ".bin":
+                points, times = read_bin(path)
+            else:
+                points, times = read_cloud(path)
+            if times is not None and len(times) == len(points):
+                span = times.max() - times.min() if len(times) else 0.0
+                times = (times - times.min()) / span if span > 0 else np.zeros_like(times)
+            else:
+                times = None
+            yield Scan(
+                index=index,
+                timestamp=float(self.timestamps[index]),
+                points=points,
+                point_times=times,
+                odometry=None if self.odometry is None else self.odometry[index],
+                planar=self.planar,
+                source=str(path.name),
+            )
+
+
+def _sniff(path: Path) -> bool:
+    if not path.is_dir():
+        return False
+    try:
+        _find_scans(path)
+    except InputError:
+        return False
+    return True
+
+
+register_reader("cloud_folder", _sniff, CloudFolderReader)

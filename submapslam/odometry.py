@@ -1,0 +1,104 @@
+"""Scan-to-map odometry: KISS-ICP's registration core, seeded by wheel odometry.
+
+We drive KISS-ICP's building blocks (preprocessor, voxel hash map, adaptive threshold,
+point-to-point registration) ourselves so that the ICP initial guess can come from the wheel
+odometry increment when the log has one (else KISS-ICP's constant-velocity model).
+Planar scans (z = 0) stay planar: point-to-point ICP is well-posed on them, and the estimate is
+projected back onto SE(2) after every step.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .config import OdometryConfig
+from .geometry import inverse, matrix_to_se2, se2_to_matrix
+from .io.scan import Scan
+
+
+class Odometry:
+    """Incremental odometry: ``register(scan) -> T_odomframe_base`` of that scan.
+
+    The world frame of this estimator is the pose of the first scan.
+    """
+
+    def __init__(self, config: OdometryConfig, planar: bool) -> None:
+        from kiss_icp.config import KISSConfig
+        from kiss_icp.mapping import get_voxel_hash_map
+        from kiss_icp.preprocess import get_preprocessor
+        from kiss_icp.registration import get_registration
+        from kiss_icp.threshold import get_threshold_estimator
+        from kiss_icp.voxelization import voxel_down_sample
+
+        self.config = config
+        self.planar = planar
+        kiss = KISSConfig()
+        kiss.data.max_range = config.max_range
+        kiss.data.min_range = config.min_range
+        kiss.data.deskew = config.deskew
+        kiss.mapping.voxel_size = config.voxel_size or config.max_range / 100.0
+        kiss.mapping.max_points_per_voxel = config.max_points_per_voxel
+        kiss.registration.max_num_iterations = config.max_iterations
+        kiss.registration.convergence_criterion = config.convergence_criterion
+        kiss.registration.max_num_threads = 1
+        kiss.adaptive_threshold.initial_threshold = config.initial_threshold
+        kiss.adaptive_threshold.min_motion_th = config.min_motion_threshold
+        self.voxel_size: float = kiss.mapping.voxel_size
+        self._preprocessor = get_preprocessor(kiss)
+        self._registration = get_registration(kiss)
+        self._local_map = get_voxel_hash_map(kiss)
+        self._threshold = get_threshold_estimator(kiss)
+        self._down = voxel_down_sample
+        self.last_pose = np.eye(4)
+        self.last_delta = np.eye(4)
+        self._last_wheel: np.ndarray | None = None
+        self.n_registered = 0
+
+    def register(self, scan: Scan) -> tuple[np.ndarray, np.ndarray]:
+        """Register one scan; return ``(T_odom_base, points_deskewed)``.
+
+        ``points_deskewed`` is ``(N, 3)`` in the scan's sensor frame after range filtering and
+        motion compensation (what the submap should store).
+        """
+        times = scan.point_times if scan.point_times is not None else np.zeros(len(scan.points))
+        frame = self._preprocessor.preprocess(scan.points, times, self.last_delta)
+        prediction = self._predicted_delta(scan)
+        if len(frame) < 10:
+            # nothing to register: dead-reckon on the prediction
+            new_pose = self.last_pose @ prediction
+            self._advance(new_pose)
+            return new_pose, frame
+        frame_down = self._down(frame, self.voxel_size * 0.5)
+        source = self._down(frame_down, self.voxel_size * 1.5)
+        initial_guess = self.last_pose @ prediction
+        if self._local_map.empty():
+            new_pose = initial_guess
+        else:
+            sigma = self._threshold.get_threshold()
+            new_pose = self._registration.align_points_to_map(
+                points=source,
+                voxel_map=self._local_map,
+                initial_guess=initial_guess,
+                max_correspondance_distance=3.0 * sigma,
+                kernel=sigma,
+            )
+        if self.planar:
+            new_pose = se2_to_matrix(*matrix_to_se2(new_pose))
+        self._threshold.update_model_deviation(inverse(initial_guess) @ new_pose)
+        self._local_map.update(frame_down, new_pose)
+        self._advance(new_pose)
+        return new_pose, frame
+
+    def _predicted_delta(self, scan: Scan) -> np.ndarray:
+        wheel = scan.odometry if self.config.use_wheel_odometry else None
+        if wheel is not None and self._last_wheel is not None:
+            delta = inverse(self._last_wheel) @ wheel
+        else:
+            delta = self.last_delta
+        self._last_wheel = wheel
+        return delta
+
+    def _advance(self, new_pose: np.ndarray) -> None:
+        self.last_delta = inverse(self.last_pose) @ new_pose
+        self.last_pose = new_pose
+        self.n_registered += 1

@@ -1,0 +1,134 @@
+"""Local submaps: consecutive scans fused in the submap's own anchor frame (virtual sensors).
+
+A submap's anchor is the pose of its first scan. Scans are stored as ``T_anchor_scan`` and
+their points are fused into a voxel-downsampled cloud in the anchor frame. Once closed a
+submap is a rigid unit; the global optimiser only moves its anchor.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .config import SubmapConfig
+from .geometry import inverse, transform_points
+
+
+def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Keep one point (the centroid) per occupied voxel; ``(N, 3)`` -> ``(M, 3)``."""
+    from kiss_icp.voxelization import voxel_down_sample
+
+    if len(points) == 0:
+        return points.reshape(0, 3)
+    return np.asarray(voxel_down_sample(np.ascontiguousarray(points), voxel), dtype=np.float64)
+
+
+@dataclass
+class Submap:
+    """A closed (or growing) submap.
+
+    Attributes:
+        id: 0-based submap index (= its node key in the pose graph).
+        scan_indices: indices of the scans fused into it, in order.
+        T_odom_anchor: ``(4, 4)`` anchor pose in the odometry frame (before optimisation).
+        T_anchor_scans: ``(K, 4, 4)`` scan poses in the anchor frame.
+        points: ``(M, 3)`` fused, voxel-downsampled points in the anchor frame.
+        distance: path length covered [m].
+        planar: 2D laser submap (all z = 0).
+    """
+
+    id: int
+    scan_indices: list[int]
+    T_odom_anchor: np.ndarray
+    T_anchor_scans: np.ndarray
+    points: np.ndarray
+    distance: float
+    planar: bool
+    descriptor: np.ndarray | None = None
+    extras: dict = field(default_factory=dict)
+
+
+class SubmapBuilder:
+    """Accumulate registered scans; emit a :class:`Submap` when a cut criterion is met.
+
+    Consecutive submaps share one scan: the last scan of submap k is the anchor of k + 1, so
+    the odometry edge between anchors is exactly the last ``T_anchor_scan`` of submap k.
+    """
+
+    def __init__(self, config: SubmapConfig, voxel_size: float, planar: bool) -> None:
+        self.config = config
+        self.voxel = voxel_size
+        self.planar = planar
+        self._next_id = 0
+        self._reset(None)
+
+    def _reset(self, seed: tuple[int, np.ndarray, np.ndarray] | None) -> None:
+        self._indices: list[int] = []
+        self._poses: list[np.ndarray] = []
+        self._chunks: list[np.ndarray] = []
+        self._buffered = 0
+        self._fused = np.zeros((0, 3))
+        self._distance = 0.0
+        self._T_odom_anchor: np.ndarray | None = None
+        if seed is not None:
+            self.add(*seed)
+
+    @property
+    def current_anchor(self) -> np.ndarray | None:
+        """``T_odom_anchor`` of the submap being built, or None before the first scan."""
+        return self._T_odom_anchor
+
+    def add(self, index: int, T_odom_scan: np.ndarray, points: np.ndarray) -> Submap | None:
+        """Add one scan (points ``(N, 3)`` in its sensor frame); return a submap when one closes."""
+        if self._T_odom_anchor is None:
+            self._T_odom_anchor = T_odom_scan.copy()
+        T_anchor_scan = inverse(self._T_odom_anchor) @ T_odom_scan
+        if self._poses:
+            self._distance += float(np.linalg.norm(T_anchor_scan[:3, 3] - self._poses[-1][:3, 3]))
+        self._indices.append(index)
+        self._poses.append(T_anchor_scan)
+        self._chunks.append(transform_points(T_anchor_scan, points))
+        self._buffered += len(points)
+        if self._buffered > 50_000:
+            self._compact()
+        if self._distance >= self.config.max_distance or len(self._indices) >= self.config.max_scans:
+            submap = self._close()
+            self._reset((index, T_odom_scan, points))
+            return submap
+        return None
+
+    def _compact(self) -> None:
+        if self._chunks:
+            self._fused = voxel_downsample(np.vstack([self._fused, *self._chunks]), self.voxel)
+            self._chunks = []
+            self._buffered = 0
+
+    def _close(self) -> Submap:
+        self._compact()
+        submap = Submap(
+            id=self._next_id,
+            scan_indices=list(self._indices),
+            T_odom_anchor=self._T_odom_anchor.copy(),
+            T_anchor_scans=np.array(self._poses),
+            points=self._fused,
+            distance=self._distance,
+            planar=self.planar,
+        )
+        self._next_id += 1
+        return submap
+
+    def flush(self) -> Submap | None:
+        """Close the submap being built (end of log); None when it holds only the shared scan."""
+        if len(self._indices) <= 1 and self._next_id > 0:
+            return None
+        if not self._indices:
+            return None
+        submap = self._close()
+        self._reset(None)
+        return submap
+
+    def current_points(self) -> np.ndarray:
+        """Points of the growing submap, ``(M, 3)`` in its anchor frame."""
+        self._compact()
+        return self._fused
