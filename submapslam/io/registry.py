@@ -59,6 +59,4 @@ def open_log(path: str | Path, format: str | None = None) -> LogReader:
 
 
 def _ensure_builtin() -> None:
-    if _READERS:
-        return
-    from . import carmen, cloud_folder  # noqa: F401  (registration side effect)
+    from . import carmen, cloud_folder  # noqa: F401  (importing registers the readers)

@@ -1,0 +1,143 @@
+import bz2
+import gzip
+import itertools
+
+import numpy as np
+import pytest
+
+from submapslam.errors import InputError, UnknownFormatError
+from submapslam.io.carmen import beam_angles
+from submapslam.io.registry import available_formats, open_log
+
+from .conftest import shared_data
+
+
+def carmen_line(ranges, pose=(1.0, 2.0, 0.5), ts=100.0):
+    r = " ".join(f"{v:.2f}" for v in ranges)
+    x, y, t = pose
+    return f"FLASER {len(ranges)} {r} {x} {y} {t} {x} {y} {t} {ts:.6f} host {ts - 99:.6f}\n"
+
+
+def write_log(path, lines, opener=open):
+    with opener(path, "wt") as fh:
+        fh.write("# CARMEN log\nPARAM robot_frontlaser_offset 0.0 nohost 0\n")
+        fh.write("ODOM 0 0 0 0 0 0 99.0 host 0.0\n")
+        fh.writelines(lines)
+
+
+def test_beam_angles_follow_the_carmen_convention():
+    a = beam_angles(180)
+    assert a[0] == pytest.approx(-np.pi / 2) and a[1] - a[0] == pytest.approx(np.deg2rad(1.0))
+    a = beam_angles(361)
+    assert a[0] == pytest.approx(-np.pi / 2) and a[-1] == pytest.approx(np.pi / 2)
+    assert beam_angles(180, rear=True)[0] == pytest.approx(np.pi / 2)
+
+
+@pytest.mark.parametrize("suffix,opener", [(".clf", open), (".clf.gz", gzip.open), (".log.bz2", bz2.open)])
+def test_carmen_points_pose_and_timestamp(tmp_path, suffix, opener):
+    path = tmp_path / f"a{suffix}"
+    ranges = np.full(181, 2.0)
+    ranges[5] = 81.9  # no return
+    write_log(path, [carmen_line(ranges, ts=100.5), carmen_line(ranges, (2.0, 2.0, 0.0), ts=100.6)], opener)
+    scans = list(open_log(path))
+    assert len(scans) == 2
+    s = scans[0]
+    assert s.planar and s.timestamp == pytest.approx(100.5)
+    assert s.points.shape == (180, 3)  # the 81.9 m reading is dropped
+    np.testing.assert_allclose(np.linalg.norm(s.points, axis=1), 2.0)
+    np.testing.assert_allclose(s.points[:, 2], 0.0)
+    # first beam points to the right (-90 deg)
+    np.testing.assert_allclose(s.points[0], [0.0, -2.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(s.odometry[:2, 3], [1.0, 2.0])
+    assert s.odometry[0, 0] == pytest.approx(np.cos(0.5))
+
+
+def test_truncated_carmen_log_names_file_and_line(tmp_path):
+    path = tmp_path / "trunc.clf"
+    good = carmen_line(np.full(180, 3.0))
+    write_log(path, [good, good, good[: len(good) // 2] + "\n"])
+    it = iter(open_log(path))
+    assert len(list(itertools.islice(it, 2))) == 2  # scans before the damage are delivered
+    with pytest.raises(InputError, match=r"trunc\.clf:6: FLASER line is truncated"):
+        next(it)
+
+
+def test_garbled_carmen_line(tmp_path):
+    path = tmp_path / "garbled.clf"
+    line = carmen_line(np.full(180, 3.0)).replace("3.00", "3.x0", 1)
+    write_log(path, [line])
+    with pytest.raises(InputError, match=r"garbled\.clf:4: FLASER line has a non-numeric field"):
+        list(open_log(path))
+    path.write_text("\x00\x01binary junk here\n")
+    with pytest.raises(InputError, match="garbled line|no FLASER"):
+        list(open_log(path, "carmen"))
+
+
+def test_unknown_and_forced_format(tmp_path):
+    p = tmp_path / "thing.xyz"
+    p.write_text("hello world\n")
+    with pytest.raises(UnknownFormatError, match="cannot tell the log format"):
+        open_log(p)
+    with pytest.raises(UnknownFormatError, match="unknown format 'nope'"):
+        open_log(p, "nope")
+    with pytest.raises(InputError, match="no such file"):
+        open_log(tmp_path / "missing.clf")
+    assert {"carmen", "cloud_folder"} <= set(available_formats())
+
+
+def test_real_intel_log_head():
+    path = shared_data("carmen", "intel.clf.bz2")
+    scans = list(itertools.islice(open_log(path), 50))
+    assert len(scans) == 50
+    assert all(s.points.shape[1] == 3 and 100 <= len(s.points) <= 180 for s in scans)
+    assert scans[0].timestamp == pytest.approx(976052857.337530, abs=1e-6)
+    # real logs jitter a little (ipc timestamps are not strictly monotonic), but move forward
+    assert np.mean(np.diff([s.timestamp for s in scans]) > 0) > 0.9
+
+
+def write_bin(path, pts):
+    rec = np.zeros((len(pts), 4), np.float32)
+    rec[:, :3] = pts
+    rec.tofile(path)
+
+
+def test_kitti_bin_folder_with_times_and_odometry(tmp_path):
+    (tmp_path / "velodyne").mkdir()
+    rng = np.random.default_rng(0)
+    clouds = [rng.normal(size=(100, 3)) for _ in range(3)]
+    for k, c in enumerate(clouds):
+        write_bin(tmp_path / "velodyne" / f"{k:06d}.bin", c)
+    (tmp_path / "times.txt").write_text("0.0\n0.1\n0.2\n")
+    (tmp_path / "odometry_tum.txt").write_text(
+        "0.0 0 0 0 0 0 0 1\n0.1 1 0 0 0 0 0 1\n0.2 2 0 0 0 0 0 1\n")
+    scans = list(open_log(tmp_path))
+    assert [s.timestamp for s in scans] == [0.0, 0.1, 0.2]
+    np.testing.assert_allclose(scans[1].points, clouds[1], atol=1e-6)
+    np.testing.assert_allclose(scans[2].odometry[:3, 3], [2, 0, 0])
+    assert not scans[0].planar
+
+
+def test_bad_bin_size_and_short_times(tmp_path):
+    (tmp_path / "000000.bin").write_bytes(b"\x00" * 10)
+    with pytest.raises(InputError, match="not a whole number"):
+        list(open_log(tmp_path))
+    (tmp_path / "000000.bin").write_bytes(b"\x00" * 16)
+    (tmp_path / "000001.bin").write_bytes(b"\x00" * 16)
+    (tmp_path / "times.txt").write_text("0.0\n")
+    with pytest.raises(InputError, match="1 timestamps for 2 scans"):
+        open_log(tmp_path)
+
+
+def test_empty_folder_is_unknown(tmp_path):
+    with pytest.raises(UnknownFormatError):
+        open_log(tmp_path)
+
+
+def test_real_mulran_pcd_folder():
+    folder = shared_data("lidar3d", "mulran_kaist03")
+    reader = open_log(folder)
+    assert len(reader) == 21
+    scan = next(iter(reader))
+    assert 30_000 < len(scan.points) < 45_000
+    assert np.isfinite(scan.points).all()
+    assert scan.timestamp > 1e9  # unix time from times.txt.xz
