@@ -1,0 +1,42 @@
+"""submapslam: autonomous map building with submaps, a topological submap graph, GTSAM and an
+EKF stochastic-map reference.
+
+Public API::
+
+    from submapslam import SubmapSLAM, load_config, open_log, run, write_results
+"""
+
+from __future__ import annotations
+
+__version__ = "0.1.0"
+
+from .config import PipelineConfig, dump_config, load_config  # noqa: E402
+from .errors import ConfigError, InputError, SubmapSlamError  # noqa: E402
+from .io.registry import open_log  # noqa: E402
+from .io.scan import Scan  # noqa: E402
+
+__all__ = [
+    "ConfigError", "InputError", "PipelineConfig", "Scan", "SubmapSLAM", "SubmapSlamError",
+    "SlamResult", "dump_config", "load_config", "open_log", "run", "run_log", "write_results",
+]
+
+
+def __getattr__(name: str):
+    """Lazy access to the heavy parts (gtsam/open3d/kiss-icp load on first use)."""
+    if name in ("SubmapSLAM", "run"):
+        from . import pipeline
+
+        return getattr(pipeline, name)
+    if name == "SlamResult":
+        from .result import SlamResult
+
+        return SlamResult
+    if name == "write_results":
+        from .io.results import write_results
+
+        return write_results
+    if name == "run_log":
+        from .api import run_log
+
+        return run_log
+    raise AttributeError(name)

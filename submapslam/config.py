@@ -65,8 +65,13 @@ class LoopConfig(_Strict):
 class BackendConfig(_Strict):
     """GTSAM pose graph."""
 
-    robust_kernel: Literal["huber", "cauchy", "gm", "none"] = "cauchy"
-    robust_scale: float = Field(1.0, gt=0)
+    robust_kernel: Literal["gnc", "huber", "cauchy", "gm", "none"] = Field(
+        "gnc",
+        description="loop-edge outlier handling: 'gnc' = Gaussian in iSAM2 (loops are verified "
+        "first) + graduated non-convexity (TLS) in the final batch; else an M-estimator everywhere",
+    )
+    robust_scale: float = Field(3.0, gt=0, description="M-estimator scale [whitened units]")
+    gnc_inlier_probability: float = Field(0.99, gt=0, lt=1)
     incremental: bool = Field(True, description="iSAM2 update at every submap")
     final_batch: bool = Field(True, description="Levenberg-Marquardt pass at the end")
     odometry_sigma_floor_m: float = Field(0.02, gt=0)

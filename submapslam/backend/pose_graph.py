@@ -59,6 +59,8 @@ class PoseGraph:
         self._estimate = gtsam.Values()
         self._initial: dict[int, np.ndarray] = {}
         self.edges: list[GraphEdge] = []
+        self._factor_edges: dict[int, int] = {}
+        self._marginal_graph = None  # factor index in _graph -> index in edges
         self.n_updates = 0
 
     # ------------------------------------------------------------------ building
@@ -67,7 +69,7 @@ class PoseGraph:
         info = 0.5 * (information + information.T)
         base = gtsam.noiseModel.Gaussian.Information(info)
         kernel = self.config.robust_kernel
-        if not robust or kernel == "none":
+        if not robust or kernel in ("none", "gnc"):
             return base
         k = self.config.robust_scale
         est = {
@@ -93,6 +95,7 @@ class PoseGraph:
         f = gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(np.asarray(T_i_j, dtype=np.float64)),
                                      self._noise(information, robust=(kind == "loop")))
         self._pending_graph.add(f)
+        self._factor_edges[self._graph.size()] = len(self.edges)
         self._graph.add(f)
         self.edges.append(GraphEdge(i, j, np.array(T_i_j), np.array(information), kind))
 
@@ -107,17 +110,42 @@ class PoseGraph:
         self._estimate = self._isam.calculateEstimate()
         self.n_updates += 1
 
-    def optimize_batch(self, max_iterations: int = 100) -> None:
-        """Levenberg-Marquardt on the whole graph from the current estimate."""
+    def optimize_batch(self, max_iterations: int = 100) -> dict[tuple[int, int], float]:
+        """Batch pass on the whole graph from the current estimate.
+
+        With ``robust_kernel="gnc"``: graduated non-convexity (truncated least squares) over LM,
+        odometry edges and priors known inliers; returns the final weight of each loop edge
+        ``{(i, j): w}`` (0 = rejected as an outlier). Otherwise plain LM; weights are all 1.
+        """
         gtsam = self._gtsam
         if self._pending_graph.size() or self._pending_values.size():
             self.update()
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(max_iterations)
-        params.setVerbosityLM("SILENT")
-        opt = gtsam.LevenbergMarquardtOptimizer(self._graph, self._estimate, params)
-        self._estimate = opt.optimize()
-        self._batch_done = True
+        lm = gtsam.LevenbergMarquardtParams()
+        lm.setMaxIterations(max_iterations)
+        lm.setVerbosityLM("SILENT")
+        loop_factors = {idx: key for idx, key in self._factor_edges.items() if self.edges[key].kind == "loop"}
+        weights = {(e.i, e.j): 1.0 for e in self.edges if e.kind == "loop"}
+        if self.config.robust_kernel == "gnc" and loop_factors:
+            params = gtsam.GncLMParams(lm)
+            params.setLossType(gtsam.GncLossType.TLS)
+            params.setKnownInliers([i for i in range(self._graph.size()) if i not in loop_factors])
+            opt = gtsam.GncLMOptimizer(self._graph, self._estimate, params)
+            opt.setInlierCostThresholdsAtProbability(self.config.gnc_inlier_probability)
+            self._estimate = opt.optimize()
+            w = np.asarray(opt.getWeights())
+            for idx, key in loop_factors.items():
+                e = self.edges[key]
+                weights[(e.i, e.j)] = float(w[idx])
+            outliers = {idx for idx in loop_factors if w[idx] < 0.5}
+            if outliers:  # marginals must not see the rejected edges
+                inliers = gtsam.NonlinearFactorGraph()
+                for idx in range(self._graph.size()):
+                    if idx not in outliers:
+                        inliers.add(self._graph.at(idx))
+                self._marginal_graph = inliers
+        else:
+            self._estimate = gtsam.LevenbergMarquardtOptimizer(self._graph, self._estimate, lm).optimize()
+        return weights
 
     def pose(self, key: int) -> np.ndarray:
         """Current ``T_world_node`` of one node (initial guess if not yet optimised)."""
@@ -136,24 +164,8 @@ class PoseGraph:
         """Marginal covariances of every node at the current estimate (batch Marginals)."""
         gtsam = self._gtsam
         try:
-            marg = gtsam.Marginals(self._graph, self._estimate)
+            marg = gtsam.Marginals(self._marginal_graph or self._graph, self._estimate)
             return {k: np.asarray(marg.marginalCovariance(k)) for k in self._initial}
         except RuntimeError as exc:  # indeterminant system; fall back to iSAM2's
             log.warning("batch marginals failed (%s); using iSAM2 marginals", exc)
             return {k: self.marginal_covariance(k) for k in self._initial}
-
-    def loop_residual_weights(self) -> dict[tuple[int, int], float]:
-        """Robust-kernel weight of every loop edge at the current estimate (1 = fully trusted)."""
-        weights = {}
-        for idx in range(self._graph.size()):
-            f = self._graph.at(idx)
-            if not isinstance(f, self._gtsam.BetweenFactorPose3):
-                continue
-            i, j = f.keys()
-            nm = f.noiseModel()
-            if isinstance(nm, self._gtsam.noiseModel.Robust):
-                err = f.unwhitenedError(self._estimate)
-                w = nm.robust().weight(float(np.sqrt(max(0.0, 2 * f.error(self._estimate)))))
-                weights[(int(i), int(j))] = float(w)
-                _ = err
-        return weights

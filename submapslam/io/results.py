@@ -1,0 +1,73 @@
+"""Write a :class:`~submapslam.result.SlamResult` to a folder in formats other tools read."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+
+from ..config import dump_config
+from ..geometry import matrix_to_se2
+from ..result import SlamResult
+from .g2o import write_g2o
+from .ply import write_ply
+from .trajectory import Trajectory, write_kitti, write_tum
+
+
+def write_results(result: SlamResult, out_dir: str | Path) -> dict[str, Path]:
+    """Write every output file; return ``{name: path}``.
+
+    Files: ``poses_tum.txt``, ``poses_kitti.txt``, ``odometry_tum.txt``, ``graph.g2o``,
+    ``map.ply``, ``config.yaml``, ``summary.json``, ``loops.csv``, ``submaps.csv`` (anchor poses
+    and marginal standard deviations).
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {name: out / name for name in (
+        "poses_tum.txt", "poses_kitti.txt", "odometry_tum.txt", "graph.g2o", "map.ply",
+        "config.yaml", "summary.json", "loops.csv", "submaps.csv")}
+    write_tum(paths["poses_tum.txt"], Trajectory(result.timestamps, result.poses))
+    write_kitti(paths["poses_kitti.txt"], result.poses)
+    write_tum(paths["odometry_tum.txt"], Trajectory(result.timestamps, result.odometry_poses))
+    write_g2o(paths["graph.g2o"], result.submap_poses, result.edges)
+    write_ply(paths["map.ply"], fused_map(result))
+    paths["config.yaml"].write_text(dump_config(result.config))
+    paths["summary.json"].write_text(json.dumps(result.summary(), indent=2) + "\n")
+    _write_loops(paths["loops.csv"], result)
+    _write_submaps(paths["submaps.csv"], result)
+    return paths
+
+
+def fused_map(result: SlamResult, voxel: float | None = None) -> np.ndarray:
+    """All submap clouds in the world frame, voxel-downsampled: ``(M, 3)``."""
+    from ..submaps import voxel_downsample
+
+    voxel = voxel or result.config.mapping.map_voxel_size
+    chunks = [pts @ T[:3, :3].T + T[:3, 3] for T, pts in zip(result.submap_poses, result.submap_points)]
+    if not chunks:
+        return np.zeros((0, 3))
+    return voxel_downsample(np.vstack(chunks), voxel)
+
+
+def _write_loops(path: Path, result: SlamResult) -> None:
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["submap_i", "submap_j", "source", "accepted", "fitness", "overlap", "inlier_rmse", "reason"])
+        for lp in result.loops:
+            w.writerow([lp.i, lp.j, lp.source, int(lp.accepted), f"{lp.fitness:.4f}", f"{lp.overlap:.4f}",
+                        f"{lp.inlier_rmse:.4f}", lp.reason])
+
+
+def _write_submaps(path: Path, result: SlamResult) -> None:
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["id", "first_scan", "last_scan", "x", "y", "z", "yaw",
+                    "sigma_x", "sigma_y", "sigma_z", "sigma_roll", "sigma_pitch", "sigma_yaw"])
+        for k, (T, cov, idx) in enumerate(zip(result.submap_poses, result.submap_covariances,
+                                               result.submap_scan_indices)):
+            sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+            x, y, yaw = matrix_to_se2(T)
+            w.writerow([k, idx[0], idx[-1], f"{x:.4f}", f"{y:.4f}", f"{T[2, 3]:.4f}", f"{yaw:.6f}",
+                        *(f"{v:.6g}" for v in (sd[3], sd[4], sd[5], sd[0], sd[1], sd[2]))])

@@ -1,0 +1,290 @@
+"""The streaming engine: scans -> odometry -> submaps -> submap graph -> GTSAM -> SlamResult.
+
+Use it as a stream (``SubmapSLAM.process_scan`` then read ``trajectory()`` / ``map_points()`` at
+any moment) or in one call (``run(log)``). Data flows one way; nothing here writes files.
+"""
+
+from __future__ import annotations
+
+import logging
+import resource
+import time
+from collections.abc import Callable, Iterable
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from .backend.pose_graph import PoseGraph
+from .config import PipelineConfig
+from .errors import InputError, SubmapSlamError
+from .geometry import inverse, rotation_angle
+from .io.scan import Scan
+from .odometry import Odometry
+from .result import LoopRecord, SlamResult
+from .submaps import Submap, SubmapBuilder, voxel_downsample
+
+log = logging.getLogger(__name__)
+
+PRIOR_INFORMATION = np.diag([1e8] * 6)
+
+
+class StageTimer:
+    """Accumulates wall time per named stage."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def __call__(self, stage: str):
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - t0
+
+
+def peak_memory_mb() -> float:
+    """Peak resident memory of this process [MiB] (Linux ru_maxrss is in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def odometry_information(T_i_j: np.ndarray, distance: float, planar: bool, config) -> np.ndarray:
+    """Information ``(6, 6)`` (GTSAM order) of an odometry edge between consecutive anchors.
+
+    Drift model: translation sigma 2% of the distance travelled plus a floor, rotation sigma
+    0.5 deg per metre plus 5% of the turned angle plus a floor. For planar logs z, roll and
+    pitch are pinned (they are not observable and must not drift).
+    """
+    angle = rotation_angle(T_i_j)
+    s_t = config.odometry_sigma_floor_m + 0.02 * distance
+    s_r = np.deg2rad(config.odometry_sigma_floor_deg) + np.deg2rad(0.5) * distance + 0.05 * angle
+    sig = np.array([s_r, s_r, s_r, s_t, s_t, s_t])
+    if planar:
+        sig[[0, 1, 5]] = 1e-4
+    return np.diag(1.0 / sig**2)
+
+
+class SubmapSLAM:
+    """Streaming SLAM engine.
+
+    Frames: the world frame is the pose of the first scan (its odometry pose is identity).
+    """
+
+    def __init__(self, config: PipelineConfig | None = None, hints: list[tuple[int, int]] | None = None) -> None:
+        self.config = config or PipelineConfig()
+        self.timer = StageTimer()
+        self.planar: bool | None = None
+        self._odometry: Odometry | None = None
+        self._builder: SubmapBuilder | None = None
+        self._graph = PoseGraph(self.config.backend)
+        self._loop_closer = None
+        self._hints = list(hints or [])
+        self.timestamps: list[float] = []
+        self._odom_poses: list[np.ndarray] = []
+        self._scan_submap: list[int] = []  # submap id per scan, -1 while in the growing submap
+        self.submaps: list[Submap] = []
+        self.loops: list[LoopRecord] = []
+        self.dropped_nan_points = 0
+        self.empty_scans = 0
+
+    # ------------------------------------------------------------------ streaming
+    def process_scan(self, scan: Scan) -> None:
+        """Register one scan and update submaps, graph and loops as needed."""
+        if self.planar is None:
+            self._start(scan)
+        points = scan.points
+        finite = np.isfinite(points).all(axis=1)
+        if not finite.all():
+            self.dropped_nan_points += int((~finite).sum())
+            log.debug("%s: dropped %d non-finite points", scan.source, int((~finite).sum()))
+            scan.points = points[finite]
+            if scan.point_times is not None:
+                scan.point_times = scan.point_times[finite]
+        if len(scan.points) == 0:
+            self.empty_scans += 1
+        with self.timer("odometry"):
+            T_odom_base, frame = self._odometry.register(scan)
+        self.timestamps.append(scan.timestamp)
+        self._odom_poses.append(T_odom_base)
+        self._scan_submap.append(-1)
+        with self.timer("submaps"):
+            submap = self._builder.add(len(self.timestamps) - 1, T_odom_base, frame)
+        if submap is not None:
+            self._close_submap(submap)
+
+    def _start(self, scan: Scan) -> None:
+        self.planar = bool(scan.planar)
+        cfg = self.config
+        self._odometry = Odometry(cfg.odometry, self.planar)
+        voxel = cfg.submaps.voxel_size or self._odometry.voxel_size / 2.0
+        self._builder = SubmapBuilder(cfg.submaps, voxel, self.planar)
+        if cfg.loops.enabled:
+            from .topology.loop_closure import LoopCloser
+
+            self._loop_closer = LoopCloser(cfg.loops, planar=self.planar, voxel_size=voxel,
+                                           max_range=cfg.odometry.max_range, timer=self.timer)
+
+    def _close_submap(self, submap: Submap) -> None:
+        self.submaps.append(submap)
+        for idx in submap.scan_indices:
+            self._scan_submap[idx] = submap.id
+        k = submap.id
+        with self.timer("optimisation"):
+            if k == 0:
+                self._graph.add_node(0, submap.T_odom_anchor, PRIOR_INFORMATION)
+            else:
+                prev = self.submaps[k - 1]
+                T_prev_k = inverse(prev.T_odom_anchor) @ submap.T_odom_anchor
+                info = odometry_information(T_prev_k, prev.distance, self.planar, self.config.backend)
+                self._graph.add_node(k, self._graph.pose(k - 1) @ T_prev_k)
+                self._graph.add_between(k - 1, k, T_prev_k, info, "odometry")
+            self._graph.update()
+        if self._loop_closer is not None:
+            records = self._loop_closer.process(submap, self.submaps, self._graph, self._hint_pairs())
+            self.loops.extend(records)
+            if any(r.accepted for r in records):
+                with self.timer("optimisation"):
+                    self._graph.update(extra_iterations=2)
+
+    def _hint_pairs(self) -> list[tuple[int, int]]:
+        """Manual hints (scan index pairs) whose scans are both in closed submaps."""
+        pairs = []
+        for a, b in self._hints:
+            if max(a, b) < len(self._scan_submap):
+                sa, sb = self._scan_submap[a], self._scan_submap[b]
+                if sa >= 0 and sb >= 0 and sa != sb:
+                    pairs.append((min(sa, sb), max(sa, sb)))
+        return pairs
+
+    # ------------------------------------------------------------------ reading state
+    def _corrections(self) -> dict[int, np.ndarray]:
+        """Per closed submap: ``T_world_odom`` correction = optimised anchor @ odom anchor^-1."""
+        return {s.id: self._graph.pose(s.id) @ inverse(s.T_odom_anchor) for s in self.submaps}
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """Current ``(timestamps (N,), T_world_base (N, 4, 4))`` of every scan so far."""
+        corr = self._corrections()
+        last = corr[max(corr)] if corr else np.eye(4)
+        poses = np.array(self._odom_poses).reshape(-1, 4, 4)
+        ids = np.array(self._scan_submap, dtype=int)
+        out = np.empty_like(poses)
+        for n, sid in enumerate(ids):
+            out[n] = (corr[sid] if sid >= 0 else last) @ poses[n]
+        return np.asarray(self.timestamps), out
+
+    def map_points(self, voxel: float | None = None) -> np.ndarray:
+        """Fused map ``(M, 3)`` in the world frame from the optimised submap anchors."""
+        voxel = voxel or self.config.mapping.map_voxel_size
+        chunks = [
+            s.points @ self._graph.pose(s.id)[:3, :3].T + self._graph.pose(s.id)[:3, 3]
+            for s in self.submaps
+        ]
+        if self._builder is not None and self.submaps:
+            growing = self._builder.current_points()
+            T = self._corrections()[self.submaps[-1].id] @ self._builder.current_anchor
+            chunks.append(growing @ T[:3, :3].T + T[:3, 3])
+        if not chunks:
+            return np.zeros((0, 3))
+        return voxel_downsample(np.vstack(chunks), voxel)
+
+    # ------------------------------------------------------------------ finishing
+    def finish(self, input_error: str | None = None, source: str = "") -> SlamResult:
+        """Close the last submap, run the final batch optimisation and build the result."""
+        if self.planar is None:
+            raise SubmapSlamError(f"{source or 'log'}: no scans were processed")
+        last = self._builder.flush()
+        if last is not None:
+            self._close_submap(last)
+        with self.timer("optimisation"):
+            weights = {}
+            if self.config.backend.final_batch and self.submaps:
+                weights = self._graph.optimize_batch()
+            covs = self._graph.all_marginal_covariances()
+        rejected = {key for key, w in weights.items() if w < 0.5}
+        for rec in self.loops:
+            if rec.accepted and (rec.i, rec.j) in rejected:
+                rec.accepted = False
+                rec.reason = f"rejected by the optimiser (GNC weight {weights[(rec.i, rec.j)]:.2f})"
+        timestamps, poses = self.trajectory()
+        n = len(self.submaps)
+        return SlamResult(
+            timestamps=timestamps,
+            poses=poses,
+            odometry_poses=np.array(self._odom_poses),
+            submap_poses=np.array([self._graph.pose(k) for k in range(n)]).reshape(-1, 4, 4),
+            submap_covariances=np.array([covs[k] for k in range(n)]).reshape(-1, 6, 6),
+            submap_points=[s.points for s in self.submaps],
+            submap_scan_indices=[s.scan_indices for s in self.submaps],
+            edges=[(e.i, e.j, e.T_i_j, e.information, e.kind) for e in self._graph.edges
+                   if (e.i, e.j) not in rejected or e.kind != "loop"],
+            loops=self.loops,
+            planar=bool(self.planar),
+            config=self.config,
+            stage_seconds=dict(self.timer.seconds),
+            peak_memory_mb=peak_memory_mb(),
+            input_error=input_error,
+            source=source,
+        )
+
+
+def run(
+    scans: Iterable[Scan],
+    config: PipelineConfig | None = None,
+    *,
+    source: str = "",
+    progress: Callable[[int], None] | None = None,
+    hints: list[tuple[float, float]] | None = None,
+) -> SlamResult:
+    """Run the whole pipeline on an iterable of scans (e.g. ``open_log(path)``).
+
+    An :class:`InputError` raised by the reader mid-log does not lose the scans already read:
+    the result covers them and carries the message in ``input_error``.
+    """
+    config = config or PipelineConfig()
+    slam = SubmapSLAM(config)
+    pending_hints = list(hints or [])
+    input_error = None
+    iterator = iter(scans)
+    n = 0
+    while True:
+        try:
+            with slam.timer("read"):
+                scan = next(iterator)
+        except StopIteration:
+            break
+        except InputError as exc:
+            if n == 0:
+                raise
+            input_error = str(exc)
+            log.warning("stopped reading: %s", exc)
+            break
+        slam.process_scan(scan)
+        n += 1
+        if pending_hints:
+            slam._hints = _resolve_hints(pending_hints, slam.timestamps)
+        if progress is not None:
+            progress(n)
+        if config.max_scans is not None and n >= config.max_scans:
+            break
+    return slam.finish(input_error=input_error, source=source)
+
+
+def _resolve_hints(hints: list[tuple[float, float]], timestamps: list[float]) -> list[tuple[int, int]]:
+    """Map hint pairs to scan indices: integers are indices, other values timestamps."""
+    stamps = np.asarray(timestamps)
+    out = []
+    for a, b in hints:
+        ia = _hint_index(a, stamps)
+        ib = _hint_index(b, stamps)
+        if ia is not None and ib is not None:
+            out.append((ia, ib))
+    return out
+
+
+def _hint_index(value: float, stamps: np.ndarray) -> int | None:
+    if float(value).is_integer() and value < 1e6:
+        return int(value) if value < len(stamps) else None
+    if len(stamps) == 0 or value > stamps[-1]:
+        return None
+    return int(np.argmin(np.abs(stamps - value)))

@@ -1,0 +1,89 @@
+"""The result object of a run: everything writers and reports need, no files involved."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .config import PipelineConfig
+
+
+@dataclass
+class LoopRecord:
+    """One tested cycle hypothesis between submaps ``i`` (older) and ``j`` (newer)."""
+
+    i: int
+    j: int
+    source: str  # "spatial" | "descriptor" | "hint"
+    accepted: bool
+    fitness: float
+    overlap: float
+    inlier_rmse: float
+    reason: str
+    T_i_j: np.ndarray | None = None
+
+
+@dataclass
+class SlamResult:
+    """Output of :func:`submapslam.pipeline.run`.
+
+    Attributes:
+        timestamps: ``(N,)`` scan timestamps as the log gives them, input order.
+        poses: ``(N, 4, 4)`` optimised ``T_world_base`` per scan (world = first scan's frame).
+        odometry_poses: ``(N, 4, 4)`` the same before loop closure (odometry only).
+        submap_poses: ``(S, 4, 4)`` optimised ``T_world_submap`` anchors.
+        submap_covariances: ``(S, 6, 6)`` marginal covariances of the anchors, GTSAM order
+            ``(rx, ry, rz, tx, ty, tz)`` in the anchor frame.
+        submap_points: list of ``(M_k, 3)`` submap clouds in their anchor frames.
+        submap_scan_indices: list of scan-index lists per submap.
+        edges: ``(i, j, T_i_j (4,4), information (6,6), kind)`` tuples of the submap graph.
+        loops: every tested hypothesis.
+        stage_seconds: wall time per stage.
+        input_error: message of an input error that stopped reading early (results cover
+            the scans read before it), else None.
+    """
+
+    timestamps: np.ndarray
+    poses: np.ndarray
+    odometry_poses: np.ndarray
+    submap_poses: np.ndarray
+    submap_covariances: np.ndarray
+    submap_points: list[np.ndarray]
+    submap_scan_indices: list[list[int]]
+    edges: list[tuple]
+    loops: list[LoopRecord]
+    planar: bool
+    config: PipelineConfig
+    stage_seconds: dict[str, float] = field(default_factory=dict)
+    peak_memory_mb: float = 0.0
+    input_error: str | None = None
+    source: str = ""
+
+    @property
+    def n_scans(self) -> int:
+        return len(self.timestamps)
+
+    @property
+    def n_submaps(self) -> int:
+        return len(self.submap_poses)
+
+    @property
+    def loops_accepted(self) -> int:
+        return sum(1 for lp in self.loops if lp.accepted)
+
+    def summary(self) -> dict:
+        """Figures for ``summary.json``."""
+        return {
+            "source": self.source,
+            "scans": self.n_scans,
+            "submaps": self.n_submaps,
+            "planar": self.planar,
+            "loop_candidates_tested": len(self.loops),
+            "loop_closures_accepted": self.loops_accepted,
+            "loop_closures_rejected": len(self.loops) - self.loops_accepted,
+            "wall_time_s": {k: round(v, 3) for k, v in self.stage_seconds.items()},
+            "wall_time_total_s": round(sum(self.stage_seconds.values()), 3),
+            "peak_memory_mb": round(self.peak_memory_mb, 1),
+            "input_error": self.input_error,
+        }

@@ -1,0 +1,186 @@
+"""Cycle hypotheses on the submap graph: propose, test, check, then hand to the optimiser.
+
+For every closed submap ``k`` the graph proposes hypotheses ``(i, k)`` with older submaps:
+    * spatial: anchors that may be close given the current estimate and its marginal
+      covariance (the search radius grows with uncertainty);
+    * descriptor: place recognition, independent of drift;
+    * hints: manual pairs ("a button pushed at a known landmark").
+Each goes through the correspondence test (coarse alignment without a good guess, then fine
+registration, gated on fitness, inlier RMSE and overlap), then the seed's check: the implied
+transform must also explain the submaps adjacent to ``i`` ("move to adjacent nodes and see
+whether the readings agree"), and must be plausible under the current estimate's uncertainty.
+Only then is it added to the pose graph as a robust loop edge.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..backend.pose_graph import PoseGraph, floor_information
+from ..config import LoopConfig
+from ..geometry import inverse, rotation_angle
+from ..result import LoopRecord
+from ..submaps import Submap
+from .correspondence import CorrespondenceResult, check_correspondence
+from .descriptors import DescriptorIndex, compute_descriptor
+
+log = logging.getLogger(__name__)
+
+# chi-square 99.9% quantiles for the translation gate (2 DOF planar, 3 DOF spatial)
+_CHI2_999 = {2: 13.82, 3: 16.27}
+
+
+@dataclass
+class Hypothesis:
+    i: int
+    j: int
+    source: str
+    initial_guess: np.ndarray | None  # T_i_j from the current estimate, or None
+    yaw_hint: float | None
+    search_radius: float | None
+
+
+class LoopCloser:
+    """Proposes and verifies loop closures between submaps and adds them to a pose graph."""
+
+    def __init__(self, config: LoopConfig, *, planar: bool, voxel_size: float, max_range: float, timer=None) -> None:
+        self.config = config
+        self.planar = planar
+        self.voxel = voxel_size
+        self.max_range = max_range
+        self.index = DescriptorIndex()
+        self._tested: set[tuple[int, int]] = set()
+        self._timer = timer
+
+    def _time(self, stage: str):
+        from contextlib import nullcontext
+
+        return self._timer(stage) if self._timer is not None else nullcontext()
+
+    # ------------------------------------------------------------------ proposal
+    def _radius(self, cov_i: np.ndarray, cov_j: np.ndarray) -> float:
+        """Search radius [m] from the anchors' marginal translation covariances."""
+        c = self.config
+        block = cov_i[3:6, 3:6] + cov_j[3:6, 3:6]
+        if self.planar:
+            block = block[:2, :2]
+        sigma = float(np.sqrt(max(np.linalg.eigvalsh(block).max(), 0.0)))
+        return float(np.clip(c.spatial_min_radius + c.spatial_sigma * sigma, c.spatial_min_radius, c.spatial_max_radius))
+
+    def propose(self, new: Submap, submaps: list[Submap], graph: PoseGraph,
+                hint_pairs: list[tuple[int, int]]) -> list[Hypothesis]:
+        c = self.config
+        k = new.id
+        eligible = k - c.min_submap_gap
+        hyps: dict[int, Hypothesis] = {}
+        if eligible < 0 and not hint_pairs:
+            return []
+        T_k = graph.pose(k)
+        cov_k = graph.marginal_covariance(k)
+        # spatial
+        if eligible >= 0:
+            anchors = np.array([graph.pose(i)[:3, 3] for i in range(eligible + 1)])
+            d = np.linalg.norm(anchors - T_k[:3, 3], axis=1)
+            order = np.argsort(d)
+            for i in order[: 4 * max(1, c.descriptor_top_k)]:
+                i = int(i)
+                radius = self._radius(graph.marginal_covariance(i), cov_k)
+                if d[i] > radius or len(hyps) >= 3:
+                    continue
+                hyps[i] = Hypothesis(i, k, "spatial", inverse(graph.pose(i)) @ T_k, None, radius)
+        # appearance
+        if c.use_descriptor and new.descriptor is not None and eligible >= 0:
+            for i, dist, yaw in self.index.query(new.descriptor, c.descriptor_top_k,
+                                                 exclude_ids=set(range(eligible + 1, k + 1))):
+                if dist <= c.descriptor_max_distance and i not in hyps:
+                    hyps[i] = Hypothesis(i, k, "descriptor", None, yaw, None)
+        # manual hints
+        for a, b in hint_pairs:
+            if b == k and (a, b) not in self._tested:
+                hyps[a] = Hypothesis(a, k, "hint", None, None, None)
+        return [h for h in hyps.values() if (h.i, h.j) not in self._tested]
+
+    # ------------------------------------------------------------------ testing
+    def _correspond(self, target: Submap, source: Submap, initial_guess, yaw_hint, search_radius) -> CorrespondenceResult:
+        c = self.config
+        return check_correspondence(
+            source.points, target.points, planar=self.planar, initial_guess=initial_guess,
+            yaw_hint=yaw_hint, voxel_size=max(self.voxel, 0.05), min_fitness=c.min_fitness,
+            max_inlier_rmse=c.max_inlier_rmse, min_overlap=c.min_overlap, search_radius=search_radius,
+        )
+
+    def _neighbour_check(self, hyp: Hypothesis, T_i_j: np.ndarray, submaps: list[Submap], graph: PoseGraph) -> tuple[bool, str]:
+        """Seed's check: the hypothesis must also explain the submaps adjacent to ``i``."""
+        c = self.config
+        confirmations, tried = 0, 0
+        for n in (hyp.i - 1, hyp.i + 1):
+            if n < 0 or n >= hyp.j - c.min_submap_gap + 1 or n >= len(submaps):
+                continue
+            tried += 1
+            T_n_j = inverse(graph.pose(n)) @ graph.pose(hyp.i) @ T_i_j
+            res = self._correspond(submaps[n], submaps[hyp.j], T_n_j, None, 2.0 * c.consistency_tolerance_m)
+            if not res.accepted:
+                continue
+            delta = inverse(T_n_j) @ res.T_target_source
+            if (np.linalg.norm(delta[:3, 3]) <= c.consistency_tolerance_m
+                    and np.rad2deg(rotation_angle(delta)) <= c.consistency_tolerance_deg):
+                confirmations += 1
+        if tried == 0:
+            return True, "no adjacent submap to check"
+        if confirmations == 0:
+            return False, f"adjacent submaps disagree (0 of {tried} confirm)"
+        return True, f"{confirmations} of {tried} adjacent submaps confirm"
+
+    def _plausible(self, hyp: Hypothesis, T_i_j: np.ndarray, graph: PoseGraph) -> tuple[bool, str]:
+        """Mahalanobis gate of the loop's translation against the current estimate."""
+        if hyp.source == "hint":
+            return True, "manual hint"
+        T_est = inverse(graph.pose(hyp.i)) @ graph.pose(hyp.j)
+        cov = graph.marginal_covariance(hyp.i)[3:6, 3:6] + graph.marginal_covariance(hyp.j)[3:6, 3:6]
+        R_i = graph.pose(hyp.i)[:3, :3]
+        # both marginals are in body frames; express the discrepancy in the world frame
+        diff = R_i @ (T_i_j[:3, 3] - T_est[:3, 3])
+        dof = 2 if self.planar else 3
+        cov = cov[:dof, :dof] + np.eye(dof) * 0.25  # 0.5 m floor for the submap-level noise
+        m2 = float(diff[:dof] @ np.linalg.solve(cov, diff[:dof]))
+        if m2 > _CHI2_999[dof]:
+            return False, f"implausible under current uncertainty (Mahalanobis^2 {m2:.1f} > {_CHI2_999[dof]})"
+        return True, "plausible"
+
+    def process(self, new: Submap, submaps: list[Submap], graph: PoseGraph,
+                hint_pairs: list[tuple[int, int]]) -> list[LoopRecord]:
+        """Test the hypotheses for a newly closed submap; add accepted loops to ``graph``."""
+        c = self.config
+        with self._time("descriptors"):
+            new.descriptor = compute_descriptor(new.points, planar=self.planar, max_range=self.max_range)
+        with self._time("loop_proposal"):
+            hyps = self.propose(new, submaps, graph, hint_pairs)
+        records: list[LoopRecord] = []
+        with self._time("loop_testing"):
+            for hyp in hyps:
+                self._tested.add((hyp.i, hyp.j))
+                res = self._correspond(submaps[hyp.i], submaps[hyp.j], hyp.initial_guess, hyp.yaw_hint, hyp.search_radius)
+                accepted, reason = res.accepted, res.reason
+                if accepted:
+                    accepted, reason = self._plausible(hyp, res.T_target_source, graph)
+                if accepted:
+                    accepted, reason = self._neighbour_check(hyp, res.T_target_source, submaps, graph)
+                records.append(LoopRecord(hyp.i, hyp.j, hyp.source, accepted, res.fitness, res.overlap,
+                                          res.inlier_rmse, reason, res.T_target_source))
+                if accepted:
+                    info = floor_information(res.information_gtsam, c_floor_m(graph), c_floor_rad(graph))
+                    graph.add_between(hyp.i, hyp.j, res.T_target_source, info, "loop")
+                    log.info("loop %d-%d accepted (%s): %s", hyp.i, hyp.j, hyp.source, reason)
+        self.index.add(new.id, new.descriptor)
+        return records
+
+
+def c_floor_m(graph: PoseGraph) -> float:
+    return graph.config.loop_sigma_floor_m
+
+
+def c_floor_rad(graph: PoseGraph) -> float:
+    return float(np.deg2rad(graph.config.loop_sigma_floor_deg))
