@@ -22,7 +22,9 @@ class _Strict(BaseModel):
 class OdometryConfig(_Strict):
     """KISS-ICP scan-to-map registration, seeded by wheel odometry when the log has it."""
 
-    voxel_size: float | None = Field(None, gt=0, description="[m]; None: max_range / 100")
+    voxel_size: float | None = Field(
+        None, gt=0, description="[m]; None: 0.2 for planar (2D laser) logs, max_range / 100 for 3D"
+    )
     max_range: float = Field(80.0, gt=0, description="drop points farther than this [m]")
     min_range: float = Field(0.3, ge=0, description="drop points closer than this [m]")
     max_points_per_voxel: int = Field(20, ge=1)

@@ -36,7 +36,7 @@ class Odometry:
         kiss.data.max_range = config.max_range
         kiss.data.min_range = config.min_range
         kiss.data.deskew = config.deskew
-        kiss.mapping.voxel_size = config.voxel_size or config.max_range / 100.0
+        kiss.mapping.voxel_size = config.voxel_size or (0.2 if planar else config.max_range / 100.0)
         kiss.mapping.max_points_per_voxel = config.max_points_per_voxel
         kiss.registration.max_num_iterations = config.max_iterations
         kiss.registration.convergence_criterion = config.convergence_criterion

@@ -216,6 +216,8 @@ class SubmapSLAM:
             submap_covariances=np.array([covs[k] for k in range(n)]).reshape(-1, 6, 6),
             submap_points=[s.points for s in self.submaps],
             submap_scan_indices=[s.scan_indices for s in self.submaps],
+            submap_scan_poses=[s.T_anchor_scans for s in self.submaps],
+            submap_scan_points=[s.scan_points for s in self.submaps],
             edges=[(e.i, e.j, e.T_i_j, e.information, e.kind) for e in self._graph.edges
                    if (e.i, e.j) not in rejected or e.kind != "loop"],
             loops=self.loops,

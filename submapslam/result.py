@@ -37,6 +37,9 @@ class SlamResult:
             ``(rx, ry, rz, tx, ty, tz)`` in the anchor frame.
         submap_points: list of ``(M_k, 3)`` submap clouds in their anchor frames.
         submap_scan_indices: list of scan-index lists per submap.
+        submap_scan_poses: list of ``(K, 4, 4)`` ``T_anchor_scan`` per submap.
+        submap_scan_points: planar runs: per submap, each scan's ``(n, 3)`` sensor-frame
+            points (for occupancy grids); empty lists for 3D runs.
         edges: ``(i, j, T_i_j (4,4), information (6,6), kind)`` tuples of the submap graph.
         loops: every tested hypothesis.
         stage_seconds: wall time per stage.
@@ -51,6 +54,8 @@ class SlamResult:
     submap_covariances: np.ndarray
     submap_points: list[np.ndarray]
     submap_scan_indices: list[list[int]]
+    submap_scan_poses: list[np.ndarray]
+    submap_scan_points: list[list[np.ndarray]]
     edges: list[tuple]
     loops: list[LoopRecord]
     planar: bool

@@ -36,6 +36,8 @@ class Submap:
         points: ``(M, 3)`` fused, voxel-downsampled points in the anchor frame.
         distance: path length covered [m].
         planar: 2D laser submap (all z = 0).
+        scan_points: planar submaps only: each scan's ``(n, 3)`` points in its sensor frame
+            (kept for the evidence grids, which need the rays).
     """
 
     id: int
@@ -45,6 +47,7 @@ class Submap:
     points: np.ndarray
     distance: float
     planar: bool
+    scan_points: list[np.ndarray] = field(default_factory=list)
     descriptor: np.ndarray | None = None
     extras: dict = field(default_factory=dict)
 
@@ -67,6 +70,7 @@ class SubmapBuilder:
         self._indices: list[int] = []
         self._poses: list[np.ndarray] = []
         self._chunks: list[np.ndarray] = []
+        self._scan_points: list[np.ndarray] = []
         self._buffered = 0
         self._fused = np.zeros((0, 3))
         self._distance = 0.0
@@ -89,6 +93,8 @@ class SubmapBuilder:
         self._indices.append(index)
         self._poses.append(T_anchor_scan)
         self._chunks.append(transform_points(T_anchor_scan, points))
+        if self.planar:
+            self._scan_points.append(points.astype(np.float32))
         self._buffered += len(points)
         if self._buffered > 50_000:
             self._compact()
@@ -114,6 +120,7 @@ class SubmapBuilder:
             points=self._fused,
             distance=self._distance,
             planar=self.planar,
+            scan_points=list(self._scan_points),
         )
         self._next_id += 1
         return submap

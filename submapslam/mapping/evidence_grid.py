@@ -1,0 +1,119 @@
+"""Evidence (occupancy) grids in log-odds, and a global grid that forgets what moved.
+
+Each submap gets a local grid in its anchor frame from its own scans (rays: free space along
+the beam, an occupied cell at the hit). The global grid fuses the local grids through the
+optimised anchors in time order; where a newer local grid sees a cell as *confidently free*,
+an occupied cell of the global grid is cleared — people and moved boxes leave the map while
+walls, which every submap sees occupied, stay. Planar (x, y) only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..geometry import transform_points
+
+
+@dataclass
+class GridParams:
+    resolution: float = 0.05  # [m] cell size
+    l_occ: float = 0.85       # log-odds added at a hit
+    l_free: float = -0.4      # log-odds added along a ray
+    l_min: float = -4.0
+    l_max: float = 4.0
+    free_confidence: float = -1.5   # local log-odds below this count as confidently free
+    occupied_threshold: float = 0.6  # global log-odds above this are "occupied"
+    clear_margin_cells: int = 2      # a clearing cell needs this many free cells around it
+    max_free_range: float = 12.0     # [m] free space is carved along at most this much of a ray
+    free_scan_stride: int = 2        # carve free space with every n-th scan of a submap
+
+
+class EvidenceGrid:
+    """A log-odds grid over a fixed extent; cell ``(r, c)`` covers
+    ``x in [x0 + c*res, x0 + (c+1)*res)``, ``y in [y0 + r*res, ...)``."""
+
+    def __init__(self, origin_xy: np.ndarray, shape: tuple[int, int], params: GridParams) -> None:
+        self.origin = np.asarray(origin_xy, dtype=np.float64)
+        self.params = params
+        self.logodds = np.zeros(shape, dtype=np.float32)
+
+    @classmethod
+    def covering(cls, points_xy: np.ndarray, params: GridParams, margin: float = 1.0) -> EvidenceGrid:
+        """An empty grid covering ``(N, 2)`` points plus a margin [m]."""
+        lo = points_xy.min(axis=0) - margin
+        hi = points_xy.max(axis=0) + margin
+        shape = np.ceil((hi - lo) / params.resolution).astype(int) + 1
+        return cls(lo, (int(shape[1]), int(shape[0])), params)
+
+    def cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Row, column and inside-mask of ``(N, 2)`` points."""
+        rc = np.floor((xy - self.origin) / self.params.resolution).astype(np.int64)
+        inside = (rc[:, 0] >= 0) & (rc[:, 1] >= 0) & (rc[:, 0] < self.logodds.shape[1]) & (rc[:, 1] < self.logodds.shape[0])
+        return rc[:, 1], rc[:, 0], inside
+
+    def integrate_scan(self, T_grid_sensor: np.ndarray, points: np.ndarray, carve_free: bool = True) -> None:
+        """Trace rays from the sensor to ``(N, 3)`` hits (sensor frame) into the grid.
+
+        Free evidence is laid along each ray up to one cell short of the hit (and at most
+        ``params.max_free_range`` metres); the hit cell gets occupied evidence.
+        """
+        if len(points) == 0:
+            return
+        p = self.params
+        hits = transform_points(T_grid_sensor, points)[:, :2]
+        width = self.logodds.shape[1]
+        flat = self.logodds.reshape(-1)
+        r, c, inside = self.cells(hits)
+        hit_idx = np.unique(r[inside] * width + c[inside])
+        if carve_free:
+            origin = T_grid_sensor[:2, 3]
+            vec = hits - origin
+            lengths = np.linalg.norm(vec, axis=1)
+            free_len = np.minimum(lengths - p.resolution, p.max_free_range)
+            steps = np.maximum(0, np.floor(free_len / p.resolution).astype(int))
+            ray = np.repeat(np.arange(len(hits)), steps)
+            offsets = np.arange(int(steps.sum())) - np.repeat(np.cumsum(steps) - steps, steps)
+            dist = offsets * p.resolution
+            free_xy = origin + vec[ray] * (dist / lengths[ray])[:, None]
+            r, c, inside = self.cells(free_xy)
+            free_idx = np.setdiff1d(np.unique(r[inside] * width + c[inside]), hit_idx, assume_unique=True)
+            flat[free_idx] += p.l_free
+        flat[hit_idx] += p.l_occ
+        np.clip(flat, p.l_min, p.l_max, out=flat)
+
+    def probabilities(self) -> np.ndarray:
+        """Occupancy probability per cell, ``(rows, cols)``."""
+        return 1.0 / (1.0 + np.exp(-self.logodds))
+
+
+def fuse_submap_grids(global_grid: EvidenceGrid, local: EvidenceGrid, T_global_local: np.ndarray) -> int:
+    """Fuse a local grid into the global grid; return how many occupied cells were cleared.
+
+    Local cells are mapped through ``T_global_local`` by their centres. Confidently free local
+    cells reset occupied global cells to the local (free) value; other evidence is added.
+    """
+    from scipy.ndimage import maximum_filter
+
+    p = global_grid.params
+    # free "with high confidence": the cell and its whole neighbourhood are free, so pose noise
+    # of a cell or two and grazing rays along walls never erase a wall
+    neighbourhood_max = maximum_filter(local.logodds, size=2 * p.clear_margin_cells + 1)
+    rows, cols = np.nonzero(local.logodds)
+    if len(rows) == 0:
+        return 0
+    centres = local.origin + (np.stack([cols, rows], axis=1) + 0.5) * local.params.resolution
+    xyz = np.zeros((len(centres), 3))
+    xyz[:, :2] = centres
+    r, c, inside = global_grid.cells(transform_points(T_global_local, xyz)[:, :2])
+    values = local.logodds[rows, cols][inside]
+    confident_free = neighbourhood_max[rows, cols][inside] < p.free_confidence
+    r, c = r[inside], c[inside]
+    g = global_grid.logodds
+    clear = confident_free & (g[r, c] > p.occupied_threshold)
+    g[r[clear], c[clear]] = values[clear]
+    rest = ~clear
+    np.add.at(g, (r[rest], c[rest]), values[rest])
+    np.clip(g, p.l_min, p.l_max, out=g)
+    return int(clear.sum())

@@ -1,0 +1,75 @@
+import numpy as np
+
+from submapslam.geometry import se2_to_matrix
+from submapslam.io.grid import FREE, OCCUPIED, read_pgm, write_pgm_yaml
+from submapslam.mapping.evidence_grid import EvidenceGrid, GridParams, fuse_submap_grids
+
+HALF = 5.0  # square room [-5, 5]^2
+
+
+def room_scan(sensor_xy, person=None, n=360):
+    """Analytic 360-degree scan in the square room; optional round person (x, y, radius)."""
+    a = np.linspace(-np.pi, np.pi, n, endpoint=False)
+    d = np.stack([np.cos(a), np.sin(a)], 1)
+    o = np.asarray(sensor_xy, float)
+    with np.errstate(divide="ignore"):
+        tx = np.where(d[:, 0] > 0, (HALF - o[0]) / d[:, 0], (-HALF - o[0]) / d[:, 0])
+        ty = np.where(d[:, 1] > 0, (HALF - o[1]) / d[:, 1], (-HALF - o[1]) / d[:, 1])
+    t = np.minimum(np.abs(tx), np.abs(ty))
+    if person is not None:
+        c, r = np.asarray(person[:2]) - o, person[2]
+        b = d @ c
+        disc = b**2 - (c @ c - r**2)
+        hit = (disc > 0) & (b > 0)
+        t = np.where(hit, np.minimum(t, b - np.sqrt(np.where(hit, disc, 0))), t)
+    pts = np.zeros((n, 3))
+    pts[:, :2] = d * t[:, None]
+    return pts
+
+
+def occupied(grid, xy):
+    r, c, inside = grid.cells(np.atleast_2d(xy))
+    return bool(inside[0]) and grid.logodds[r[0], c[0]] > grid.params.occupied_threshold
+
+
+def local(scans_xy, person, params):
+    grid = EvidenceGrid(np.array([-6.0, -6.0]), (240, 240), params)
+    for xy in scans_xy:
+        grid.integrate_scan(se2_to_matrix(*xy, 0.0), room_scan(xy, person))
+    return grid
+
+
+def test_walls_occupied_and_interior_free():
+    params = GridParams(resolution=0.05, free_scan_stride=1)
+    grid = local([(0.0, 0.0), (1.0, 0.5)], None, params)
+    assert occupied(grid, (HALF + 0.01, 0.3))
+    assert occupied(grid, (-1.0, -HALF + 0.01))
+    r, c, _ = grid.cells(np.array([[2.0, 2.0]]))
+    assert grid.logodds[r[0], c[0]] < 0
+
+
+def test_global_grid_forgets_a_person_who_left_but_keeps_walls():
+    params = GridParams(resolution=0.05, free_scan_stride=1)
+    person = (2.0, 0.0, 0.25)
+    before = local([(-2.0, 0.0), (-2.0, 0.3), (-2.0, -0.3)] * 3, person, params)  # person present
+    after = local([(-2.0, 0.0), (-2.0, 0.3), (-2.0, -0.3)] * 3, None, params)     # person gone
+    g = EvidenceGrid(np.array([-6.0, -6.0]), (240, 240), params)
+    fuse_submap_grids(g, before, np.eye(4))
+    front = (person[0] - person[2] + 0.01, 0.0)
+    assert occupied(g, front)
+    cleared = fuse_submap_grids(g, after, np.eye(4))
+    assert cleared > 0
+    assert not occupied(g, front)
+    assert occupied(g, (HALF + 0.01, 2.0)) and occupied(g, (-HALF + 0.01, -1.0))
+
+
+def test_pgm_yaml_round_trip(tmp_path):
+    prob = np.full((4, 6), 0.5)
+    prob[0, 0] = 0.99  # row 0 = lowest y -> bottom row of the image
+    prob[3, 5] = 0.01
+    pgm, yml = write_pgm_yaml(tmp_path / "m", prob, np.array([1.0, 2.0]), 0.05)
+    img = read_pgm(pgm)
+    assert img.shape == (4, 6)
+    assert img[3, 0] == OCCUPIED and img[0, 5] == FREE
+    text = yml.read_text()
+    assert "image: m.pgm" in text and "resolution: 0.05" in text and "origin: [1.000000, 2.000000, 0.0]" in text
