@@ -1,0 +1,1 @@
+"""Evaluation: trajectory metrics (no I/O) and comparison reports (matplotlib only here)."""

@@ -1,0 +1,138 @@
+"""Trajectory error metrics on numpy arrays: association, alignment, ATE, RPE.
+
+Everything takes :class:`~submapslam.io.trajectory.Trajectory` objects (timestamps + poses) and
+returns plain dicts of floats; no files, no plots.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+
+from ..errors import SubmapSlamError
+from ..geometry import inverse, rotation_angle
+from ..io.trajectory import Trajectory
+
+AlignMode = Literal["se3", "sim3", "se2", "none"]
+
+
+def associate(est: Trajectory, ref: Trajectory, max_diff: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
+    """Match each reference stamp to the nearest estimate stamp within ``max_diff`` seconds.
+
+    Returns index arrays ``(i_est, i_ref)`` of equal length, one-to-one, in reference order.
+    """
+    order = np.argsort(est.timestamps)
+    ts = est.timestamps[order]
+    k = np.clip(np.searchsorted(ts, ref.timestamps), 1, max(len(ts) - 1, 1))
+    if len(ts) == 1:
+        k = np.zeros(len(ref.timestamps), dtype=int)
+        best = k
+    else:
+        left = np.abs(ts[k - 1] - ref.timestamps)
+        right = np.abs(ts[k] - ref.timestamps)
+        best = np.where(left <= right, k - 1, k)
+    ok = np.abs(ts[best] - ref.timestamps) <= max_diff
+    i_est, i_ref = order[best[ok]], np.nonzero(ok)[0]
+    _, first = np.unique(i_est, return_index=True)  # one-to-one
+    i_est, i_ref = i_est[np.sort(first)], i_ref[np.sort(first)]
+    if len(i_est) == 0:
+        raise SubmapSlamError(
+            f"no timestamps match within {max_diff} s (estimate {est.timestamps[0]:.3f}..{est.timestamps[-1]:.3f}, "
+            f"reference {ref.timestamps[0]:.3f}..{ref.timestamps[-1]:.3f})"
+        )
+    return i_est, i_ref
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = False, planar: bool = False) -> tuple[np.ndarray, float]:
+    """Least-squares ``T, s`` with ``dst ~ s * R @ src + t`` for ``(N, 3)`` point sets.
+
+    ``planar`` restricts the rotation to yaw (and ignores z in the fit).
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    d = 2 if planar else 3
+    a, b = src[:, :d], dst[:, :d]
+    mu_a, mu_b = a.mean(0), b.mean(0)
+    A, B = a - mu_a, b - mu_b
+    H = B.T @ A / len(a)
+    U, S, Vt = np.linalg.svd(H)
+    D = np.eye(d)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        D[-1, -1] = -1
+    R = U @ D @ Vt
+    var_a = (A**2).sum() / len(a)
+    s = float(np.trace(np.diag(S) @ D) / var_a) if with_scale and var_a > 0 else 1.0
+    t = mu_b - s * R @ mu_a
+    T = np.eye(4)
+    T[:d, :d] = R
+    T[:d, 3] = t
+    if planar:
+        T[2, 3] = float(np.mean(dst[:, 2] - s * src[:, 2]))
+    return T, s
+
+
+def align(est: Trajectory, ref: Trajectory, mode: AlignMode = "se3") -> tuple[np.ndarray, float]:
+    """Transform (and scale) that best maps the associated ``est`` positions onto ``ref``."""
+    if mode == "none":
+        return np.eye(4), 1.0
+    if len(est) < 3:
+        raise SubmapSlamError(f"alignment needs at least 3 matched poses, got {len(est)}")
+    return umeyama(est.positions, ref.positions, with_scale=(mode == "sim3"), planar=(mode == "se2"))
+
+
+def _apply(T: np.ndarray, s: float, poses: np.ndarray) -> np.ndarray:
+    out = poses.copy()
+    out[:, :3, 3] = s * poses[:, :3, 3]
+    return T @ out
+
+
+def _stats(errors: np.ndarray) -> dict:
+    return {
+        "rmse": float(np.sqrt(np.mean(errors**2))), "mean": float(np.mean(errors)),
+        "median": float(np.median(errors)), "std": float(np.std(errors)),
+        "max": float(np.max(errors)), "n": int(len(errors)),
+    }
+
+
+def ate(est: Trajectory, ref: Trajectory, align: AlignMode = "se3", max_diff: float = 0.02) -> dict:
+    """Absolute trajectory error (translation) after alignment: rmse/mean/median/std/max/n [m].
+
+    Also returns ``errors`` (per matched pose), ``rotation_rmse_deg`` and ``scale``.
+    """
+    i_e, i_r = associate(est, ref, max_diff)
+    e, r = est.subset(i_e), ref.subset(i_r)
+    T, s = globals()["align"](e, r, align)
+    aligned = _apply(T, s, e.poses)
+    errors = np.linalg.norm(aligned[:, :3, 3] - r.positions, axis=1)
+    rot = np.array([rotation_angle(inverse(a) @ b) for a, b in zip(aligned, r.poses)])
+    out = _stats(errors)
+    out.update(errors=errors, rotation_rmse_deg=float(np.rad2deg(np.sqrt(np.mean(rot**2)))), scale=s,
+               timestamps=r.timestamps)
+    return out
+
+
+def rpe(est: Trajectory, ref: Trajectory, delta: float = 1, unit: Literal["frames", "meters"] = "frames",
+        max_diff: float = 0.02) -> dict:
+    """Relative pose error over pose pairs ``delta`` frames (or metres of reference path) apart.
+
+    Returns translational stats [m] and ``rotation_*`` stats [deg].
+    """
+    i_e, i_r = associate(est, ref, max_diff)
+    e, r = est.poses[i_e], ref.poses[i_r]
+    if unit == "frames":
+        step = int(delta)
+        pairs = [(k, k + step) for k in range(len(e) - step)]
+    else:
+        dist = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(r[:, :3, 3], axis=0), axis=1))])
+        ends = np.searchsorted(dist, dist + delta)
+        pairs = [(k, int(j)) for k, j in enumerate(ends) if j < len(r)]
+    if not pairs:
+        raise SubmapSlamError(f"trajectory too short for RPE with delta {delta} {unit}")
+    a, b = np.array(pairs).T
+    E = inverse(inverse(r[a]) @ r[b]) @ (inverse(e[a]) @ e[b])
+    trans = np.linalg.norm(E[:, :3, 3], axis=1)
+    rot = np.rad2deg(np.array([rotation_angle(x) for x in E]))
+    out = _stats(trans)
+    out.update({f"rotation_{k}": v for k, v in _stats(rot).items() if k != "n"})
+    return out

@@ -1,0 +1,185 @@
+"""Trajectory files: TUM, KITTI, CARMEN (poses in FLASER lines), and CARMEN references.
+
+A :class:`Trajectory` is ``timestamps (N,)`` plus ``poses (N, 4, 4)`` ``T_world_base``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..geometry import matrix_to_quat, pose_from_xyz_quat, se2_to_matrix
+from .compression import base_suffix, open_text
+
+
+@dataclass
+class Trajectory:
+    """Timestamped poses: ``timestamps (N,)`` [s], ``poses (N, 4, 4)`` ``T_world_base``."""
+
+    timestamps: np.ndarray
+    poses: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.timestamps = np.asarray(self.timestamps, dtype=np.float64).reshape(-1)
+        self.poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4)
+        if len(self.timestamps) != len(self.poses):
+            raise ValueError(f"{len(self.timestamps)} timestamps for {len(self.poses)} poses")
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+    @property
+    def positions(self) -> np.ndarray:
+        """``(N, 3)`` translations."""
+        return self.poses[:, :3, 3]
+
+    def subset(self, index: np.ndarray) -> Trajectory:
+        return Trajectory(self.timestamps[index], self.poses[index])
+
+    def path_length(self) -> float:
+        return float(np.linalg.norm(np.diff(self.positions, axis=0), axis=1).sum()) if len(self) > 1 else 0.0
+
+
+def _rows(path: Path, ncols: tuple[int, ...]) -> list[tuple[int, np.ndarray]]:
+    rows = []
+    with open_text(path) as fh:
+        for lineno, line in enumerate(fh, start=1):
+            body = line.strip()
+            if not body or body.startswith("#"):
+                continue
+            tok = body.replace(",", " ").split()
+            if len(tok) not in ncols:
+                raise InputError(path, f"expected {' or '.join(map(str, ncols))} numbers, got {len(tok)}", lineno)
+            try:
+                values = np.array(tok, dtype=np.float64)
+            except ValueError:
+                raise InputError(path, f"non-numeric value in {body[:40]!r}", lineno) from None
+            if not np.all(np.isfinite(values)):
+                raise InputError(path, "NaN or infinite value", lineno)
+            rows.append((lineno, values))
+    if not rows:
+        raise InputError(path, "no poses in the file")
+    return rows
+
+
+def read_tum(path: str | Path) -> Trajectory:
+    """TUM: ``timestamp tx ty tz qx qy qz qw`` per line, ``#`` comments allowed."""
+    path = Path(path)
+    rows = _rows(path, (8,))
+    stamps = np.array([r[0] for _, r in rows])
+    poses = np.array([pose_from_xyz_quat(r[1:4], r[4:8]) for _, r in rows])
+    return Trajectory(stamps, poses)
+
+
+def write_tum(path: str | Path, traj: Trajectory) -> None:
+    """Write TUM lines; timestamps with 6 decimals, poses with 9 significant digits."""
+    lines = []
+    for t, T in zip(traj.timestamps, traj.poses):
+        q = matrix_to_quat(T[:3, :3])
+        x, y, z = T[:3, 3]
+        lines.append(f"{t:.6f} {x:.9g} {y:.9g} {z:.9g} {q[0]:.9g} {q[1]:.9g} {q[2]:.9g} {q[3]:.9g}")
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def read_kitti(path: str | Path, timestamps: np.ndarray | None = None) -> Trajectory:
+    """KITTI: 12 numbers per line (row-major 3x4); timestamps default to the line index."""
+    path = Path(path)
+    rows = _rows(path, (12,))
+    poses = np.tile(np.eye(4), (len(rows), 1, 1))
+    poses[:, :3, :] = np.array([r for _, r in rows]).reshape(-1, 3, 4)
+    stamps = np.arange(len(rows), dtype=np.float64) if timestamps is None else np.asarray(timestamps)
+    if len(stamps) != len(poses):
+        raise InputError(path, f"{len(poses)} poses but {len(stamps)} timestamps")
+    return Trajectory(stamps, poses)
+
+
+def write_kitti(path: str | Path, poses: np.ndarray) -> None:
+    """Write ``(N, 4, 4)`` poses as KITTI lines (row-major 3x4)."""
+    poses = np.asarray(poses).reshape(-1, 4, 4)
+    lines = [" ".join(f"{v:.9g}" for v in T[:3, :].reshape(-1)) for T in poses]
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def _carmen_flaser_rows(path: Path) -> list[tuple[float, float, np.ndarray]]:
+    """(ipc_timestamp, logger_timestamp, (x, y, theta)) of every FLASER line."""
+    out = []
+    with open_text(path) as fh:
+        for lineno, line in enumerate(fh, start=1):
+            tok = line.split()
+            if not tok or tok[0] != "FLASER":
+                continue
+            try:
+                n = int(tok[1])
+                pose = np.array(tok[2 + n : 5 + n], dtype=np.float64)
+                ipc, logger = float(tok[8 + n]), float(tok[10 + n])
+            except (ValueError, IndexError):
+                raise InputError(path, "malformed or truncated FLASER line", lineno) from None
+            if len(pose) != 3 or not (np.all(np.isfinite(pose)) and math.isfinite(ipc)):
+                raise InputError(path, "malformed FLASER pose", lineno)
+            out.append((ipc, logger, pose))
+    if not out:
+        raise InputError(path, "no FLASER lines: not a CARMEN laser log")
+    return out
+
+
+def read_carmen_trajectory(path: str | Path, timestamp: str = "ipc") -> Trajectory:
+    """Poses of a CARMEN log's FLASER lines (``x y theta``), stamped with ``ipc`` or ``logger`` time."""
+    rows = _carmen_flaser_rows(Path(path))
+    col = 0 if timestamp == "ipc" else 1
+    return Trajectory(np.array([r[col] for r in rows]), np.array([se2_to_matrix(*r[2]) for r in rows]))
+
+
+def carmen_reference_trajectory(corrected_path: str | Path, raw_path: str | Path, tolerance: float = 0.01) -> Trajectory:
+    """Corrected Freiburg log -> reference stamped with the *raw* log's ipc_timestamps.
+
+    The corrected logs hold corrected poses but their timestamps are the raw log's
+    logger_timestamp (rounded); each is matched to the raw FLASER line with the nearest logger
+    time (within ``tolerance`` s; the files differ by up to 5 ms, scans are ~100 ms apart) and takes that line's ipc_timestamp.
+    """
+    corrected = _carmen_flaser_rows(Path(corrected_path))
+    raw = _carmen_flaser_rows(Path(raw_path))
+    raw_logger = np.array([r[1] for r in raw])
+    raw_ipc = np.array([r[0] for r in raw])
+    order = np.argsort(raw_logger)
+    raw_logger, raw_ipc = raw_logger[order], raw_ipc[order]
+    stamps, poses = [], []
+    for _ipc, logger, pose in corrected:
+        k = int(np.searchsorted(raw_logger, logger))
+        best = min((j for j in (k - 1, k) if 0 <= j < len(raw_logger)), key=lambda j: abs(raw_logger[j] - logger))
+        if abs(raw_logger[best] - logger) <= tolerance:
+            stamps.append(raw_ipc[best])
+            poses.append(se2_to_matrix(*pose))
+    if not stamps:
+        raise InputError(corrected_path, f"no scan matched the raw log {raw_path} by logger timestamp")
+    return Trajectory(np.array(stamps), np.array(poses))
+
+
+def read_trajectory(path: str | Path, format: str | None = None) -> Trajectory:
+    """Read TUM, KITTI or CARMEN (sniffed from the suffix and the column count)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "no such trajectory file")
+    fmt = format
+    if fmt is None:
+        if base_suffix(path) in {".clf", ".log", ".carmen"}:
+            fmt = "carmen"
+        else:
+            with open_text(path) as fh:
+                for line in fh:
+                    tok = line.split()
+                    if tok and not tok[0].startswith("#"):
+                        fmt = {8: "tum", 12: "kitti"}.get(len(tok))
+                        if tok[0] in ("FLASER", "ODOM", "PARAM"):
+                            fmt = "carmen"
+                        break
+    if fmt == "tum":
+        return read_tum(path)
+    if fmt == "kitti":
+        return read_kitti(path)
+    if fmt == "carmen":
+        return read_carmen_trajectory(path)
+    raise InputError(path, "unknown trajectory format (expected TUM: 8 columns, KITTI: 12, or a CARMEN log)")
