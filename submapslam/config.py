@@ -39,7 +39,7 @@ class OdometryConfig(_Strict):
 class SubmapConfig(_Strict):
     """How consecutive scans are fused into submaps (virtual sensors)."""
 
-    max_distance: float = Field(10.0, gt=0, description="cut after this much travel [m]")
+    max_distance: float = Field(5.0, gt=0, description="cut after this much travel [m]")
     max_scans: int = Field(400, ge=1)
     voxel_size: float | None = Field(None, gt=0, description="[m]; None: odometry voxel / 2")
     max_points: int = Field(200_000, ge=100)
@@ -53,12 +53,18 @@ class LoopConfig(_Strict):
     spatial_min_radius: float = Field(5.0, gt=0, description="[m] search radius floor")
     spatial_max_radius: float = Field(60.0, gt=0, description="[m] search radius ceiling")
     use_descriptor: bool = True
-    descriptor_max_distance: float = Field(0.25, gt=0, le=2.0)
+    descriptor_max_distance: float = Field(0.45, gt=0, le=1.0)
+    descriptor_radius: float = Field(20.0, gt=0, description="[m] outer ring of the place descriptor")
     descriptor_top_k: int = Field(3, ge=0)
-    min_submap_gap: int = Field(3, ge=1, description="skip neighbours closer than this in the chain")
-    min_fitness: float = Field(0.6, ge=0, le=1)
+    yaw_window_deg: float = Field(20.0, gt=0, le=180, description="yaw search half-width around a guess")
+    min_submap_gap: int = Field(2, ge=1, description="skip neighbours closer than this in the chain")
+    min_fitness: float = Field(0.45, ge=0, le=1)
     max_inlier_rmse: float = Field(0.15, gt=0)
     min_overlap: float = Field(0.35, ge=0, le=1)
+    min_search_window: float = Field(2.0, gt=0, description="[m] translation search half-width floor")
+    max_search_window: float = Field(10.0, gt=0, description="[m] translation search half-width cap")
+    neighbour_min_overlap: float = Field(0.15, ge=0, le=1, description="adjacent submap overlap that counts as evidence")
+    unconfirmed_min_fitness: float = Field(0.85, ge=0, le=1, description="accept without adjacent evidence above this fitness")
     consistency_tolerance_m: float = Field(0.6, gt=0)
     consistency_tolerance_deg: float = Field(4.0, gt=0)
     hints_file: Path | None = None

@@ -90,7 +90,8 @@ class LoopCloser:
                 radius = self._radius(graph.marginal_covariance(i), cov_k)
                 if d[i] > radius or len(hyps) >= 3:
                     continue
-                hyps[i] = Hypothesis(i, k, "spatial", inverse(graph.pose(i)) @ T_k, None, radius)
+                window = float(np.clip(radius - c.spatial_min_radius, c.min_search_window, c.max_search_window))
+                hyps[i] = Hypothesis(i, k, "spatial", inverse(graph.pose(i)) @ T_k, None, window)
         # appearance
         if c.use_descriptor and new.descriptor is not None and eligible >= 0:
             for i, dist, yaw in self.index.query(new.descriptor, c.descriptor_top_k,
@@ -104,35 +105,48 @@ class LoopCloser:
         return [h for h in hyps.values() if (h.i, h.j) not in self._tested]
 
     # ------------------------------------------------------------------ testing
-    def _correspond(self, target: Submap, source: Submap, initial_guess, yaw_hint, search_radius) -> CorrespondenceResult:
+    def _correspond(self, target: Submap, source: Submap, initial_guess, yaw_hint, search_radius,
+                    refine_only: bool = False) -> CorrespondenceResult:
         c = self.config
         return check_correspondence(
             source.points, target.points, planar=self.planar, initial_guess=initial_guess,
             yaw_hint=yaw_hint, voxel_size=max(self.voxel, 0.05), min_fitness=c.min_fitness,
             max_inlier_rmse=c.max_inlier_rmse, min_overlap=c.min_overlap, search_radius=search_radius,
+            yaw_window_deg=c.yaw_window_deg, refine_only=refine_only,
         )
 
-    def _neighbour_check(self, hyp: Hypothesis, T_i_j: np.ndarray, submaps: list[Submap], graph: PoseGraph) -> tuple[bool, str]:
-        """Seed's check: the hypothesis must also explain the submaps adjacent to ``i``."""
+    def _neighbour_check(self, hyp: Hypothesis, T_i_j: np.ndarray, first: CorrespondenceResult,
+                         submaps: list[Submap], graph: PoseGraph) -> tuple[bool, str]:
+        """Seed's check: the hypothesis must also explain the submaps adjacent to ``i``.
+
+        Submap ``j`` is placed next to ``i - 1`` and ``i + 1`` through the hypothesis and refined
+        there. A neighbour that overlaps and lands where the hypothesis says confirms it; one
+        that overlaps but has to move away (or fits badly) contradicts it; one without overlap
+        says nothing. Accept with no contradiction and at least one confirmation (or, when no
+        neighbour overlaps, a very clear first match).
+        """
         c = self.config
-        confirmations, tried = 0, 0
+        confirm = contradict = 0
         for n in (hyp.i - 1, hyp.i + 1):
             if n < 0 or n >= hyp.j - c.min_submap_gap + 1 or n >= len(submaps):
                 continue
-            tried += 1
             T_n_j = inverse(graph.pose(n)) @ graph.pose(hyp.i) @ T_i_j
-            res = self._correspond(submaps[n], submaps[hyp.j], T_n_j, None, 2.0 * c.consistency_tolerance_m)
-            if not res.accepted:
+            res = self._correspond(submaps[n], submaps[hyp.j], T_n_j, None, None, refine_only=True)
+            if res.overlap < c.neighbour_min_overlap:
                 continue
             delta = inverse(T_n_j) @ res.T_target_source
-            if (np.linalg.norm(delta[:3, 3]) <= c.consistency_tolerance_m
-                    and np.rad2deg(rotation_angle(delta)) <= c.consistency_tolerance_deg):
-                confirmations += 1
-        if tried == 0:
-            return True, "no adjacent submap to check"
-        if confirmations == 0:
-            return False, f"adjacent submaps disagree (0 of {tried} confirm)"
-        return True, f"{confirmations} of {tried} adjacent submaps confirm"
+            agrees = (np.linalg.norm(delta[:3, 3]) <= c.consistency_tolerance_m
+                      and np.rad2deg(rotation_angle(delta)) <= c.consistency_tolerance_deg
+                      and res.inlier_rmse <= c.max_inlier_rmse)
+            confirm += agrees
+            contradict += not agrees
+        if contradict:
+            return False, f"adjacent submaps disagree ({contradict} contradict, {confirm} confirm)"
+        if confirm:
+            return True, f"{confirm} adjacent submap(s) confirm"
+        if first.fitness >= c.unconfirmed_min_fitness:
+            return True, "no adjacent overlap; clear match accepted"
+        return False, "no adjacent submap overlaps to confirm it"
 
     def _plausible(self, hyp: Hypothesis, T_i_j: np.ndarray, graph: PoseGraph) -> tuple[bool, str]:
         """Mahalanobis gate of the loop's translation against the current estimate."""
@@ -155,7 +169,7 @@ class LoopCloser:
         """Test the hypotheses for a newly closed submap; add accepted loops to ``graph``."""
         c = self.config
         with self._time("descriptors"):
-            new.descriptor = compute_descriptor(new.points, planar=self.planar, max_range=self.max_range)
+            new.descriptor = compute_descriptor(new.points, planar=self.planar, max_range=self.config.descriptor_radius)
         with self._time("loop_proposal"):
             hyps = self.propose(new, submaps, graph, hint_pairs)
         records: list[LoopRecord] = []
@@ -167,7 +181,7 @@ class LoopCloser:
                 if accepted:
                     accepted, reason = self._plausible(hyp, res.T_target_source, graph)
                 if accepted:
-                    accepted, reason = self._neighbour_check(hyp, res.T_target_source, submaps, graph)
+                    accepted, reason = self._neighbour_check(hyp, res.T_target_source, res, submaps, graph)
                 records.append(LoopRecord(hyp.i, hyp.j, hyp.source, accepted, res.fitness, res.overlap,
                                           res.inlier_rmse, reason, res.T_target_source))
                 if accepted:

@@ -1,0 +1,257 @@
+"""Planar (2D laser) submap matching: FFT correlative search, then point-to-point ICP in SE(2).
+
+Planar clouds (z = 0) make the 3D point-to-plane / GICP systems singular, so planar submaps are
+matched entirely in SE(2):
+
+1. coarse: the target is rasterised into a likelihood grid (Gaussian of the distance to the
+   nearest target point); for every candidate yaw the rotated source is rasterised and
+   cross-correlated with it by FFT, which scores every translation at once (Olson's correlative
+   matching, exhaustive over the window). The best and the best well-separated second peak
+   are kept: their ratio measures ambiguity.
+2. fine: point-to-point ICP with a shrinking correspondence distance (scipy cKDTree).
+3. information: Gauss-Newton Hessian of the ICP residuals at the solution, ``(3, 3)`` over
+   ``(x, y, yaw)``, scaled by the inlier residual variance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import distance_transform_edt
+from scipy.spatial import cKDTree
+
+from ..geometry import matrix_to_se2, se2_to_matrix
+
+
+@dataclass
+class PlanarMatch:
+    """Result of :func:`match_planar`; ``xyt`` is the source->target pose ``(x, y, yaw)``."""
+
+    xyt: np.ndarray
+    score: float            # mean likelihood of the source points at the coarse optimum, [0, 1]
+    ambiguity: float        # second distinct peak / best peak, [0, 1]; near 1 = ambiguous
+    fitness: float
+    inlier_rmse: float
+    information: np.ndarray  # (3, 3) over (x, y, yaw)
+
+    @property
+    def T(self) -> np.ndarray:
+        return se2_to_matrix(*self.xyt)
+
+
+def _rotate(xy: np.ndarray, yaw: float) -> np.ndarray:
+    c, s = np.cos(yaw), np.sin(yaw)
+    return xy @ np.array([[c, s], [-s, c]])
+
+
+def _subsample(xy: np.ndarray, cell: float, max_points: int, rng: np.random.Generator) -> np.ndarray:
+    keys = np.floor(xy / cell).astype(np.int64)
+    _, idx = np.unique(keys, axis=0, return_index=True)
+    xy = xy[np.sort(idx)]
+    if len(xy) > max_points:
+        xy = xy[rng.choice(len(xy), max_points, replace=False)]
+    return xy
+
+
+def coarse_search(
+    source: np.ndarray,
+    target: np.ndarray,
+    *,
+    resolution: float = 0.15,
+    sigma: float = 0.2,
+    center: np.ndarray | None = None,
+    window: float = 15.0,
+    yaws: np.ndarray | None = None,
+    max_source_points: int = 1500,
+) -> tuple[np.ndarray, float, float]:
+    """Exhaustive correlative search; ``source``/``target`` are ``(N, 2)`` in their own frames.
+
+    ``center`` is the expected source->target ``(x, y)`` (default 0) and ``window`` the half
+    width [m] of the translation search around it. ``yaws`` are the candidate yaws [rad]
+    (default: every 1.5 degrees). Returns ``(x, y, yaw)``, the score and the ambiguity ratio.
+    """
+    rng = np.random.default_rng(0)
+    center = np.zeros(2) if center is None else np.asarray(center, dtype=np.float64)
+    if yaws is None:
+        yaws = np.deg2rad(np.arange(-180.0, 180.0, 1.5))
+    sub = _subsample(source, resolution, max_source_points, rng)
+    src_centroid = sub.mean(axis=0) if len(sub) else np.zeros(2)
+    src = sub - src_centroid  # rotate about the source centroid: translation window stays compact
+    # target likelihood grid
+    lo = target.min(axis=0) - 1.0
+    hi = target.max(axis=0) + 1.0
+    shape = np.ceil((hi - lo) / resolution).astype(int) + 1
+    occ = np.zeros(shape, dtype=bool)
+    ij = np.floor((target - lo) / resolution).astype(int)
+    occ[ij[:, 0], ij[:, 1]] = True
+    dist = distance_transform_edt(~occ) * resolution
+    like = np.exp(-0.5 * (dist / sigma) ** 2)
+    # pad the grid so every translation in the window keeps the source inside the FFT domain
+    r_src = float(np.abs(src).max()) if len(src) else 0.0
+    pad = int(np.ceil((window + r_src) / resolution)) + 2
+    like_p = np.pad(like, pad)
+    lo_p = lo - pad * resolution
+    H, W = like_p.shape
+    F_like = np.fft.rfft2(like_p)
+    best = (-1.0, 0.0, 0.0, 0.0)
+    peaks: list[tuple[float, float, float, float]] = []
+    # the rotated source centroid lands at t = R c_src + T; we search over that point
+    for yaw in yaws:
+        rot = _rotate(src, yaw)
+        # source rasterised around the grid origin (kernel), correlation shifts it everywhere
+        k = np.round(rot / resolution).astype(int)
+        kern = np.zeros((H, W))
+        np.add.at(kern, (k[:, 0] % H, k[:, 1] % W), 1.0)
+        corr = np.fft.irfft2(F_like * np.conj(np.fft.rfft2(kern)), s=(H, W))
+        # corr[a, b] = sum over source points of like_p[a + k0, b + k1]: centroid at cell (a, b)
+        cx = lo_p[0] + np.arange(H) * resolution
+        cy = lo_p[1] + np.arange(W) * resolution
+        # expected centroid position in the target frame
+        R = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+        expected = R @ src_centroid + center
+        ia = np.nonzero(np.abs(cx - expected[0]) <= window)[0]
+        ib = np.nonzero(np.abs(cy - expected[1]) <= window)[0]
+        if len(ia) == 0 or len(ib) == 0:
+            continue
+        sub = corr[np.ix_(ia, ib)]
+        flat = int(np.argmax(sub))
+        a, b = np.unravel_index(flat, sub.shape)
+        score = float(sub[a, b]) / max(len(src), 1)
+        cxy = np.array([cx[ia[a]], cy[ib[b]]])
+        t = cxy - R @ src_centroid
+        peaks.append((score, t[0], t[1], float(yaw)))
+        if score > best[0]:
+            best = (score, t[0], t[1], float(yaw))
+    if not peaks:
+        return np.zeros(3), 0.0, 1.0
+    # ambiguity: best score among peaks far from the best (> 1.5 m or > 10 deg away)
+    second = 0.0
+    for s, x, y, yaw in peaks:
+        far = np.hypot(x - best[1], y - best[2]) > 1.5 or abs(np.angle(np.exp(1j * (yaw - best[3])))) > np.deg2rad(10)
+        if far and s > second:
+            second = s
+    ambiguity = second / best[0] if best[0] > 0 else 1.0
+    return np.array(best[1:]), best[0], ambiguity
+
+
+def icp_2d(source: np.ndarray, target: np.ndarray, xyt: np.ndarray, *, max_distance: float = 1.0,
+           min_distance: float = 0.2, iterations: int = 30, tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Point-to-point ICP in SE(2). Returns ``xyt``, source inlier indices and their targets."""
+    tree = tree or cKDTree(target)
+    xyt = np.asarray(xyt, dtype=np.float64).copy()
+    dmax = max_distance
+    inl = np.zeros(0, dtype=int)
+    nn = np.zeros(0, dtype=int)
+    for _ in range(iterations):
+        c, s = np.cos(xyt[2]), np.sin(xyt[2])
+        moved = source @ np.array([[c, s], [-s, c]]) + xyt[:2]
+        d, nn_all = tree.query(moved, distance_upper_bound=dmax)
+        inl = np.nonzero(np.isfinite(d))[0]
+        if len(inl) < 10:
+            break
+        nn = nn_all[inl]
+        P, Q = moved[inl], target[nn]
+        mp, mq = P.mean(0), Q.mean(0)
+        Hm = (P - mp).T @ (Q - mq)
+        dyaw = np.arctan2(Hm[0, 1] - Hm[1, 0], Hm[0, 0] + Hm[1, 1])
+        cd, sd = np.cos(dyaw), np.sin(dyaw)
+        Rd = np.array([[cd, -sd], [sd, cd]])
+        dt = mq - Rd @ mp
+        Rc = np.array([[c, -s], [s, c]])
+        Rn = Rd @ Rc
+        xyt = np.array([*(Rd @ xyt[:2] + dt), np.arctan2(Rn[1, 0], Rn[0, 0])])
+        dmax = max(min_distance, dmax * 0.7)
+        if abs(dyaw) < 1e-5 and np.linalg.norm(dt) < 1e-4 and dmax == min_distance:
+            break
+    return xyt, inl, nn
+
+
+def registration_information(source: np.ndarray, target: np.ndarray, xyt: np.ndarray,
+                             inlier_distance: float, tree: cKDTree | None = None) -> tuple[np.ndarray, float, float]:
+    """Gauss-Newton information ``(3, 3)`` over ``(x, y, yaw)``, fitness and inlier RMSE at ``xyt``."""
+    tree = tree or cKDTree(target)
+    c, s = np.cos(xyt[2]), np.sin(xyt[2])
+    moved = source @ np.array([[c, s], [-s, c]]) + xyt[:2]
+    d, _ = tree.query(moved, distance_upper_bound=inlier_distance)
+    inl = np.isfinite(d)
+    fitness = float(inl.mean()) if len(d) else 0.0
+    if inl.sum() < 3:
+        return np.eye(3) * 1e-6, fitness, float("inf")
+    rmse = float(np.sqrt(np.mean(d[inl] ** 2)))
+    P = moved[inl] - xyt[:2]  # rotated source points (lever arms)
+    n = len(P)
+    J = np.zeros((2 * n, 3))
+    J[0::2, 0] = 1.0
+    J[1::2, 1] = 1.0
+    J[0::2, 2] = -P[:, 1]
+    J[1::2, 2] = P[:, 0]
+    sigma2 = max(rmse, 0.02) ** 2
+    return J.T @ J / sigma2, fitness, rmse
+
+
+def match_planar(source: np.ndarray, target: np.ndarray, *, initial_guess: np.ndarray | None = None,
+                 yaw_hint: float | None = None, window: float = 15.0, yaw_window: float = np.pi,
+                 resolution: float = 0.1, inlier_distance: float = 0.2, refine_only: bool = False) -> PlanarMatch:
+    """Match planar clouds ``(N, 3)`` / ``(M, 3)`` (z ignored); no initial guess needed.
+
+    ``initial_guess`` (4x4 source->target) centres the translation window (half width
+    ``window`` m) and the yaw window (half width ``yaw_window`` rad); ``yaw_hint`` centres the
+    yaw window only; with neither, the search is global. The search runs coarse-to-fine: a
+    coarse grid (0.3 m or more, 2 degree steps) over the whole window, then ``resolution`` over
+    +-0.6 m and +-3 degrees around the best cell, then ICP. ``refine_only`` skips the search
+    (ICP from ``initial_guess``).
+    """
+    src, tgt = source[:, :2], target[:, :2]
+    tree = cKDTree(tgt)
+    if refine_only:
+        if initial_guess is None:
+            raise ValueError("refine_only needs an initial_guess")
+        xyt0, score, amb = matrix_to_se2(initial_guess), float("nan"), 0.0
+    else:
+        center_yaw = 0.0
+        if initial_guess is not None:
+            x, y, center_yaw = matrix_to_se2(initial_guess)
+        elif yaw_hint is not None:
+            center_yaw = float(yaw_hint)
+        half = min(float(yaw_window), np.pi)
+        coarse_res = max(0.3, resolution)
+        coarse_step = np.deg2rad(2.0)
+        yaws = center_yaw + np.arange(-half, half + 1e-9, coarse_step)
+        if initial_guess is None:
+            # the source centroid may land anywhere on the target (plus a margin)
+            extent = float(np.abs(tgt - tgt.mean(axis=0)).max()) + 2.0
+            xyt_c, score, amb = _search_about_centroid(src, tgt, yaws, coarse_res, extent)
+        else:
+            xyt_c, score, amb = coarse_search(src, tgt, resolution=coarse_res, sigma=max(0.3, 1.5 * coarse_res),
+                                              center=np.array([x, y]), window=window, yaws=yaws)
+        fine_yaws = xyt_c[2] + np.deg2rad(np.arange(-3.0, 3.01, 0.5))
+        xyt0, score_f, _ = coarse_search(src, tgt, resolution=resolution, center=xyt_c[:2], window=0.6,
+                                         yaws=fine_yaws)
+        score = score_f
+    xyt, _, _ = icp_2d(src, tgt, xyt0, max_distance=3 * resolution + inlier_distance,
+                       min_distance=inlier_distance, tree=tree)
+    info, fitness, rmse = registration_information(src, tgt, xyt, inlier_distance, tree)
+    return PlanarMatch(xyt=xyt, score=score, ambiguity=amb, fitness=fitness, inlier_rmse=rmse, information=info)
+
+
+def _search_about_centroid(src, tgt, yaws, resolution, window):
+    """Global search: translation window centred so the source centroid can land anywhere on the target."""
+    best = None
+    # per yaw, the translation that puts the source centroid on the target centroid
+    c_s, c_t = src.mean(axis=0), tgt.mean(axis=0)
+    results = []
+    for chunk in np.array_split(yaws, max(1, len(yaws) // 30)):
+        mid = float(np.median(chunk))
+        R = np.array([[np.cos(mid), -np.sin(mid)], [np.sin(mid), np.cos(mid)]])
+        center = c_t - R @ c_s
+        res = coarse_search(src, tgt, resolution=resolution, center=center, window=window, yaws=chunk)
+        results.append(res)
+        if best is None or res[1] > best[1]:
+            best = res
+    # ambiguity across chunks too
+    second = max((r[1] for r in results if r is not best and
+                  (np.hypot(*(r[0][:2] - best[0][:2])) > 1.5 or abs(np.angle(np.exp(1j * (r[0][2] - best[0][2])))) > np.deg2rad(10))),
+                 default=0.0)
+    amb = max(best[2], second / best[1] if best[1] > 0 else 1.0)
+    return best[0], best[1], amb
