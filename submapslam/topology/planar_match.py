@@ -18,6 +18,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import fft as sfft
+from scipy.fft import next_fast_len
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
@@ -54,6 +56,29 @@ def _subsample(xy: np.ndarray, cell: float, max_points: int, rng: np.random.Gene
     return xy
 
 
+def _likelihood_grid(target: np.ndarray, resolution: float, sigma: float, pad_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Gaussian-of-distance likelihood of ``(M, 2)`` target points on a padded grid; returns grid, origin."""
+    lo = target.min(axis=0) - 1.0 - pad_m
+    hi = target.max(axis=0) + 1.0 + pad_m
+    shape = [next_fast_len(int(v)) for v in np.ceil((hi - lo) / resolution).astype(int) + 1]
+    occ = np.zeros(shape, dtype=bool)
+    ij = np.floor((target - lo) / resolution).astype(int)
+    occ[ij[:, 0], ij[:, 1]] = True
+    dist = distance_transform_edt(~occ) * resolution
+    return np.exp(-0.5 * (dist / sigma) ** 2), lo
+
+
+def _best_peaks(peaks: list[tuple[float, float, float, float]]) -> tuple[np.ndarray, float, float]:
+    """Best ``(score, x, y, yaw)`` and the ambiguity ratio of the best well-separated other peak."""
+    best = max(peaks, key=lambda p: p[0])
+    second = 0.0
+    for sc, x, y, yaw in peaks:
+        far = np.hypot(x - best[1], y - best[2]) > 1.5 or abs(np.angle(np.exp(1j * (yaw - best[3])))) > np.deg2rad(10)
+        if far and sc > second:
+            second = sc
+    return np.array(best[1:]), best[0], (second / best[0] if best[0] > 0 else 1.0)
+
+
 def coarse_search(
     source: np.ndarray,
     target: np.ndarray,
@@ -63,76 +88,72 @@ def coarse_search(
     center: np.ndarray | None = None,
     window: float = 15.0,
     yaws: np.ndarray | None = None,
-    max_source_points: int = 1500,
+    max_source_points: int = 1000,
 ) -> tuple[np.ndarray, float, float]:
     """Exhaustive correlative search; ``source``/``target`` are ``(N, 2)`` in their own frames.
 
     ``center`` is the expected source->target ``(x, y)`` (default 0) and ``window`` the half
     width [m] of the translation search around it. ``yaws`` are the candidate yaws [rad]
-    (default: every 1.5 degrees). Returns ``(x, y, yaw)``, the score and the ambiguity ratio.
+    (default: every 1.5 degrees). Small windows are scored directly, large ones by FFT
+    cross-correlation. Returns ``(x, y, yaw)``, the score in [0, 1] and the ambiguity ratio.
     """
     rng = np.random.default_rng(0)
     center = np.zeros(2) if center is None else np.asarray(center, dtype=np.float64)
     if yaws is None:
         yaws = np.deg2rad(np.arange(-180.0, 180.0, 1.5))
     sub = _subsample(source, resolution, max_source_points, rng)
-    src_centroid = sub.mean(axis=0) if len(sub) else np.zeros(2)
-    src = sub - src_centroid  # rotate about the source centroid: translation window stays compact
-    # target likelihood grid
-    lo = target.min(axis=0) - 1.0
-    hi = target.max(axis=0) + 1.0
-    shape = np.ceil((hi - lo) / resolution).astype(int) + 1
-    occ = np.zeros(shape, dtype=bool)
-    ij = np.floor((target - lo) / resolution).astype(int)
-    occ[ij[:, 0], ij[:, 1]] = True
-    dist = distance_transform_edt(~occ) * resolution
-    like = np.exp(-0.5 * (dist / sigma) ** 2)
-    # pad the grid so every translation in the window keeps the source inside the FFT domain
-    r_src = float(np.abs(src).max()) if len(src) else 0.0
-    pad = int(np.ceil((window + r_src) / resolution)) + 2
-    like_p = np.pad(like, pad)
-    lo_p = lo - pad * resolution
-    H, W = like_p.shape
-    F_like = np.fft.rfft2(like_p)
-    best = (-1.0, 0.0, 0.0, 0.0)
+    if len(sub) == 0 or len(target) == 0:
+        return np.zeros(3), 0.0, 1.0
+    c_src = sub.mean(axis=0)
+    src = sub - c_src  # rotate about the source centroid: the translation window stays compact
+    r_src = float(np.abs(src).max())
+    cells = int(np.ceil(window / resolution))
     peaks: list[tuple[float, float, float, float]] = []
-    # the rotated source centroid lands at t = R c_src + T; we search over that point
-    for yaw in yaws:
-        rot = _rotate(src, yaw)
-        # source rasterised around the grid origin (kernel), correlation shifts it everywhere
-        k = np.round(rot / resolution).astype(int)
-        kern = np.zeros((H, W))
-        np.add.at(kern, (k[:, 0] % H, k[:, 1] % W), 1.0)
-        corr = np.fft.irfft2(F_like * np.conj(np.fft.rfft2(kern)), s=(H, W))
-        # corr[a, b] = sum over source points of like_p[a + k0, b + k1]: centroid at cell (a, b)
-        cx = lo_p[0] + np.arange(H) * resolution
-        cy = lo_p[1] + np.arange(W) * resolution
-        # expected centroid position in the target frame
-        R = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
-        expected = R @ src_centroid + center
-        ia = np.nonzero(np.abs(cx - expected[0]) <= window)[0]
-        ib = np.nonzero(np.abs(cy - expected[1]) <= window)[0]
-        if len(ia) == 0 or len(ib) == 0:
-            continue
-        sub = corr[np.ix_(ia, ib)]
-        flat = int(np.argmax(sub))
-        a, b = np.unravel_index(flat, sub.shape)
-        score = float(sub[a, b]) / max(len(src), 1)
-        cxy = np.array([cx[ia[a]], cy[ib[b]]])
-        t = cxy - R @ src_centroid
-        peaks.append((score, t[0], t[1], float(yaw)))
-        if score > best[0]:
-            best = (score, t[0], t[1], float(yaw))
+    if cells <= 8:
+        like, lo = _likelihood_grid(target, resolution, sigma, window + r_src + 2 * resolution)
+        offs = np.arange(-cells, cells + 1)
+        for yaw in yaws:
+            R = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+            centroid = R @ c_src + center  # expected centroid in the target frame
+            base = np.floor((src @ R.T + centroid - lo) / resolution).astype(int)
+            # indices beyond the padded grid clip to its border, where the likelihood is ~0
+            ia = np.clip(base[:, 0][:, None] + offs[None, :], 0, like.shape[0] - 1)
+            ib = np.clip(base[:, 1][:, None] + offs[None, :], 0, like.shape[1] - 1)
+            scores = like[ia[:, :, None], ib[:, None, :]].sum(axis=0)
+            a, b = np.unravel_index(int(np.argmax(scores)), scores.shape)
+            t = centroid + np.array([offs[a], offs[b]]) * resolution - R @ c_src
+            peaks.append((float(scores[a, b]) / len(src), t[0], t[1], float(yaw)))
+        return _best_peaks(peaks)
+    like, lo = _likelihood_grid(target, resolution, sigma, window + r_src + 2 * resolution)
+    H, W = like.shape
+    F_like = sfft.rfft2(like, workers=-1)
+    cx = lo[0] + np.arange(H) * resolution
+    cy = lo[1] + np.arange(W) * resolution
+    for chunk in np.array_split(yaws, max(1, int(np.ceil(len(yaws) / 8)))):
+        kern = np.zeros((len(chunk), H, W))
+        Rs = []
+        for n, yaw in enumerate(chunk):
+            R = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+            Rs.append(R)
+            k = np.round(src @ R.T / resolution).astype(int)
+            np.add.at(kern[n], (k[:, 0] % H, k[:, 1] % W), 1.0)
+        # corr[a, b] = sum over source points of like[a + k0, b + k1]: source centroid at cell (a, b)
+        corr = sfft.irfft2(F_like[None] * np.conj(sfft.rfft2(kern, axes=(1, 2), workers=-1)),
+                           s=(H, W), axes=(1, 2), workers=-1)
+        for n, yaw in enumerate(chunk):
+            R = Rs[n]
+            expected = R @ c_src + center
+            ia = np.nonzero(np.abs(cx - expected[0]) <= window)[0]
+            ib = np.nonzero(np.abs(cy - expected[1]) <= window)[0]
+            if len(ia) == 0 or len(ib) == 0:
+                continue
+            subc = corr[n][np.ix_(ia, ib)]
+            a, b = np.unravel_index(int(np.argmax(subc)), subc.shape)
+            t = np.array([cx[ia[a]], cy[ib[b]]]) - R @ c_src
+            peaks.append((float(subc[a, b]) / len(src), t[0], t[1], float(yaw)))
     if not peaks:
         return np.zeros(3), 0.0, 1.0
-    # ambiguity: best score among peaks far from the best (> 1.5 m or > 10 deg away)
-    second = 0.0
-    for s, x, y, yaw in peaks:
-        far = np.hypot(x - best[1], y - best[2]) > 1.5 or abs(np.angle(np.exp(1j * (yaw - best[3])))) > np.deg2rad(10)
-        if far and s > second:
-            second = s
-    ambiguity = second / best[0] if best[0] > 0 else 1.0
-    return np.array(best[1:]), best[0], ambiguity
+    return _best_peaks(peaks)
 
 
 def icp_2d(source: np.ndarray, target: np.ndarray, xyt: np.ndarray, *, max_distance: float = 1.0,
