@@ -63,10 +63,10 @@ class EvidenceGrid:
             return
         p = self.params
         hits = transform_points(T_grid_sensor, points)[:, :2]
-        width = self.logodds.shape[1]
         flat = self.logodds.reshape(-1)
+        hit_mask = np.zeros(flat.shape, dtype=bool)  # each cell counts once per scan
         r, c, inside = self.cells(hits)
-        hit_idx = np.unique(r[inside] * width + c[inside])
+        hit_mask[r[inside] * self.logodds.shape[1] + c[inside]] = True
         if carve_free:
             origin = T_grid_sensor[:2, 3]
             vec = hits - origin
@@ -78,9 +78,11 @@ class EvidenceGrid:
             dist = offsets * p.resolution
             free_xy = origin + vec[ray] * (dist / lengths[ray])[:, None]
             r, c, inside = self.cells(free_xy)
-            free_idx = np.setdiff1d(np.unique(r[inside] * width + c[inside]), hit_idx, assume_unique=True)
-            flat[free_idx] += p.l_free
-        flat[hit_idx] += p.l_occ
+            free_mask = np.zeros(flat.shape, dtype=bool)
+            free_mask[r[inside] * self.logodds.shape[1] + c[inside]] = True
+            free_mask &= ~hit_mask
+            flat[free_mask] += p.l_free
+        flat[hit_mask] += p.l_occ
         np.clip(flat, p.l_min, p.l_max, out=flat)
 
     def probabilities(self) -> np.ndarray:
