@@ -82,6 +82,8 @@ class BackendConfig(_Strict):
     gnc_inlier_probability: float = Field(0.99, gt=0, lt=1)
     incremental: bool = Field(True, description="iSAM2 update at every submap")
     final_batch: bool = Field(True, description="Levenberg-Marquardt pass at the end")
+    odometry_drift: float = Field(0.01, gt=0, description="odometry translation sigma per metre")
+    odometry_drift_deg_per_m: float = Field(0.15, gt=0, description="odometry heading sigma per metre [deg]")
     odometry_sigma_floor_m: float = Field(0.02, gt=0)
     odometry_sigma_floor_deg: float = Field(0.2, gt=0)
     loop_sigma_floor_m: float = Field(0.05, gt=0)

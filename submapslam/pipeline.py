@@ -52,13 +52,15 @@ def peak_memory_mb() -> float:
 def odometry_information(T_i_j: np.ndarray, distance: float, planar: bool, config) -> np.ndarray:
     """Information ``(6, 6)`` (GTSAM order) of an odometry edge between consecutive anchors.
 
-    Drift model: translation sigma 2% of the distance travelled plus a floor, rotation sigma
-    0.5 deg per metre plus 5% of the turned angle plus a floor. For planar logs z, roll and
-    pitch are pinned (they are not observable and must not drift).
+    Drift model of scan-to-map odometry: translation sigma ``odometry_drift`` of the distance
+    travelled plus a floor; rotation sigma ``odometry_drift_deg_per_m`` per metre plus 3% of
+    the turned angle plus a floor. For planar logs z, roll and pitch are pinned (they are not
+    observable and must not drift).
     """
     angle = rotation_angle(T_i_j)
-    s_t = config.odometry_sigma_floor_m + 0.02 * distance
-    s_r = np.deg2rad(config.odometry_sigma_floor_deg) + np.deg2rad(0.5) * distance + 0.05 * angle
+    s_t = config.odometry_sigma_floor_m + config.odometry_drift * distance
+    s_r = (np.deg2rad(config.odometry_sigma_floor_deg) + np.deg2rad(config.odometry_drift_deg_per_m) * distance
+           + 0.03 * angle)
     sig = np.array([s_r, s_r, s_r, s_t, s_t, s_t])
     if planar:
         sig[[0, 1, 5]] = 1e-4

@@ -60,7 +60,8 @@ class PoseGraph:
         self._initial: dict[int, np.ndarray] = {}
         self.edges: list[GraphEdge] = []
         self._factor_edges: dict[int, int] = {}
-        self._marginal_graph = None  # factor index in _graph -> index in edges
+        self._marginal_graph = None
+        self.odometry_steps: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # i -> (T_i_i+1, Sigma)  # factor index in _graph -> index in edges
         self.n_updates = 0
 
     # ------------------------------------------------------------------ building
@@ -98,6 +99,8 @@ class PoseGraph:
         self._factor_edges[self._graph.size()] = len(self.edges)
         self._graph.add(f)
         self.edges.append(GraphEdge(i, j, np.array(T_i_j), np.array(information), kind))
+        if kind == "odometry" and j == i + 1:
+            self.odometry_steps[i] = (np.array(T_i_j), np.linalg.inv(0.5 * (information + information.T)))
 
     # ------------------------------------------------------------------ solving
     def update(self, extra_iterations: int = 0) -> None:
@@ -147,6 +150,10 @@ class PoseGraph:
             self._estimate = gtsam.LevenbergMarquardtOptimizer(self._graph, self._estimate, lm).optimize()
         return weights
 
+    def odometry_chain(self, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """Odometry-only ``(T_i_j, Sigma_i_j)`` between nodes ``i < j`` (loop edges ignored)."""
+        return chain_covariance([self.odometry_steps[k] for k in range(i, j)])
+
     def pose(self, key: int) -> np.ndarray:
         """Current ``T_world_node`` of one node (initial guess if not yet optimised)."""
         if self._estimate.exists(key):
@@ -169,3 +176,32 @@ class PoseGraph:
         except RuntimeError as exc:  # indeterminant system; fall back to iSAM2's
             log.warning("batch marginals failed (%s); using iSAM2 marginals", exc)
             return {k: self.marginal_covariance(k) for k in self._initial}
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """``(6, 6)`` adjoint of a pose in GTSAM's tangent order ``(rx, ry, rz, tx, ty, tz)``."""
+    from ..geometry import skew
+
+    R, t = T[:3, :3], T[:3, 3]
+    Ad = np.zeros((6, 6))
+    Ad[:3, :3] = R
+    Ad[3:, 3:] = R
+    Ad[3:, :3] = skew(t) @ R
+    return Ad
+
+
+def chain_covariance(steps: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """Compose ``[(T_k_k+1, Sigma_k_k+1), ...]`` into ``(T_i_j, Sigma_i_j)`` (right perturbations).
+
+    ``T_i_k+1 = T_i_k T_k_k+1`` so ``Sigma_i_k+1 = Ad(T_k_k+1^-1) Sigma_i_k Ad(.)^T + Sigma_k_k+1``.
+    Used as a conservative (loop-free) relative uncertainty between two submaps.
+    """
+    from ..geometry import inverse
+
+    T = np.eye(4)
+    S = np.zeros((6, 6))
+    for T_step, S_step in steps:
+        A = adjoint(inverse(T_step))
+        S = A @ S @ A.T + S_step
+        T = T @ T_step
+    return T, S

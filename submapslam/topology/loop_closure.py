@@ -21,7 +21,7 @@ import numpy as np
 
 from ..backend.pose_graph import PoseGraph, floor_information
 from ..config import LoopConfig
-from ..geometry import inverse, rotation_angle
+from ..geometry import inverse, rotation_angle, so3_log
 from ..result import LoopRecord
 from ..submaps import Submap
 from .correspondence import CorrespondenceResult, check_correspondence
@@ -30,7 +30,12 @@ from .descriptors import DescriptorIndex, compute_descriptor
 log = logging.getLogger(__name__)
 
 # chi-square 99.9% quantiles for the translation gate (2 DOF planar, 3 DOF spatial)
-_CHI2_999 = {2: 13.82, 3: 16.27}
+_CHI2_999 = {3: 16.27, 6: 22.46}
+
+
+def se3_log_gtsam(T: np.ndarray) -> np.ndarray:
+    """Small-pose tangent vector in GTSAM order ``(rx, ry, rz, tx, ty, tz)`` (decoupled)."""
+    return np.concatenate([so3_log(T[:3, :3]), T[:3, 3]])
 
 
 @dataclass
@@ -149,19 +154,24 @@ class LoopCloser:
         return False, "no adjacent submap overlaps to confirm it"
 
     def _plausible(self, hyp: Hypothesis, T_i_j: np.ndarray, graph: PoseGraph) -> tuple[bool, str]:
-        """Mahalanobis gate of the loop's translation against the current estimate."""
+        """Mahalanobis gate of the loop against the current estimate.
+
+        The uncertainty is the odometry chain's between ``i`` and ``j`` (loop edges ignored: a
+        conservative bound that no earlier loop, right or wrong, can shrink), tested on
+        ``(x, y, yaw)`` for planar runs and on the full pose otherwise.
+        """
         if hyp.source == "hint":
             return True, "manual hint"
+        _, cov = graph.odometry_chain(hyp.i, hyp.j)
         T_est = inverse(graph.pose(hyp.i)) @ graph.pose(hyp.j)
-        cov = graph.marginal_covariance(hyp.i)[3:6, 3:6] + graph.marginal_covariance(hyp.j)[3:6, 3:6]
-        R_i = graph.pose(hyp.i)[:3, :3]
-        # both marginals are in body frames; express the discrepancy in the world frame
-        diff = R_i @ (T_i_j[:3, 3] - T_est[:3, 3])
-        dof = 2 if self.planar else 3
-        cov = cov[:dof, :dof] + np.eye(dof) * 0.25  # 0.5 m floor for the submap-level noise
-        m2 = float(diff[:dof] @ np.linalg.solve(cov, diff[:dof]))
-        if m2 > _CHI2_999[dof]:
-            return False, f"implausible under current uncertainty (Mahalanobis^2 {m2:.1f} > {_CHI2_999[dof]})"
+        err = se3_log_gtsam(inverse(T_est) @ T_i_j)
+        idx = [2, 3, 4] if self.planar else list(range(6))
+        floor = np.array([np.deg2rad(1.0)] * 3 + [0.2] * 3)[idx] ** 2  # submap-level noise floor
+        S = cov[np.ix_(idx, idx)] + np.diag(floor)
+        m2 = float(err[idx] @ np.linalg.solve(S, err[idx]))
+        limit = _CHI2_999[len(idx)]
+        if m2 > limit:
+            return False, f"implausible under current uncertainty (Mahalanobis^2 {m2:.1f} > {limit})"
         return True, "plausible"
 
     def process(self, new: Submap, submaps: list[Submap], graph: PoseGraph,

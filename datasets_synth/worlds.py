@@ -1,0 +1,250 @@
+"""Synthetic worlds: triangle meshes plus a path that revisits places.
+
+Planar worlds are built from 2D wall segments extruded to a height; the 3D world from boxes
+(buildings), cylinders (poles) and a ground plane. Everything is deterministic from a seed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class World:
+    """A world to drive through.
+
+    Attributes:
+        name: registry name.
+        planar: True for worlds meant for a 2D laser (vertical walls only, no ground).
+        boxes: ``(K, 6)`` axis-aligned boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)`` [m].
+        segments: ``(S, 4)`` wall segments ``(x0, y0, x1, y1)`` extruded to ``wall_height``.
+        cylinders: ``(C, 4)`` vertical cylinders ``(x, y, radius, height)``.
+        ground: add a ground plane (z = 0) covering the world.
+        waypoints: ``(W, 2)`` closed loop the robot follows (last point connects to the first).
+        extent: ``(xmin, ymin, xmax, ymax)``.
+    """
+
+    name: str
+    planar: bool
+    waypoints: np.ndarray
+    extent: tuple[float, float, float, float]
+    boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+    segments: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    cylinders: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    ground: bool = False
+    wall_height: float = 2.5
+    description: str = ""
+
+    def loop_length(self) -> float:
+        w = np.vstack([self.waypoints, self.waypoints[:1]])
+        return float(np.linalg.norm(np.diff(w, axis=0), axis=1).sum())
+
+    def mesh(self):
+        """The world as an open3d legacy ``TriangleMesh``."""
+        from submapslam._deps import open3d
+
+        o3d = open3d()
+        mesh = o3d.geometry.TriangleMesh()
+        for x0, y0, z0, x1, y1, z1 in self.boxes:
+            b = o3d.geometry.TriangleMesh.create_box(x1 - x0, y1 - y0, z1 - z0)
+            b.translate((x0, y0, z0))
+            mesh += b
+        for x0, y0, x1, y1 in self.segments:
+            mesh += _wall_quad(o3d, x0, y0, x1, y1, self.wall_height)
+        for x, y, r, h in self.cylinders:
+            c = o3d.geometry.TriangleMesh.create_cylinder(radius=r, height=h, resolution=16)
+            c.translate((x, y, h / 2))
+            mesh += c
+        if self.ground:
+            xmin, ymin, xmax, ymax = self.extent
+            g = o3d.geometry.TriangleMesh()
+            g.vertices = o3d.utility.Vector3dVector(
+                [[xmin - 50, ymin - 50, 0], [xmax + 50, ymin - 50, 0], [xmax + 50, ymax + 50, 0], [xmin - 50, ymax + 50, 0]])
+            g.triangles = o3d.utility.Vector3iVector([[0, 1, 2], [0, 2, 3]])
+            mesh += g
+        return mesh
+
+
+def _wall_quad(o3d, x0, y0, x1, y1, height):
+    q = o3d.geometry.TriangleMesh()
+    q.vertices = o3d.utility.Vector3dVector([[x0, y0, 0], [x1, y1, 0], [x1, y1, height], [x0, y0, height]])
+    q.triangles = o3d.utility.Vector3iVector([[0, 1, 2], [0, 2, 3]])
+    return q
+
+
+def _polyline(points) -> list[tuple[float, float, float, float]]:
+    p = np.asarray(points, dtype=np.float64)
+    return [(*p[i], *p[i + 1]) for i in range(len(p) - 1)]
+
+
+def _wall_with_features(a, b, inward, rng, *, recess_prob=0.35, pillar_prob=0.25, spacing=3.0,
+                        fixed: list[tuple[float, str]] | None = None):
+    """Segments of the straight wall a->b with door recesses and pillars, pseudo-random.
+
+    ``inward`` is the unit normal pointing into the hallway. ``fixed`` replaces the random
+    layout by ``(position along the wall [m], kind)`` features (used to build repeated rooms).
+    """
+    a, b, n = (np.asarray(v, dtype=np.float64) for v in (a, b, inward))
+    length = float(np.linalg.norm(b - a))
+    d = (b - a) / length
+    segs, pillars = [], []
+    cursor = 0.0
+    features = fixed
+    if features is None:
+        features = []
+        s = 1.5
+        while s < length - 2.5:
+            u = rng.random()
+            if u < recess_prob:
+                features.append((s, "recess"))
+                s += rng.uniform(2.5, 5.0)
+            elif u < recess_prob + pillar_prob:
+                features.append((s, "pillar"))
+                s += rng.uniform(2.0, 4.0)
+            else:
+                s += rng.uniform(1.0, spacing)
+    for pos, kind in features:
+        if kind == "recess":
+            width = 1.0 + (pos * 7.31 % 1.0) * 0.8 if fixed is None else 1.2
+            depth = 0.6 + (pos * 3.17 % 1.0) * 1.2 if fixed is None else 0.8
+            p0, p1 = a + d * pos, a + d * (pos + width)
+            if pos + width >= length - 0.5:
+                continue
+            segs += _polyline([a + d * cursor, p0, p0 - n * depth, p1 - n * depth, p1])
+            cursor = pos + width
+        elif kind == "room":
+            width, depth = 3.0, 3.0
+            p0, p1 = a + d * pos, a + d * (pos + width)
+            door0, door1 = a + d * (pos + 1.0), a + d * (pos + 2.0)
+            segs += _polyline([a + d * cursor, door0])
+            segs += _polyline([door0, p0, p0 - n * depth, p1 - n * depth, p1, door1])
+            cursor = pos + 2.0
+        elif kind == "pillar":
+            c = a + d * pos + n * 0.25
+            pillars.append((c[0] - 0.2, c[1] - 0.2, c[0] + 0.2, c[1] + 0.2))
+    segs += _polyline([a + d * cursor, b])
+    return segs, pillars
+
+
+def _box_segments(x0, y0, x1, y1):
+    return _polyline([(x0, y0), (x1, y0), (x1, y1), (x0, y1), (x0, y0)])
+
+
+def _block_walls(x0, y0, x1, y1):
+    """Walls of an inner block, each with the normal pointing out of the block (into the hallway)."""
+    return [((x0, y0), (x1, y0), (0, -1)), ((x1, y0), (x1, y1), (1, 0)),
+            ((x1, y1), (x0, y1), (0, 1)), ((x0, y1), (x0, y0), (-1, 0))]
+
+
+def _hall_world(name, size, width, rng, blocks, waypoints, fixed_outer=None, fixed_inner=None, description=""):
+    """Hallways between an outer rectangle ``size`` and inner ``blocks``, with wall features."""
+    W, H = size
+    outer = [((0, 0), (W, 0), (0, 1)), ((W, 0), (W, H), (-1, 0)), ((W, H), (0, H), (0, -1)), ((0, H), (0, 0), (1, 0))]
+    segs, pillars = [], []
+    for k, (a, b, n) in enumerate(outer):
+        s, p = _wall_with_features(a, b, n, rng, fixed=None if fixed_outer is None else fixed_outer(k, a, b))
+        segs += s
+        pillars += p
+    for blk in blocks:
+        for k, (a, b, n) in enumerate(_block_walls(*blk)):
+            s, _ = _wall_with_features(a, b, n, rng, recess_prob=0.3, pillar_prob=0.0,
+                                       fixed=None if fixed_inner is None else fixed_inner(k, a, b))
+            segs += s
+    boxes = [(x0, y0, 0.0, x1, y1, 2.5) for x0, y0, x1, y1 in pillars]
+    return World(name, True, np.asarray(waypoints, dtype=np.float64), (0.0, 0.0, W, H),
+                 boxes=np.array(boxes).reshape(-1, 6), segments=np.array(segs), description=description)
+
+
+def _ring_world(name, size, width, rng, fixed_outer=None, fixed_inner=None, description=""):
+    W, H = size
+    h = width / 2
+    return _hall_world(name, size, width, rng, [(width, width, W - width, H - width)],
+                       [(h, h), (W - h, h), (W - h, H - h), (h, H - h)], fixed_outer, fixed_inner, description)
+
+
+def rectangle(seed: int = 0, size: tuple[float, float] = (30.0, 20.0), width: float = 3.0) -> World:
+    """The seed's cyclic example: four hallways meeting in a rectangle, with doors and pillars."""
+    return _ring_world("rectangle", size, width, np.random.default_rng(seed),
+                       description="four hallways forming a rectangle (planar)")
+
+
+def rooms(seed: int = 0, size: tuple[float, float] = (48.0, 12.0), width: float = 3.0) -> World:
+    """A rectangle of hallways whose walls repeat one identical room every 6 m: fools place recognition."""
+    def outer(k, a, b):
+        length = float(np.linalg.norm(np.subtract(b, a)))
+        return [(s, "room") for s in np.arange(1.5, length - 4.0, 6.0)]
+
+    def inner(k, a, b):
+        return []
+
+    return _ring_world("rooms", size, width, np.random.default_rng(seed), fixed_outer=outer, fixed_inner=inner,
+                       description="hallway loop lined with identical rooms (perceptual aliasing)")
+
+
+def figure8(seed: int = 0, size: tuple[float, float] = (40.0, 16.0), width: float = 3.0) -> World:
+    """Two rectangular loops sharing a middle corridor; the path runs both loops in turn."""
+    W, H = size
+    h, cx = width / 2, W / 2
+    blocks = [(width, width, cx - h, H - width), (cx + h, width, W - width, H - width)]
+    waypoints = [(cx, H - h), (cx, h), (W - h, h), (W - h, H - h), (cx, H - h), (cx, h), (h, h), (h, H - h)]
+    return _hall_world("figure8", size, width, np.random.default_rng(seed), blocks, waypoints,
+                       description="two loops sharing a corridor, figure-eight path")
+
+
+def outdoor(seed: int = 0, blocks: tuple[int, int] = (3, 2), block_size: float = 40.0, street: float = 12.0) -> World:
+    """Blocks of buildings with streets between them, poles along the kerbs; loop around all blocks."""
+    rng = np.random.default_rng(seed)
+    boxes, cyl = [], []
+    nx, ny = blocks
+    pitch = block_size + street
+    for i in range(nx):
+        for j in range(ny):
+            x0, y0 = i * pitch, j * pitch
+            # a block holds 2-4 buildings of varied footprint and height
+            cuts = np.sort(rng.uniform(0.25, 0.75, size=rng.integers(1, 3))) * block_size
+            edges = np.concatenate([[0.0], cuts, [block_size]])
+            for a, b in zip(edges[:-1], edges[1:]):
+                inset = rng.uniform(0.5, 3.0)
+                boxes.append((x0 + a + 0.5, y0 + inset, 0.0, x0 + b - 0.5, y0 + block_size - inset, rng.uniform(6, 25)))
+    xmax, ymax = nx * pitch - street, ny * pitch - street
+    # poles along the outer ring road, irregular spacing
+    for side in range(4):
+        s = rng.uniform(2, 8)
+        total = (xmax + street) if side % 2 == 0 else (ymax + street)
+        while s < total:
+            if side == 0:
+                p = (-street + 2.0 + s, -street + 1.5)
+            elif side == 1:
+                p = (xmax + street - 1.5, -street + 2.0 + s)
+            elif side == 2:
+                p = (xmax + street - 2.0 - s, ymax + street - 1.5)
+            else:
+                p = (-street + 1.5, ymax + street - 2.0 - s)
+            cyl.append((*p, 0.15, rng.uniform(4, 8)))
+            s += rng.uniform(8, 20)
+    # a wall around the outside of the ring road, broken into pieces
+    ring = [(-street - 2, -street - 2), (xmax + street + 2, -street - 2), (xmax + street + 2, ymax + street + 2),
+            (-street - 2, ymax + street + 2)]
+    for k in range(4):
+        a, b = np.array(ring[k]), np.array(ring[(k + 1) % 4])
+        for t0 in np.arange(0, 1, 0.2):
+            if rng.random() < 0.7:
+                p0, p1 = a + (b - a) * t0, a + (b - a) * (t0 + 0.15)
+                lo, hi = np.minimum(p0, p1), np.maximum(p0, p1)
+                boxes.append((lo[0] - 0.2, lo[1] - 0.2, 0.0, hi[0] + 0.2, hi[1] + 0.2, rng.uniform(2, 4)))
+    h = street / 2
+    waypoints = np.array([(-h, -h), (xmax + h, -h), (xmax + h, ymax + h), (-h, ymax + h)])
+    return World("outdoor", False, waypoints, (-street, -street, xmax + street, ymax + street),
+                 boxes=np.array(boxes), cylinders=np.array(cyl), ground=True,
+                 description="city blocks, poles and walls with a drivable loop (3D)")
+
+
+WORLDS: dict[str, tuple[Callable[..., World], str, str]] = {
+    "rectangle": (rectangle, "laser2d", "four hallways forming a rectangle (the seed's cyclic example)"),
+    "rooms": (rooms, "laser2d", "hallway loop of identical rooms, built to fool place recognition"),
+    "figure8": (figure8, "laser2d", "two loops sharing a corridor, figure-eight path"),
+    "outdoor": (outdoor, "lidar3d", "city blocks, poles and walls, loop of ~200 m (3D LiDAR)"),
+}

@@ -1,0 +1,133 @@
+"""Generate a synthetic log folder that submapslam's readers load (and other tools can read).
+
+Layout written by :func:`generate`::
+
+    OUT/scans/000000.ply     binary little-endian PLY, float32 x y z time (sensor frame, time in [0, 1])
+    OUT/times.txt            one timestamp per scan [s]
+    OUT/odometry_tum.txt     wheel odometry T_odom_base per scan (TUM)
+    OUT/groundtruth_tum.txt  ground truth T_world_base per scan (TUM)
+    OUT/groundtruth_kitti.txt  the same, KITTI 3x4
+    OUT/meta.yaml            world, seed, sensor, planar flag, loop length, noise, T_base_sensor
+    OUT/log.clf              2D lasers with a 180-degree field of view: the same data as CARMEN
+
+The base frame is the sensor frame (T_base_sensor = identity); for 3D worlds the base moves
+at the sensor's mount height.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from submapslam.errors import SubmapSlamError
+from submapslam.geometry import matrix_to_se2, se2_array_to_matrices
+from submapslam.io.trajectory import Trajectory, write_kitti, write_tum
+
+from .motion import OdometryNoise, loop_path, wheel_odometry
+from .sensors import Laser2D, Lidar3D, RayCaster, measure
+from .worlds import WORLDS, World
+
+log = logging.getLogger(__name__)
+
+START_TIME = 1000.0
+
+
+def write_ply_xyzt(path: Path, points: np.ndarray, times: np.ndarray) -> None:
+    """Binary little-endian PLY with float32 ``x y z time`` vertices."""
+    rec = np.zeros(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("time", "<f4")])
+    rec["x"], rec["y"], rec["z"], rec["time"] = points[:, 0], points[:, 1], points[:, 2], times
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {len(rec)}\n"
+        "property float x\nproperty float y\nproperty float z\nproperty float time\nend_header\n"
+    )
+    with open(path, "wb") as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(rec.tobytes())
+
+
+def _carmen_lines(stamps, ranges_list, odom, max_range) -> list[str]:
+    lines = ["# CARMEN log written by datasets_synth",
+             "# FLASER num_readings [range_readings] x y theta odom_x odom_y odom_theta ipc_timestamp host logger_timestamp",
+             "PARAM robot_frontlaser_offset 0.0 synth 0.000000"]
+    xyt = matrix_to_se2(odom)
+    for t, r, (x, y, th) in zip(stamps, ranges_list, xyt):
+        rel = t - stamps[0]
+        lines.append(f"ODOM {x:.6f} {y:.6f} {th:.6f} 0.0 0.0 0.0 {t:.6f} synth {rel:.6f}")
+        rs = " ".join(f"{v:.3f}" for v in r)
+        lines.append(f"FLASER {len(r)} {rs} {x:.6f} {y:.6f} {th:.6f} {x:.6f} {y:.6f} {th:.6f} {t:.6f} synth {rel:.6f}")
+    return lines
+
+
+def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, sensor: str | None = None,
+             speed: float | None = None, rate: float = 10.0, odometry_noise: float = 1.0,
+             max_scans: int | None = None, **world_options) -> Path:
+    """Write a synthetic log of ``world`` into ``out_dir``; returns ``out_dir``.
+
+    Args:
+        world: a name in :data:`WORLDS`.
+        seed: seeds the world layout, sensor noise and odometry noise (same seed, same files).
+        laps: laps around the loop.
+        sensor: ``"laser2d"`` or ``"lidar3d"`` (default: the world's own).
+        speed: [m/s] (default 1.0 indoors, 8.0 outdoors); ``rate``: scans per second.
+        odometry_noise: multiplies the default :class:`OdometryNoise` (0 = perfect odometry).
+        max_scans: cut the log after this many scans (small test logs).
+    """
+    if world not in WORLDS:
+        raise SubmapSlamError(f"unknown world {world!r}; known worlds: {', '.join(WORLDS)}")
+    builder, default_sensor, _ = WORLDS[world]
+    sensor = sensor or default_sensor
+    if sensor not in ("laser2d", "lidar3d"):
+        raise SubmapSlamError(f"unknown sensor {sensor!r}; use laser2d or lidar3d")
+    w: World = builder(seed=seed, **world_options)
+    rng = np.random.default_rng(seed + 7919)
+    speed = speed or (1.0 if w.planar else 8.0)
+    truth_xyt = loop_path(w.waypoints, laps, speed / rate)
+    if max_scans is not None:
+        truth_xyt = truth_xyt[:max_scans]
+    noise = OdometryNoise().scaled(odometry_noise)
+    odom = wheel_odometry(truth_xyt, noise, rng)
+    dev = Laser2D() if sensor == "laser2d" else Lidar3D()
+    truth = se2_array_to_matrices(truth_xyt)
+    truth[:, 2, 3] = dev.mount_height if not w.planar else 0.0
+    caster = RayCaster(w.mesh())
+    out = Path(out_dir)
+    (out / "scans").mkdir(parents=True, exist_ok=True)
+    stamps = START_TIME + np.arange(len(truth)) / rate
+    carmen_ranges = []
+    for k, T in enumerate(truth):
+        T_cast = T.copy()
+        if sensor == "laser2d":
+            T_cast[2, 3] = dev.mount_height
+            dirs = dev.directions()
+            times = np.zeros(len(dirs))
+        else:
+            if w.planar:
+                T_cast[2, 3] = dev.mount_height
+            dirs, times = dev.directions()
+        r, valid = measure(caster.ranges(T_cast, dirs), dev.max_range, dev.range_noise, dev.dropout, rng)
+        pts = dirs[valid] * r[valid, None]
+        write_ply_xyzt(out / "scans" / f"{k:06d}.ply", pts, times[valid])
+        if sensor == "laser2d":
+            carmen_ranges.append(np.where(valid, r, dev.max_range))
+    (out / "times.txt").write_text("".join(f"{t:.6f}\n" for t in stamps))
+    write_tum(out / "odometry_tum.txt", Trajectory(stamps, odom))
+    write_tum(out / "groundtruth_tum.txt", Trajectory(stamps, truth))
+    write_kitti(out / "groundtruth_kitti.txt", truth)
+    end_drift = float(np.linalg.norm(odom[-1][:2, 3] - (np.linalg.inv(truth[0]) @ truth[-1])[:2, 3]))
+    meta = {
+        "world": world, "description": w.description, "seed": seed, "laps": laps,
+        "sensor": {"type": sensor, **asdict(dev)}, "planar": sensor == "laser2d",
+        "n_scans": int(len(truth)), "rate_hz": rate, "speed_mps": speed,
+        "loop_length_m": round(w.loop_length(), 3), "odometry_noise": asdict(noise),
+        "odometry_end_drift_m": round(end_drift, 3), "T_base_sensor": np.eye(4).tolist(),
+    }
+    (out / "meta.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
+    if sensor == "laser2d" and abs(dev.fov_deg - 180.0) < 1e-9:
+        (out / "log.clf").write_text("\n".join(_carmen_lines(stamps, carmen_ranges, odom, dev.max_range)) + "\n")
+    log.info("wrote %d scans of %s to %s", len(truth), world, out)
+    return out
