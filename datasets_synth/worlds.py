@@ -139,18 +139,20 @@ def _block_walls(x0, y0, x1, y1):
             ((x1, y1), (x0, y1), (0, 1)), ((x0, y1), (x0, y0), (-1, 0))]
 
 
-def _hall_world(name, size, width, rng, blocks, waypoints, fixed_outer=None, fixed_inner=None, description=""):
+def _hall_world(name, size, width, rng, blocks, waypoints, fixed_outer=None, fixed_inner=None, description="",
+                density: float = 1.0):
     """Hallways between an outer rectangle ``size`` and inner ``blocks``, with wall features."""
     W, H = size
     outer = [((0, 0), (W, 0), (0, 1)), ((W, 0), (W, H), (-1, 0)), ((W, H), (0, H), (0, -1)), ((0, H), (0, 0), (1, 0))]
     segs, pillars = [], []
     for k, (a, b, n) in enumerate(outer):
-        s, p = _wall_with_features(a, b, n, rng, fixed=None if fixed_outer is None else fixed_outer(k, a, b))
+        s, p = _wall_with_features(a, b, n, rng, recess_prob=0.35 * density, pillar_prob=0.25 * density,
+                                   fixed=None if fixed_outer is None else fixed_outer(k, a, b))
         segs += s
         pillars += p
     for blk in blocks:
         for k, (a, b, n) in enumerate(_block_walls(*blk)):
-            s, _ = _wall_with_features(a, b, n, rng, recess_prob=0.3, pillar_prob=0.0,
+            s, _ = _wall_with_features(a, b, n, rng, recess_prob=0.3 * density, pillar_prob=0.0,
                                        fixed=None if fixed_inner is None else fixed_inner(k, a, b))
             segs += s
     boxes = [(x0, y0, 0.0, x1, y1, 2.5) for x0, y0, x1, y1 in pillars]
@@ -158,17 +160,23 @@ def _hall_world(name, size, width, rng, blocks, waypoints, fixed_outer=None, fix
                  boxes=np.array(boxes).reshape(-1, 6), segments=np.array(segs), description=description)
 
 
-def _ring_world(name, size, width, rng, fixed_outer=None, fixed_inner=None, description=""):
+def _ring_world(name, size, width, rng, fixed_outer=None, fixed_inner=None, description="", density=1.0):
     W, H = size
     h = width / 2
     return _hall_world(name, size, width, rng, [(width, width, W - width, H - width)],
-                       [(h, h), (W - h, h), (W - h, H - h), (h, H - h)], fixed_outer, fixed_inner, description)
+                       [(h, h), (W - h, h), (W - h, H - h), (h, H - h)], fixed_outer, fixed_inner, description,
+                       density)
 
 
-def rectangle(seed: int = 0, size: tuple[float, float] = (30.0, 20.0), width: float = 3.0) -> World:
-    """The seed's cyclic example: four hallways meeting in a rectangle, with doors and pillars."""
+def rectangle(seed: int = 0, size: tuple[float, float] = (30.0, 20.0), width: float = 3.0,
+              feature_density: float = 1.0) -> World:
+    """The seed's cyclic example: four hallways meeting in a rectangle, with doors and pillars.
+
+    ``feature_density`` scales how often doors and pillars break the walls (lower: longer
+    plain stretches, where scan matching slides along the corridor and odometry drifts).
+    """
     return _ring_world("rectangle", size, width, np.random.default_rng(seed),
-                       description="four hallways forming a rectangle (planar)")
+                       description="four hallways forming a rectangle (planar)", density=feature_density)
 
 
 def rooms(seed: int = 0, size: tuple[float, float] = (48.0, 12.0), width: float = 3.0) -> World:

@@ -65,7 +65,7 @@ def _carmen_lines(stamps, ranges_list, odom, max_range) -> list[str]:
 
 def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, sensor: str | None = None,
              speed: float | None = None, rate: float = 10.0, odometry_noise: float = 1.0,
-             max_scans: int | None = None, **world_options) -> Path:
+             max_scans: int | None = None, sensor_options: dict | None = None, **world_options) -> Path:
     """Write a synthetic log of ``world`` into ``out_dir``; returns ``out_dir``.
 
     Args:
@@ -76,6 +76,8 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
         speed: [m/s] (default 1.0 indoors, 8.0 outdoors); ``rate``: scans per second.
         odometry_noise: multiplies the default :class:`OdometryNoise` (0 = perfect odometry).
         max_scans: cut the log after this many scans (small test logs).
+        sensor_options: overrides of :class:`Laser2D` / :class:`Lidar3D` fields (e.g. max_range).
+        world_options: passed to the world builder (e.g. size, feature_density).
     """
     if world not in WORLDS:
         raise SubmapSlamError(f"unknown world {world!r}; known worlds: {', '.join(WORLDS)}")
@@ -91,7 +93,10 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
         truth_xyt = truth_xyt[:max_scans]
     noise = OdometryNoise().scaled(odometry_noise)
     odom = wheel_odometry(truth_xyt, noise, rng)
-    dev = Laser2D() if sensor == "laser2d" else Lidar3D()
+    try:
+        dev = (Laser2D if sensor == "laser2d" else Lidar3D)(**(sensor_options or {}))
+    except TypeError as exc:
+        raise SubmapSlamError(f"bad sensor option: {exc}") from None
     truth = se2_array_to_matrices(truth_xyt)
     truth[:, 2, 3] = dev.mount_height if not w.planar else 0.0
     caster = RayCaster(w.mesh())

@@ -136,3 +136,62 @@ def rpe(est: Trajectory, ref: Trajectory, delta: float = 1, unit: Literal["frame
     out = _stats(trans)
     out.update({f"rotation_{k}": v for k, v in _stats(rot).items() if k != "n"})
     return out
+
+
+def relations_error(est: Trajectory, relations, max_diff: float = 0.02) -> dict:
+    """Relations metric of Kümmerle et al. 2009: compare estimated relative poses with relations.
+
+    For each relation ``(t_a, t_b, T_a_b)`` whose stamps both match estimate poses, the error is
+    ``T_a_b^-1 (T_w_a^-1 T_w_b)``; returns mean and std of the translational error [m] and of
+    the absolute rotational error [deg], their squared variants, and the count used.
+    """
+    ts = est.timestamps
+    order = np.argsort(ts)
+    sorted_ts = ts[order]
+
+    def lookup(t: np.ndarray) -> np.ndarray:
+        k = np.clip(np.searchsorted(sorted_ts, t), 1, len(sorted_ts) - 1)
+        best = np.where(np.abs(sorted_ts[k - 1] - t) <= np.abs(sorted_ts[k] - t), k - 1, k)
+        idx = order[best]
+        idx[np.abs(ts[idx] - t) > max_diff] = -1
+        return idx
+
+    ia, ib = lookup(relations.t_a), lookup(relations.t_b)
+    ok = (ia >= 0) & (ib >= 0)
+    if not ok.any():
+        raise SubmapSlamError(f"no relation matches the estimate's timestamps within {max_diff} s")
+    E = inverse(relations.T_a_b[ok]) @ (inverse(est.poses[ia[ok]]) @ est.poses[ib[ok]])
+    trans = np.linalg.norm(E[:, :3, 3], axis=1)
+    rot = np.rad2deg(np.array([rotation_angle(x) for x in E]))
+    return {
+        "n": int(ok.sum()), "trans_mean": float(trans.mean()), "trans_std": float(trans.std()),
+        "rot_mean_deg": float(rot.mean()), "rot_std_deg": float(rot.std()),
+        "trans_sq_mean": float((trans**2).mean()), "rot_sq_mean_deg2": float((rot**2).mean()),
+    }
+
+
+def kitti_segment_error(est: Trajectory, ref: Trajectory, lengths: tuple[float, ...] | None = None,
+                        step: int = 10, max_diff: float = 0.02) -> dict:
+    """KITTI-devkit style drift: for start frames every ``step`` and each segment length, the
+    relative pose error at the end of the segment, as % of the length and deg/m.
+
+    ``lengths`` default to 100..800 m, scaled down to 10%..80% of the path for short runs.
+    """
+    i_e, i_r = associate(est, ref, max_diff)
+    e, r = est.poses[i_e], ref.poses[i_r]
+    dist = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(r[:, :3, 3], axis=0), axis=1))])
+    if lengths is None:
+        lengths = tuple(range(100, 801, 100)) if dist[-1] > 1600 else tuple(dist[-1] * f for f in np.arange(0.1, 0.81, 0.1))
+    t_err, r_err = [], []
+    for first in range(0, len(r), step):
+        for length in lengths:
+            last = int(np.searchsorted(dist, dist[first] + length))
+            if last >= len(r) or length <= 0:
+                continue
+            E = inverse(inverse(r[first]) @ r[last]) @ (inverse(e[first]) @ e[last])
+            t_err.append(np.linalg.norm(E[:3, 3]) / length)
+            r_err.append(rotation_angle(E) / length)
+    if not t_err:
+        raise SubmapSlamError("trajectory too short for segment errors")
+    return {"trans_percent": float(100 * np.mean(t_err)), "rot_deg_per_m": float(np.rad2deg(np.mean(r_err))),
+            "segments": len(t_err), "lengths_m": [float(x) for x in lengths]}

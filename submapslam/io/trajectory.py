@@ -183,3 +183,57 @@ def read_trajectory(path: str | Path, format: str | None = None) -> Trajectory:
     if fmt == "carmen":
         return read_carmen_trajectory(path)
     raise InputError(path, "unknown trajectory format (expected TUM: 8 columns, KITTI: 12, or a CARMEN log)")
+
+
+@dataclass
+class Relations:
+    """Relative-pose relations (Kümmerle et al. 2009): ``T_a_b`` between poses stamped ``t_a``, ``t_b``."""
+
+    t_a: np.ndarray
+    t_b: np.ndarray
+    T_a_b: np.ndarray  # (R, 4, 4)
+
+    def __len__(self) -> int:
+        return len(self.t_a)
+
+
+def read_relations(path: str | Path) -> Relations:
+    """Lines ``t_a t_b x y z roll pitch yaw`` (a leading non-numeric tag is allowed)."""
+    from ..geometry import so3_exp
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "no such relations file")
+    ta, tb, Ts = [], [], []
+    with open_text(path) as fh:
+        for lineno, line in enumerate(fh, start=1):
+            tok = line.split()
+            if not tok or tok[0].startswith("#"):
+                continue
+            if not _is_number(tok[0]):
+                tok = tok[1:]
+            if len(tok) != 8:
+                raise InputError(path, f"expected 't_a t_b x y z roll pitch yaw', got {len(tok)} values", lineno)
+            try:
+                v = np.array(tok, dtype=np.float64)
+            except ValueError:
+                raise InputError(path, "non-numeric value", lineno) from None
+            roll, pitch, yaw = v[5:8]
+            R = so3_exp([0, 0, yaw]) @ so3_exp([0, pitch, 0]) @ so3_exp([roll, 0, 0])
+            T = np.eye(4)
+            T[:3, :3] = R
+            T[:3, 3] = v[2:5]
+            ta.append(v[0])
+            tb.append(v[1])
+            Ts.append(T)
+    if not Ts:
+        raise InputError(path, "no relations in the file")
+    return Relations(np.array(ta), np.array(tb), np.array(Ts))
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+    except ValueError:
+        return False
+    return True

@@ -188,27 +188,41 @@ def icp_2d(source: np.ndarray, target: np.ndarray, xyt: np.ndarray, *, max_dista
     return xyt, inl, nn
 
 
+def _normals_2d(points: np.ndarray, tree: cKDTree, k: int = 8) -> np.ndarray:
+    """Unit normals ``(M, 2)`` of 2D points from the PCA of their ``k`` nearest neighbours."""
+    k = min(k, len(points))
+    _, idx = tree.query(points, k=k)
+    nb = points[idx] - points[idx].mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", nb, nb)
+    _, vecs = np.linalg.eigh(cov)
+    return vecs[:, :, 0]  # eigenvector of the smallest eigenvalue
+
+
 def registration_information(source: np.ndarray, target: np.ndarray, xyt: np.ndarray,
-                             inlier_distance: float, tree: cKDTree | None = None) -> tuple[np.ndarray, float, float]:
-    """Gauss-Newton information ``(3, 3)`` over ``(x, y, yaw)``, fitness and inlier RMSE at ``xyt``."""
+                             inlier_distance: float, tree: cKDTree | None = None,
+                             effective_points: int = 100) -> tuple[np.ndarray, float, float]:
+    """Point-to-line information ``(3, 3)`` over ``(x, y, yaw)``, fitness and inlier RMSE at ``xyt``.
+
+    Each inlier contributes ``J^T J`` with ``J = n^T [I, dR p]`` (``n`` the target normal), so a
+    corridor gives little information along its axis: degenerate matches stay uncertain where
+    they are degenerate. Neighbouring points are not independent, so the sum is scaled to
+    ``effective_points`` observations at the inlier residual variance.
+    """
     tree = tree or cKDTree(target)
     c, s = np.cos(xyt[2]), np.sin(xyt[2])
     moved = source @ np.array([[c, s], [-s, c]]) + xyt[:2]
-    d, _ = tree.query(moved, distance_upper_bound=inlier_distance)
+    d, nn = tree.query(moved, distance_upper_bound=inlier_distance)
     inl = np.isfinite(d)
     fitness = float(inl.mean()) if len(d) else 0.0
     if inl.sum() < 3:
         return np.eye(3) * 1e-6, fitness, float("inf")
     rmse = float(np.sqrt(np.mean(d[inl] ** 2)))
-    P = moved[inl] - xyt[:2]  # rotated source points (lever arms)
-    n = len(P)
-    J = np.zeros((2 * n, 3))
-    J[0::2, 0] = 1.0
-    J[1::2, 1] = 1.0
-    J[0::2, 2] = -P[:, 1]
-    J[1::2, 2] = P[:, 0]
+    normals = _normals_2d(target, tree)[nn[inl]]
+    P = moved[inl] - xyt[:2]  # rotated source points (lever arms about the source origin)
+    J = np.stack([normals[:, 0], normals[:, 1], normals[:, 1] * P[:, 0] - normals[:, 0] * P[:, 1]], axis=1)
     sigma2 = max(rmse, 0.02) ** 2
-    return J.T @ J / sigma2, fitness, rmse
+    scale = min(1.0, effective_points / len(J))
+    return scale * (J.T @ J) / sigma2, fitness, rmse
 
 
 def match_planar(source: np.ndarray, target: np.ndarray, *, initial_guess: np.ndarray | None = None,
@@ -253,6 +267,14 @@ def match_planar(source: np.ndarray, target: np.ndarray, *, initial_guess: np.nd
     xyt, _, _ = icp_2d(src, tgt, xyt0, max_distance=3 * resolution + inlier_distance,
                        min_distance=inlier_distance, tree=tree)
     info, fitness, rmse = registration_information(src, tgt, xyt, inlier_distance, tree)
+    if initial_guess is not None and not refine_only:
+        # The correlative score can prefer a slightly slid pose along self-similar corridors;
+        # ICP straight from the guess competes, and the better fit wins.
+        xyt_g, _, _ = icp_2d(src, tgt, matrix_to_se2(initial_guess), max_distance=1.0,
+                             min_distance=inlier_distance, tree=tree)
+        info_g, fitness_g, rmse_g = registration_information(src, tgt, xyt_g, inlier_distance, tree)
+        if fitness_g >= fitness:
+            xyt, info, fitness, rmse = xyt_g, info_g, fitness_g, rmse_g
     return PlanarMatch(xyt=xyt, score=score, ambiguity=amb, fitness=fitness, inlier_rmse=rmse, information=info)
 
 
