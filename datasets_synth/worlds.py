@@ -215,6 +215,8 @@ def outdoor(seed: int = 0, blocks: tuple[int, int] = (3, 2), block_size: float =
             cuts = np.sort(rng.uniform(0.25, 0.75, size=rng.integers(1, 3))) * block_size
             edges = np.concatenate([[0.0], cuts, [block_size]])
             for a, b in zip(edges[:-1], edges[1:]):
+                if b - a < 4.0:
+                    continue
                 inset = rng.uniform(0.5, 3.0)
                 boxes.append((x0 + a + 0.5, y0 + inset, 0.0, x0 + b - 0.5, y0 + block_size - inset, rng.uniform(6, 25)))
     xmax, ymax = nx * pitch - street, ny * pitch - street

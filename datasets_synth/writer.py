@@ -34,6 +34,7 @@ from .worlds import WORLDS, World
 log = logging.getLogger(__name__)
 
 START_TIME = 1000.0
+NO_RETURN = 81.91  # CARMEN/SICK convention for "no return"; readers drop readings >= 80 m
 
 
 def write_ply_xyzt(path: Path, points: np.ndarray, times: np.ndarray) -> None:
@@ -118,7 +119,7 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
         pts = dirs[valid] * r[valid, None]
         write_ply_xyzt(out / "scans" / f"{k:06d}.ply", pts, times[valid])
         if sensor == "laser2d":
-            carmen_ranges.append(np.where(valid, r, dev.max_range))
+            carmen_ranges.append(np.where(valid, r, NO_RETURN))
     (out / "times.txt").write_text("".join(f"{t:.6f}\n" for t in stamps))
     write_tum(out / "odometry_tum.txt", Trajectory(stamps, odom))
     write_tum(out / "groundtruth_tum.txt", Trajectory(stamps, truth))

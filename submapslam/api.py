@@ -5,10 +5,7 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import numpy as np
-
 from .config import PipelineConfig, load_config
-from .errors import SubmapSlamError
 from .result import SlamResult
 
 log = logging.getLogger(__name__)

@@ -39,7 +39,9 @@ class OdometryConfig(_Strict):
 class SubmapConfig(_Strict):
     """How consecutive scans are fused into submaps (virtual sensors)."""
 
-    max_distance: float = Field(5.0, gt=0, description="cut after this much travel [m]")
+    max_distance: float | None = Field(
+        None, gt=0, description="cut after this much travel [m]; None: 5 for planar logs, 25 for 3D"
+    )
     max_scans: int = Field(400, ge=1)
     voxel_size: float | None = Field(None, gt=0, description="[m]; None: odometry voxel / 2")
     max_points: int = Field(200_000, ge=100)

@@ -11,7 +11,6 @@ import resource
 import time
 from collections.abc import Callable, Iterable
 from contextlib import contextmanager
-from pathlib import Path
 
 import numpy as np
 

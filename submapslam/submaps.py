@@ -63,6 +63,7 @@ class SubmapBuilder:
         self.config = config
         self.voxel = voxel_size
         self.planar = planar
+        self.max_distance = config.max_distance or (5.0 if planar else 25.0)
         self._next_id = 0
         self._reset(None)
 
@@ -98,7 +99,7 @@ class SubmapBuilder:
         self._buffered += len(points)
         if self._buffered > 50_000:
             self._compact()
-        if self._distance >= self.config.max_distance or len(self._indices) >= self.config.max_scans:
+        if self._distance >= self.max_distance or len(self._indices) >= self.config.max_scans:
             submap = self._close()
             self._reset((index, T_odom_scan, points))
             return submap

@@ -11,7 +11,7 @@ INFO = np.diag([1e4, 1e4, 1e2, 1e2, 1e2, 1e4])  # planar-ish: tight z/roll/pitch
 def square_truth(n_side=5, step=2.0):
     """Poses around a square loop, ``(4 * n_side, 4, 4)``."""
     poses, x, y, th = [], 0.0, 0.0, 0.0
-    for side in range(4):
+    for _side in range(4):
         for _ in range(n_side):
             poses.append(se2_to_matrix(x, y, th))
             x += step * np.cos(th)

@@ -52,7 +52,7 @@ def _planar_information(info_xyt: np.ndarray) -> np.ndarray:
     """(3, 3) over (x, y, yaw) -> (6, 6) GTSAM order with z, roll, pitch pinned."""
     info = np.diag([_PLANAR_PIN, _PLANAR_PIN, 0.0, 0.0, 0.0, _PLANAR_PIN])
     idx = [3, 4, 2]  # x -> tx, y -> ty, yaw -> rz
-    info[np.ix_(idx, idx)] = info_xyt
+    info[np.ix_(idx, idx)] = info_xyt + np.eye(3) * 1e-4  # a 100 m / 100 rad prior keeps it PD
     return info
 
 
@@ -95,6 +95,7 @@ def check_correspondence(
         return CorrespondenceResult(False, np.eye(4), np.eye(6) * 1e-6, 0.0, float("inf"), 0.0,
                                     f"too few points ({len(source)} source, {len(target)} target)")
     inlier = max(2.0 * voxel_size, 0.1)
+    max_inlier_rmse = max(max_inlier_rmse, 0.6 * inlier)  # coarse voxels: the gate scales with them
     if planar:
         return _planar(source, target, initial_guess, yaw_hint, inlier, search_radius, yaw_window_deg,
                        refine_only, dict(min_fitness=min_fitness, max_inlier_rmse=max_inlier_rmse,

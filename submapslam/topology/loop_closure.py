@@ -177,7 +177,8 @@ class LoopCloser:
     def process(self, new: Submap, submaps: list[Submap], graph: PoseGraph,
                 hint_pairs: list[tuple[int, int]]) -> list[LoopRecord]:
         """Test the hypotheses for a newly closed submap; add accepted loops to ``graph``."""
-        c = self.config
+        floor_m = graph.config.loop_sigma_floor_m
+        floor_rad = float(np.deg2rad(graph.config.loop_sigma_floor_deg))
         with self._time("descriptors"):
             new.descriptor = compute_descriptor(new.points, planar=self.planar, max_range=self.config.descriptor_radius)
         with self._time("loop_proposal"):
@@ -195,16 +196,9 @@ class LoopCloser:
                 records.append(LoopRecord(hyp.i, hyp.j, hyp.source, accepted, res.fitness, res.overlap,
                                           res.inlier_rmse, reason, res.T_target_source))
                 if accepted:
-                    info = floor_information(res.information_gtsam, c_floor_m(graph), c_floor_rad(graph))
+                    info = floor_information(res.information_gtsam, floor_m, floor_rad)
                     graph.add_between(hyp.i, hyp.j, res.T_target_source, info, "loop")
                     log.info("loop %d-%d accepted (%s): %s", hyp.i, hyp.j, hyp.source, reason)
         self.index.add(new.id, new.descriptor)
         return records
 
-
-def c_floor_m(graph: PoseGraph) -> float:
-    return graph.config.loop_sigma_floor_m
-
-
-def c_floor_rad(graph: PoseGraph) -> float:
-    return float(np.deg2rad(graph.config.loop_sigma_floor_deg))

@@ -1,0 +1,121 @@
+import itertools
+
+import numpy as np
+import pytest
+
+from submapslam.geometry import (
+    inverse,
+    matrix_to_se2,
+    rotation_angle,
+    se2_to_matrix,
+    transform_points,
+)
+from submapslam.io.registry import open_log
+from submapslam.topology.correspondence import check_correspondence
+from submapslam.topology.descriptors import DescriptorIndex, compute_descriptor, descriptor_distance
+
+from .conftest import shared_data
+
+
+def corridor_submap(seed=0):
+    """A planar 'submap': an L-shaped corridor with door recesses and pillars, points every 5 cm."""
+    rng = np.random.default_rng(seed)
+    segs = [((0, 0), (20, 0)), ((0, 3), (17, 3)), ((17, 3), (17, 12)), ((20, 0), (20, 12)),
+            ((5, 0), (5, -1)), ((6.2, 0), (6.2, -1)), ((5, -1), (6.2, -1)), ((11, 3), (11, 4.3)),
+            ((12.5, 3), (12.5, 4.3)), ((11, 4.3), (12.5, 4.3)), ((20, 6), (21, 6)), ((21, 6), (21, 7.5)),
+            ((21, 7.5), (20, 7.5))]
+    pts = []
+    for a, b in segs:
+        a, b = np.array(a, float), np.array(b, float)
+        n = int(np.linalg.norm(b - a) / 0.05) + 1
+        pts.append(a + (b - a) * np.linspace(0, 1, n)[:, None])
+    for c in ((8, 2.6), (15, 0.4)):
+        ang = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+        pts.append(np.array(c) + 0.2 * np.stack([np.cos(ang), np.sin(ang)], 1))
+    xy = np.vstack(pts) + rng.normal(0, 0.01, (sum(len(p) for p in pts), 2))
+    return np.c_[xy, np.zeros(len(xy))]
+
+
+@pytest.mark.parametrize("guess", [None, "rough"])
+def test_planar_transform_recovered_without_good_guess(guess):
+    source = corridor_submap(0)
+    T_true = se2_to_matrix(2.0, -1.5, np.deg2rad(40))
+    target = transform_points(T_true, corridor_submap(1))
+    init = se2_to_matrix(1.2, -0.8, np.deg2rad(30)) if guess else None
+    res = check_correspondence(source, target, planar=True, initial_guess=init, search_radius=3.0,
+                               yaw_window_deg=20.0)
+    assert res.accepted, res.reason
+    err = inverse(T_true) @ res.T_target_source
+    assert np.linalg.norm(err[:3, 3]) < 0.05 and np.rad2deg(rotation_angle(err)) < 0.5
+    assert res.T_target_source[2, 3] == 0.0  # planar result stays planar
+    assert np.all(np.linalg.eigvalsh(res.information) > 0)
+
+
+def test_different_places_are_rejected_with_a_reason():
+    source = corridor_submap(0)
+    rng = np.random.default_rng(3)
+    other = np.c_[rng.uniform(0, 20, (800, 2)), np.zeros(800)]  # clutter, no walls
+    res = check_correspondence(source, other, planar=True)
+    assert not res.accepted
+    assert res.reason.split()[0] in {"fitness", "inlier", "overlap", "ambiguous"}
+
+
+def test_corridor_information_is_weak_along_the_corridor():
+    a, b = np.linspace(0, 20, 400), np.zeros(400)
+    walls = np.vstack([np.c_[a, b, b], np.c_[a, b + 3.0, b]])
+    res = check_correspondence(walls, walls, planar=True, initial_guess=np.eye(4), refine_only=True)
+    cov = np.linalg.inv(res.information)
+    assert cov[3, 3] > 100 * cov[4, 4]  # x (along the corridor) far less certain than y
+
+
+def test_real_laser_submap_recovered_from_far_offset():
+    path = shared_data("carmen", "intel.clf.bz2")
+    pts = []
+    for s in itertools.islice(open_log(path), 0, 120, 4):
+        pts.append(transform_points(s.odometry, s.points))
+    submap = np.vstack(pts)
+    T_true = se2_to_matrix(2.0, 1.0, np.deg2rad(-40))
+    target = transform_points(T_true, submap)
+    target[:, :2] += np.random.default_rng(0).normal(0, 0.02, (len(target), 2))
+    res = check_correspondence(submap, target, planar=True)
+    assert res.accepted, res.reason
+    err = matrix_to_se2(inverse(T_true) @ res.T_target_source)
+    assert np.hypot(*err[:2]) < 0.05 and abs(np.rad2deg(err[2])) < 0.5
+
+
+def test_real_3d_pair_recovers_reference_transform():
+    folder = shared_data("lidar3d", "small_gicp_pair")
+    from submapslam.io.cloud_folder import read_cloud
+
+    src, _ = read_cloud(folder / "source.ply")
+    tgt, _ = read_cloud(folder / "target.ply")
+    T_ref = np.loadtxt(folder / "T_target_source.txt")
+    res = check_correspondence(src, tgt, planar=False, initial_guess=np.eye(4), voxel_size=0.1)
+    err = inverse(T_ref) @ res.T_target_source
+    assert np.linalg.norm(err[:3, 3]) < 0.1 and np.rad2deg(rotation_angle(err)) < 1.0
+    assert res.fitness > 0.5
+    assert np.all(np.linalg.eigvalsh(res.information) > 0)
+
+
+def test_descriptor_finds_the_place_and_its_yaw():
+    places = [corridor_submap(0)]
+    rng = np.random.default_rng(7)
+    for _ in range(4):  # other places: random boxes
+        pts = []
+        for _ in range(6):
+            c, w = rng.uniform(-10, 10, 2), rng.uniform(1, 4, 2)
+            t = np.linspace(0, 1, 60)[:, None]
+            for a, b in (((0, 0), (1, 0)), ((1, 0), (1, 1)), ((1, 1), (0, 1)), ((0, 1), (0, 0))):
+                pts.append(c + w * (np.array(a) + (np.array(b) - np.array(a)) * t))
+        xy = np.vstack(pts)
+        places.append(np.c_[xy, np.zeros(len(xy))])
+    index = DescriptorIndex()
+    for k, p in enumerate(places):
+        index.add(k, compute_descriptor(p - [10, 3, 0], planar=True, max_range=20))
+    yaw = np.deg2rad(60)
+    query_pts = transform_points(se2_to_matrix(0, 0, -yaw), corridor_submap(2) - [10, 3, 0])
+    q = compute_descriptor(query_pts, planar=True, max_range=20)
+    best = index.query(q, top_k=2)
+    assert best[0][0] == 0
+    assert abs(np.rad2deg(best[0][2]) - 60) <= 6.0  # within one sector
+    assert descriptor_distance(q, q)[0] == pytest.approx(0.0, abs=1e-9)

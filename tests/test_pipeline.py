@@ -1,0 +1,132 @@
+"""End-to-end runs with the accuracy targets asserted on small inputs."""
+
+import itertools
+import json
+
+import numpy as np
+import pytest
+
+from datasets_synth import generate
+from submapslam import SubmapSLAM, open_log
+from submapslam.api import run_log
+from submapslam.config import PipelineConfig
+from submapslam.evaluation.metrics import ate
+from submapslam.geometry import inverse
+from submapslam.io.scan import Scan
+from submapslam.io.trajectory import Trajectory, carmen_reference_trajectory, read_tum
+
+from .conftest import shared_data
+
+FALSE_CLOSURE_M = 1.0  # a closure whose transform is off by more than this is a false one
+
+
+def loop_errors(result, gt):
+    """Translation error of every accepted loop against the ground-truth anchor poses."""
+    anchors = [gt.poses[idx[0]] for idx in result.submap_scan_indices]
+    errs = []
+    for lp in result.loops:
+        if lp.accepted:
+            true = inverse(anchors[lp.i]) @ anchors[lp.j]
+            errs.append(float(np.linalg.norm((inverse(true) @ lp.T_i_j)[:2, 3])))
+    return np.array(errs)
+
+
+@pytest.fixture(scope="module")
+def rectangle_run(tmp_path_factory):
+    root = tmp_path_factory.mktemp("rect")
+    log = generate("rectangle", root / "log", seed=0, laps=2)
+    result, paths = run_log(log, root / "out")
+    return log, result, paths
+
+
+def test_rectangle_two_laps_closes_loops_without_false_closures(rectangle_run):
+    log, result, _ = rectangle_run
+    gt = read_tum(log / "groundtruth_tum.txt")
+    wheel = read_tum(log / "odometry_tum.txt")
+    slam = ate(Trajectory(result.timestamps, result.poses), gt)["rmse"]
+    assert result.loops_accepted >= 10
+    assert np.all(loop_errors(result, gt) < FALSE_CLOSURE_M)
+    assert slam <= ate(wheel, gt)["rmse"] / 5
+    assert slam < 0.1
+
+
+def test_run_writes_every_output(rectangle_run):
+    _, result, paths = rectangle_run
+    out = paths["poses_tum.txt"].parent
+    for name in ("poses_tum.txt", "poses_kitti.txt", "graph.g2o", "map.ply", "config.yaml", "summary.json",
+                 "loops.csv", "submaps.csv", "map.pgm", "map.yaml"):
+        assert (out / name).stat().st_size > 0, name
+    tum = read_tum(out / "poses_tum.txt")
+    assert len(tum) == result.n_scans
+    np.testing.assert_allclose(tum.timestamps, result.timestamps, atol=1e-6)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["scans"] == result.n_scans and summary["loop_closures_accepted"] == result.loops_accepted
+    assert set(summary["wall_time_s"]) >= {"odometry", "submaps", "optimisation", "loop_testing"}
+    lines = (out / "loops.csv").read_text().splitlines()
+    assert len(lines) == len(result.loops) + 1
+    g2o = (out / "graph.g2o").read_text()
+    assert g2o.count("VERTEX_SE3:QUAT") == result.n_submaps
+    assert g2o.count("EDGE_SE3:QUAT") == result.n_submaps - 1 + result.loops_accepted
+    assert result.submap_covariances.shape == (result.n_submaps, 6, 6)
+    assert np.all(np.linalg.eigvalsh(result.submap_covariances[-1]) > 0)
+
+
+def test_rooms_world_accepts_no_false_closure(tmp_path):
+    log = generate("rooms", tmp_path / "log", seed=0, laps=2, size=(36.0, 12.0))
+    result, _ = run_log(log, None)
+    gt = read_tum(log / "groundtruth_tum.txt")
+    assert np.all(loop_errors(result, gt) < FALSE_CLOSURE_M)
+    odo = ate(Trajectory(result.timestamps, result.odometry_poses), gt)["rmse"]
+    slam = ate(Trajectory(result.timestamps, result.poses), gt)["rmse"]
+    assert slam <= odo * 1.05
+
+
+def test_intel_slice_reaches_the_accuracy_target():
+    raw = shared_data("carmen", "intel.clf.bz2")
+    ref = carmen_reference_trajectory(shared_data("carmen", "corrected", "intel-corrected.log.gz"), raw)
+    result, _ = run_log(raw, None, max_scans=3000)
+    slam = ate(Trajectory(result.timestamps, result.poses), ref)
+    odo = ate(Trajectory(result.timestamps, result.odometry_poses), ref)
+    assert slam["n"] > 100
+    assert slam["rmse"] <= 0.25
+    assert slam["rmse"] <= odo["rmse"] / 5
+
+
+def test_streaming_api_gives_a_trajectory_at_any_time():
+    path = shared_data("carmen", "intel.clf.bz2")
+    slam = SubmapSLAM(PipelineConfig())
+    for n, scan in enumerate(itertools.islice(open_log(path), 400), start=1):
+        slam.process_scan(scan)
+        if n in (50, 400):
+            stamps, poses = slam.trajectory()
+            assert len(stamps) == n and poses.shape == (n, 4, 4)
+    assert len(slam.map_points()) > 100
+    result = slam.finish()
+    assert result.n_scans == 400 and result.n_submaps >= 1
+
+
+def test_nan_points_and_empty_scans_are_survived():
+    rng = np.random.default_rng(0)
+    slam = SubmapSLAM(PipelineConfig())
+    walls = np.c_[rng.uniform(-5, 5, 300), np.repeat([-2.0, 2.0], 150), np.zeros(300)]
+    for k in range(30):
+        pts = walls.copy()
+        if k == 10:
+            pts[::7] = np.nan
+        if k == 20:
+            pts = np.zeros((0, 3))
+        slam.process_scan(Scan(index=k, timestamp=float(k), points=pts, planar=True))
+    result = slam.finish()
+    assert result.n_scans == 30 and np.all(np.isfinite(result.poses))
+    assert slam.dropped_nan_points == 43 and slam.empty_scans == 1
+
+
+def test_truncated_log_keeps_what_was_computed(tmp_path):
+    log = generate("rectangle", tmp_path / "log", seed=2, laps=1, max_scans=120)
+    text = (log / "log.clf").read_text().splitlines()
+    cut = [i for i, line in enumerate(text) if line.startswith("FLASER")][100]
+    (tmp_path / "cut.clf").write_text("\n".join(text[:cut] + [text[cut][:200]]) + "\n")
+    result, paths = run_log(tmp_path / "cut.clf", tmp_path / "out")
+    assert result.input_error is not None and "truncated" in result.input_error
+    assert result.n_scans == 100
+    assert len(read_tum(paths["poses_tum.txt"])) == 100

@@ -1,0 +1,90 @@
+import gzip
+
+import numpy as np
+import pytest
+
+from submapslam.errors import InputError
+from submapslam.geometry import se2_to_matrix, se3_exp
+from submapslam.io.trajectory import (
+    Trajectory,
+    carmen_reference_trajectory,
+    read_carmen_trajectory,
+    read_kitti,
+    read_relations,
+    read_trajectory,
+    read_tum,
+    write_kitti,
+    write_tum,
+)
+
+from .conftest import shared_data
+
+
+def random_traj(n=20, seed=0):
+    rng = np.random.default_rng(seed)
+    poses = np.array([se3_exp(rng.normal(size=6)) for _ in range(n)])
+    return Trajectory(1000.0 + np.arange(n) * 0.1, poses)
+
+
+def test_tum_round_trip(tmp_path):
+    t = random_traj()
+    write_tum(tmp_path / "a.txt", t)
+    back = read_tum(tmp_path / "a.txt")
+    np.testing.assert_allclose(back.timestamps, t.timestamps, atol=1e-6)
+    np.testing.assert_allclose(back.poses, t.poses, atol=1e-7)
+
+
+def test_kitti_round_trip_and_sniffing(tmp_path):
+    t = random_traj()
+    write_kitti(tmp_path / "k.txt", t.poses)
+    back = read_kitti(tmp_path / "k.txt")
+    np.testing.assert_allclose(back.poses, t.poses, atol=1e-7)
+    assert len(read_trajectory(tmp_path / "k.txt")) == 20
+    write_tum(tmp_path / "t.txt", t)
+    np.testing.assert_allclose(read_trajectory(tmp_path / "t.txt").timestamps, t.timestamps, atol=1e-6)
+
+
+def test_compressed_tum(tmp_path):
+    t = random_traj(5)
+    write_tum(tmp_path / "a.txt", t)
+    with gzip.open(tmp_path / "a.txt.gz", "wt") as fh:
+        fh.write((tmp_path / "a.txt").read_text())
+    np.testing.assert_allclose(read_tum(tmp_path / "a.txt.gz").poses, t.poses, atol=1e-7)
+
+
+def test_garbled_lines_name_the_line(tmp_path):
+    p = tmp_path / "bad.txt"
+    p.write_text("# header\n1.0 0 0 0 0 0 0 1\n2.0 0 0 zero 0 0 0 1\n")
+    with pytest.raises(InputError, match=r"bad\.txt:3: non-numeric"):
+        read_tum(p)
+    p.write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 1\n")
+    with pytest.raises(InputError, match=r"bad\.txt:2: expected 8 numbers, got 7"):
+        read_tum(p)
+    p.write_text("1.0 0 0 nan 0 0 0 1\n")
+    with pytest.raises(InputError, match="NaN"):
+        read_tum(p)
+    p.write_text("1 2 3\n")
+    with pytest.raises(InputError, match="unknown trajectory format"):
+        read_trajectory(p)
+
+
+def test_relations_file(tmp_path):
+    p = tmp_path / "rel.txt"
+    p.write_text("10.0 11.0 1.0 0.0 0.0 0.0 0.0 1.5707963\nFLASER 11.0 12.0 0 1 0 0 0 0\n")
+    rel = read_relations(p)
+    assert len(rel) == 2
+    np.testing.assert_allclose(rel.T_a_b[0], se2_to_matrix(1.0, 0.0, np.pi / 2), atol=1e-6)
+    p.write_text("10 11 1 2 3\n")
+    with pytest.raises(InputError, match="rel.txt:1"):
+        read_relations(p)
+
+
+def test_carmen_trajectory_and_reference_from_real_logs():
+    raw = shared_data("carmen", "intel.clf.bz2")
+    corrected = shared_data("carmen", "corrected", "intel-corrected.log.gz")
+    odo = read_carmen_trajectory(raw)
+    assert len(odo) == 13631
+    ref = carmen_reference_trajectory(corrected, raw)
+    assert len(ref) == 910  # every corrected scan finds its raw line
+    assert 976052850 < ref.timestamps[0] < 976053000  # ipc time of the raw log, not logger time
+    assert set(np.round(ref.timestamps, 6)) <= set(np.round(odo.timestamps, 6))
