@@ -63,6 +63,18 @@ def _parse_laser(tokens: list[str], path: Path, lineno: int) -> tuple[np.ndarray
     return ranges, pose, stamp
 
 
+def _check_odom(tokens: list[str], path: Path, lineno: int) -> None:
+    """Validate an ``ODOM x y theta tv rv accel ipc_ts host logger_ts`` line."""
+    if len(tokens) < 10:
+        raise InputError(path, f"ODOM line is truncated: {len(tokens)} fields, expected 10", lineno)
+    try:
+        values = [float(v) for v in tokens[1:8]]
+    except ValueError:
+        raise InputError(path, "ODOM line has a non-numeric field", lineno) from None
+    if not all(math.isfinite(v) for v in values):
+        raise InputError(path, "ODOM line has a NaN/inf value", lineno)
+
+
 class CarmenReader:
     """Iterate the laser scans of a CARMEN log as planar :class:`Scan` objects.
 
@@ -90,6 +102,9 @@ class CarmenReader:
                     if not tokens or tokens[0].startswith("#"):
                         continue
                     tag = tokens[0]
+                    if tag == "ODOM":
+                        _check_odom(tokens, self.path, lineno)
+                        continue
                     if tag != self.tag:
                         if tag not in _KNOWN_TAGS and not tag.isupper():
                             raise InputError(self.path, f"garbled line starting {tag[:20]!r}", lineno)
