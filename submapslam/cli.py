@@ -110,9 +110,9 @@ def demo(
 
 
 def _register_subcommands() -> None:
-    from . import cli_eval, cli_synth
+    from . import cli_ekf, cli_eval, cli_synth
 
-    for module in (cli_eval, cli_synth):
+    for module in (cli_eval, cli_synth, cli_ekf):
         module.register(app)
 
 

@@ -1,0 +1,79 @@
+"""Landmark SLAM as a GTSAM factor graph: Pose2 + Point2, odometry and bearing-range factors.
+
+The smoothing counterpart of the stochastic map: the same steps (motion with covariance,
+range-bearing observations with known ids) become BetweenFactorPose2 and BearingRangeFactor2D;
+solved in batch (Levenberg-Marquardt) or incrementally (iSAM2), with marginal covariances.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..io.landmark_logs import LandmarkLog
+
+
+@dataclass
+class GraphSolution:
+    poses: np.ndarray                    # (N + 1, 3): initial pose then one per step
+    landmarks: dict[int, np.ndarray]     # id -> (2,)
+    landmark_covs: dict[int, np.ndarray]  # id -> (2, 2)
+    final_pose_cov: np.ndarray           # (3, 3)
+    seconds: float
+
+
+def solve_landmark_graph(log: LandmarkLog, incremental: bool = False, initial: dict | None = None) -> GraphSolution:
+    """Build the factor graph of ``log`` (known association) and solve it.
+
+    ``initial`` may hold ``{"poses": (N + 1, 3), "landmarks": {id: (2,)}}`` (e.g. the EKF's
+    estimates); otherwise dead reckoning and first sightings initialise the solver.
+    """
+    import gtsam
+
+    t0 = time.perf_counter()
+    X = lambda k: gtsam.symbol("x", k)  # noqa: E731
+    L = lambda k: gtsam.symbol("l", k)  # noqa: E731
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    pose = gtsam.Pose2(*log.initial_pose)
+    graph.add(gtsam.PriorFactorPose2(X(0), pose, gtsam.noiseModel.Gaussian.Covariance(np.eye(3) * 1e-9)))
+    values.insert(X(0), pose)
+    r_sigma, b_sigma = np.sqrt(np.diag(log.measurement_cov))
+    meas_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([b_sigma, r_sigma]))
+    seen: set[int] = set()
+    init_poses = None if initial is None else initial["poses"]
+    for k, step in enumerate(log.steps, start=1):
+        odo = gtsam.Pose2(*step.motion)
+        cov = 0.5 * (step.motion_cov + step.motion_cov.T) + np.eye(3) * 1e-12
+        graph.add(gtsam.BetweenFactorPose2(X(k - 1), X(k), odo, gtsam.noiseModel.Gaussian.Covariance(cov)))
+        pose = pose.compose(odo)
+        values.insert(X(k), gtsam.Pose2(*init_poses[k]) if init_poses is not None else pose)
+        for (r, b), lid in zip(step.ranges_bearings, step.ids):
+            graph.add(gtsam.BearingRangeFactor2D(X(k), L(lid), gtsam.Rot2(b), float(r), meas_noise))
+            if lid not in seen:
+                seen.add(lid)
+                if initial is not None and lid in initial["landmarks"]:
+                    guess = gtsam.Point2(*initial["landmarks"][lid])
+                else:
+                    p = values.atPose2(X(k))
+                    guess = p.transformFrom(gtsam.Point2(r * np.cos(b), r * np.sin(b)))
+                values.insert(L(lid), guess)
+    if incremental:
+        isam = gtsam.ISAM2()
+        isam.update(graph, values)
+        result = isam.calculateEstimate()
+        marg = None
+    else:
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(100)
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+        marg = gtsam.Marginals(graph, result)
+    n = len(log.steps)
+    poses = np.array([[result.atPose2(X(k)).x(), result.atPose2(X(k)).y(), result.atPose2(X(k)).theta()]
+                      for k in range(n + 1)])
+    lms = {lid: np.asarray(result.atPoint2(L(lid))) for lid in sorted(seen)}
+    covs = {lid: np.asarray(marg.marginalCovariance(L(lid))) for lid in sorted(seen)} if marg else {}
+    final_cov = np.asarray(marg.marginalCovariance(X(n))) if marg else np.full((3, 3), np.nan)
+    return GraphSolution(poses, lms, covs, final_cov, time.perf_counter() - t0)

@@ -1,0 +1,182 @@
+"""Landmark logs for the stochastic-map reference: UTIAS MR.CLAM, Victoria Park, synthetic.
+
+Every reader returns a :class:`LandmarkLog`: a time-ordered list of steps, each a motion
+``(dx, dy, dtheta)`` in the robot frame with its covariance followed by the range-bearing
+observations made at the step's end (with known landmark ids when the log gives them).
+"""
+
+from __future__ import annotations
+
+import lzma
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from .compression import open_text
+
+
+@dataclass
+class Step:
+    """Motion then observations. ``ranges_bearings (M, 2)``, ``ids`` per observation (or None)."""
+
+    t: float
+    motion: np.ndarray            # (3,) dx, dy, dtheta in the robot frame
+    motion_cov: np.ndarray        # (3, 3)
+    ranges_bearings: np.ndarray   # (M, 2)
+    ids: list[int | None]
+
+
+@dataclass
+class LandmarkLog:
+    name: str
+    initial_pose: np.ndarray                  # (3,) world frame
+    steps: list[Step]
+    measurement_cov: np.ndarray               # (2, 2) range [m], bearing [rad]
+    truth_times: np.ndarray | None = None     # ground truth (N,), (N, 3)
+    truth_poses: np.ndarray | None = None
+    truth_landmarks: dict[int, np.ndarray] = field(default_factory=dict)
+
+
+def _numeric_table(path: Path, ncols: int) -> np.ndarray:
+    rows = []
+    with open_text(path) as fh:
+        for lineno, line in enumerate(fh, start=1):
+            body = line.strip()
+            if not body or body.startswith("#"):
+                continue
+            tok = body.split()
+            if len(tok) < ncols:
+                raise InputError(path, f"expected {ncols} columns, got {len(tok)}", lineno)
+            try:
+                rows.append([float(v) for v in tok[:ncols]])
+            except ValueError:
+                raise InputError(path, f"non-numeric value in {body[:40]!r}", lineno) from None
+    if not rows:
+        raise InputError(path, "no data rows")
+    return np.array(rows)
+
+
+def _find(folder: Path, name: str) -> Path:
+    for cand in (folder / name, folder / (name + ".xz")):
+        if cand.is_file():
+            return cand
+    raise InputError(folder / name, "missing (plain or .xz)")
+
+
+def _unicycle(v: float, w: float, dt: float) -> np.ndarray:
+    dth = w * dt
+    if abs(w) > 1e-9:
+        r = v / w
+        return np.array([r * np.sin(dth), r * (1 - np.cos(dth)), dth])
+    return np.array([v * dt, 0.0, 0.0])
+
+
+def read_mrclam(folder: str | Path, robot: int = 1, sigma_v: float = 0.05, sigma_w: float = 0.1,
+                sigma_range: float = 0.15, sigma_bearing: float = 0.05) -> LandmarkLog:
+    """UTIAS MR.CLAM dataset folder: odometry (v, w), range-bearing to barcoded landmarks.
+
+    Measurements of barcodes belonging to robots (subjects 1-5) are ignored; landmark ids are
+    subject numbers. The log starts at the first ground-truth pose (the filter then estimates
+    in the ground-truth frame). Odometry is integrated between measurement times into one step.
+    """
+    folder = Path(folder)
+    odo = _numeric_table(_find(folder, f"Robot{robot}_Odometry.dat"), 3)
+    meas = _numeric_table(_find(folder, f"Robot{robot}_Measurement.dat"), 4)
+    gt = _numeric_table(_find(folder, f"Robot{robot}_Groundtruth.dat"), 4)
+    barcodes = _numeric_table(_find(folder, "Barcodes.dat"), 2)
+    lm_gt = _numeric_table(_find(folder, "Landmark_Groundtruth.dat"), 3)
+    subject_of = {int(b): int(s) for s, b in barcodes}
+    # start where both ground truth and odometry exist, at the ground-truth pose of that time
+    t0 = max(gt[0, 0], odo[0, 0])
+    k0 = int(np.searchsorted(gt[:, 0], t0))
+    gt = gt[k0:]
+    t0 = gt[0, 0]
+    odo = odo[odo[:, 0] >= t0 - 1.0]
+    meas = meas[meas[:, 0] >= t0]
+    steps: list[Step] = []
+    Q_vw = np.diag([sigma_v**2, sigma_w**2])
+    # group measurements by timestamp
+    times = np.unique(meas[:, 0])
+    oi = 0
+    last_t = t0
+    v = w = 0.0
+    prev = odo[odo[:, 0] <= t0]
+    if len(prev):
+        v, w = prev[-1, 1], prev[-1, 2]
+    odo = odo[odo[:, 0] > t0]
+    for t in times:
+        motion = np.zeros(3)
+        cov = np.zeros((3, 3))
+        # integrate odometry commands up to t, composing increments in the robot frame
+        while True:
+            t_next = odo[oi, 0] if oi < len(odo) else np.inf
+            t_end = min(t_next, t)
+            dt = t_end - last_t
+            if dt > 0:
+                u = _unicycle(v, w, dt)
+                c, s = np.cos(motion[2]), np.sin(motion[2])
+                F = np.array([[1, 0, -s * u[0] - c * u[1]], [0, 1, c * u[0] - s * u[1]], [0, 0, 1]])
+                G = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+                # white velocity noise: variance grows linearly with time (sigma^2 per second)
+                Qu = np.diag([Q_vw[0, 0] * dt, 0.1 * Q_vw[0, 0] * dt, Q_vw[1, 1] * dt])
+                cov = F @ cov @ F.T + G @ Qu @ G.T
+                motion = np.array([motion[0] + c * u[0] - s * u[1], motion[1] + s * u[0] + c * u[1], motion[2] + u[2]])
+                last_t = t_end
+            if t_next <= t:
+                v, w = odo[oi, 1], odo[oi, 2]
+                oi += 1
+            else:
+                break
+        rows = meas[meas[:, 0] == t]
+        keep = [(r, b, subject_of.get(int(code), -1)) for _, code, r, b in rows]
+        keep = [(r, b, s) for r, b, s in keep if s > 5]
+        rb = np.array([(r, b) for r, b, _ in keep]).reshape(-1, 2)
+        steps.append(Step(float(t), motion, cov + np.eye(3) * 1e-12, rb, [s for _, _, s in keep]))
+    return LandmarkLog(
+        name=f"MR.CLAM robot {robot}", initial_pose=gt[0, 1:4].copy(), steps=steps,
+        measurement_cov=np.diag([sigma_range**2, sigma_bearing**2]), truth_times=gt[:, 0], truth_poses=gt[:, 1:4],
+        truth_landmarks={int(s): np.array([x, y]) for s, x, y in lm_gt},
+    )
+
+
+def read_victoria_park(path: str | Path) -> LandmarkLog:
+    """gtsam's ``victoria_park.txt``: ODOMETRY i j dx dy dth + covariance, LANDMARK i l lx ly + covariance.
+
+    Landmark positions in the robot frame become range-bearing as gtsam's loader does
+    (bearing sigma sqrt(v1/10), range sigma sqrt(v1)).
+    """
+    path = Path(path)
+    steps: dict[int, Step] = {}
+    sig_r2 = sig_b2 = None
+    try:
+        with open_text(path) as fh:
+            for lineno, line in enumerate(fh, start=1):
+                tok = line.split()
+                if not tok:
+                    continue
+                try:
+                    if tok[0] == "ODOMETRY":
+                        j = int(tok[2])
+                        dx, dy, dth, c11, c12, c13, c22, c23, c33 = map(float, tok[3:12])
+                        cov = np.array([[c11, c12, c13], [c12, c22, c23], [c13, c23, c33]])
+                        steps[j] = Step(float(j), np.array([dx, dy, dth]), cov, np.zeros((0, 2)), [])
+                    elif tok[0] == "LANDMARK":
+                        i, lid = int(tok[1]), int(tok[2])
+                        lx, ly, v1 = float(tok[3]), float(tok[4]), float(tok[5])
+                        step = steps.setdefault(i, Step(float(i), np.zeros(3), np.eye(3) * 1e-12, np.zeros((0, 2)), []))
+                        step.ranges_bearings = np.vstack([step.ranges_bearings, [np.hypot(lx, ly), np.arctan2(ly, lx)]])
+                        step.ids.append(lid)
+                        sig_r2, sig_b2 = v1, v1 / 10.0
+                    else:
+                        raise ValueError(f"unknown record {tok[0][:20]!r}")
+                except (ValueError, IndexError) as exc:
+                    raise InputError(path, f"malformed line ({exc})", lineno) from None
+    except lzma.LZMAError as exc:
+        raise InputError(path, f"cannot decompress ({exc})") from None
+    if not steps:
+        raise InputError(path, "no ODOMETRY/LANDMARK lines")
+    ordered = [steps[k] for k in sorted(steps)]
+    R = np.diag([sig_r2 or 0.1, sig_b2 or 0.01])
+    return LandmarkLog("Victoria Park", np.zeros(3), ordered, R)

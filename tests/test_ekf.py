@@ -1,0 +1,130 @@
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from datasets_synth.landmarks import CLUTTER_ID_BASE, generate_landmark_log
+from submapslam.backend.landmark_graph import solve_landmark_graph
+from submapslam.cli import app
+from submapslam.ekf import CredibilityParams, StochasticMap, credibility
+from submapslam.ekf.runner import landmark_rmse, run_ekf
+from submapslam.errors import InputError
+from submapslam.evaluation.metrics import umeyama
+from submapslam.io.landmark_logs import read_mrclam, read_victoria_park
+
+from .conftest import shared_data
+
+R = np.diag([0.05**2, 0.01**2])
+
+
+def rb(pose, point):
+    d = np.asarray(point) - pose[:2]
+    return np.array([np.hypot(*d), np.arctan2(d[1], d[0]) - pose[2]])
+
+
+def test_credibility_formula_and_clamp():
+    assert credibility(2, 0, a=1.0, b=1.0) == pytest.approx(1 - np.exp(-2))
+    assert credibility(3, 2, a=2.0, b=4.0) == pytest.approx(1 - np.exp(-(1.5 - 0.5)))
+    assert credibility(1, 5, a=1.0, b=1.0) == 0.0       # negative exponent clamps to 0
+    assert 0.0 <= credibility(1000, 0, 1.0, 1.0) <= 1.0
+
+
+def test_three_matching_outcomes():
+    ekf = StochasticMap(np.zeros(3), np.eye(3) * 1e-6, CredibilityParams(a=1.0, b=10.0, remove_below=0.0), max_range=10.0)
+    A, B, C = np.array([3.0, 0.0]), np.array([0.0, 4.0]), np.array([-2.0, -2.0])
+    rep = ekf.observe(np.array([rb(ekf.pose, A), rb(ekf.pose, B)]), R)
+    assert [fid for _, fid in rep.new] == [0, 1] and ekf.n == 2
+    # cross-covariances of the new features with the robot are filled in
+    assert np.abs(ekf.P[:3, 3:]).max() > 0
+    # next step: A seen (matched), C unexpected (new), B in range but not seen (unobserved)
+    rep = ekf.observe(np.array([rb(ekf.pose, A) + [0.01, 0.0], rb(ekf.pose, C)]), R)
+    assert rep.matched == [(0, 0)]
+    assert rep.new == [(1, 2)]
+    assert rep.unobserved == [1]
+    i_a, i_b = ekf.ids.index(0), ekf.ids.index(1)
+    assert ekf.n_s[i_a] == 2 and ekf.n_u[i_b] == 1
+    assert ekf.credibility_of(1) < ekf.credibility_of(0)
+    assert np.all(np.linalg.eigvalsh(ekf.P) > -1e-12)
+
+
+def test_features_that_disappear_are_removed_and_marginalised():
+    ekf = StochasticMap(np.zeros(3), np.eye(3) * 1e-6, CredibilityParams(a=1.0, b=2.0, remove_below=0.05), max_range=10.0)
+    A, B = np.array([3.0, 0.0]), np.array([0.0, 4.0])
+    ekf.observe(np.array([rb(ekf.pose, A), rb(ekf.pose, B)]), R)
+    P_before = ekf.P.copy()
+    a_slot = 3 + 2 * ekf.ids.index(0)
+    removed = []
+    for _ in range(3):  # B vanished: predicted in range, never seen again
+        removed += ekf.observe(np.array([rb(ekf.pose, A)]), R).removed
+    assert removed == [1] and ekf.ids == [0] and ekf.x.shape == (5,) and ekf.P.shape == (5, 5)
+    assert P_before[a_slot, a_slot] >= ekf.P[3, 3]  # A only became more certain
+
+
+def test_ekf_agrees_with_the_gtsam_smoother_on_a_small_map(tmp_path):
+    path = generate_landmark_log(tmp_path / "syn.txt", seed=0, laps=1, sigma_range=0.02, odo_sigma=(0.005, 0.005, 0.002))
+    log = read_victoria_park(path)
+    run = run_ekf(log, CredibilityParams(b=1e9, remove_below=0.0))
+    sol = solve_landmark_graph(log)
+    est = {lm["id"]: np.array([lm["x"], lm["y"]]) for lm in run.filter.landmarks()}
+    assert set(est) == set(sol.landmarks)
+    assert max(np.linalg.norm(est[k] - sol.landmarks[k]) for k in est) < 0.02
+    d = run.poses[-1] - sol.poses[-1]
+    assert np.hypot(d[0], d[1]) < 0.02 and abs(np.rad2deg(d[2])) < 0.2
+
+
+def test_unknown_association_clutter_and_vanishing_landmarks(tmp_path):
+    path = generate_landmark_log(tmp_path / "syn.txt", seed=1, laps=2, clutter_rate=0.05, vanish_fraction=0.2,
+                                 sigma_range=0.03, odo_sigma=(0.01, 0.01, 0.003))
+    log = read_victoria_park(path)
+    truth = np.loadtxt(tmp_path / "landmarks_truth.csv", delimiter=",", skiprows=1)
+    vanished = set(truth[truth[:, 3] == 1, 0].astype(int))
+    run = run_ekf(log, CredibilityParams(a=1.0, b=0.3, remove_below=0.05), max_range=8.0)
+    ids = set(run.filter.ids)
+    n_steps = len(log.steps)
+    clutter_left = [i for i in ids if i >= CLUTTER_ID_BASE and (i - CLUTTER_ID_BASE) // 10 < n_steps - 20]
+    assert not clutter_left                                 # clutter seen once fades out
+    assert vanished and not (vanished & ids)                # landmarks that left the world were removed
+    kept = ids - vanished
+    assert len(kept) >= 0.8 * (len(truth) - len(vanished))  # the others stay
+    # data association by Mahalanobis gating alone (ids hidden), clean log
+    clean = read_victoria_park(generate_landmark_log(tmp_path / "clean.txt", seed=2, laps=1, sigma_range=0.02,
+                                                     odo_sigma=(0.005, 0.005, 0.002)))
+    blind = run_ekf(clean, CredibilityParams(b=1e9, remove_below=0.0), known_association=False)
+    known = run_ekf(clean, CredibilityParams(b=1e9, remove_below=0.0))
+    assert blind.filter.n == known.filter.n
+    assert np.linalg.norm(blind.poses[-1][:2] - known.poses[-1][:2]) < 0.05
+
+
+def test_mrclam_robot1():
+    folder = shared_data("landmarks", "utias_mrclam7")
+    log = read_mrclam(folder, 1)
+    assert len(log.steps) > 1000 and len(log.truth_landmarks) == 15
+    assert all(i >= 6 for s in log.steps for i in s.ids)  # robots (subjects 1-5) are ignored
+    run = run_ekf(log, CredibilityParams(b=1e9, remove_below=0.0))
+    est = {lm["id"]: np.array([lm["x"], lm["y"]]) for lm in run.filter.landmarks()}
+    ids = sorted(est)
+    E = np.array([[*est[i], 0.0] for i in ids])
+    G = np.array([[*log.truth_landmarks[i], 0.0] for i in ids])
+    T, _ = umeyama(E, G, planar=True)
+    aligned = np.sqrt(np.mean(np.sum((E @ T[:3, :3].T + T[:3, 3] - G) ** 2, axis=1)))
+    assert len(ids) == 15 and aligned <= 0.25  # the map's shape; its heading drifts (see BENCHMARKS)
+    sol = solve_landmark_graph(log)
+    assert landmark_rmse(sol.landmarks, log.truth_landmarks)[0] < 0.45
+
+
+def test_landmark_readers_report_bad_lines(tmp_path):
+    p = tmp_path / "vp.txt"
+    p.write_text("ODOMETRY 0 1 0.1 0 0 0.01 0 0 0.01 0 0.01\nLANDMARK 1 3 2.0 zz 0.1 0 0.1\n")
+    with pytest.raises(InputError, match=r"vp\.txt:2"):
+        read_victoria_park(p)
+    with pytest.raises(InputError, match="Robot1_Odometry.dat"):
+        read_mrclam(tmp_path, 1)
+
+
+def test_cli_ekf_on_a_synthetic_log(tmp_path):
+    path = generate_landmark_log(tmp_path / "syn.txt", seed=0, laps=1)
+    out = tmp_path / "out"
+    r = CliRunner().invoke(app, ["ekf", str(path), "--out", str(out), "--compare"])
+    assert r.exit_code == 0, r.output
+    header = (out / "landmarks.csv").read_text().splitlines()[0]
+    assert header == "id,x,y,var_xx,var_xy,var_yy,credibility"
+    assert (out / "landmarks.png").stat().st_size > 1000 and (out / "poses_tum.txt").exists()
