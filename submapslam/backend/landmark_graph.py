@@ -22,9 +22,11 @@ class GraphSolution:
     landmark_covs: dict[int, np.ndarray]  # id -> (2, 2)
     final_pose_cov: np.ndarray           # (3, 3)
     seconds: float
+    pose_covs: np.ndarray | None = None  # (N + 1, 3, 3) world-frame (x, y, theta), when asked for
 
 
-def solve_landmark_graph(log: LandmarkLog, incremental: bool = False, initial: dict | None = None) -> GraphSolution:
+def solve_landmark_graph(log: LandmarkLog, incremental: bool = False, initial: dict | None = None,
+                         pose_covariances: bool = False) -> GraphSolution:
     """Build the factor graph of ``log`` (known association) and solve it.
 
     ``initial`` may hold ``{"poses": (N + 1, 3), "landmarks": {id: (2,)}}`` (e.g. the EKF's
@@ -76,4 +78,12 @@ def solve_landmark_graph(log: LandmarkLog, incremental: bool = False, initial: d
     lms = {lid: np.asarray(result.atPoint2(L(lid))) for lid in sorted(seen)}
     covs = {lid: np.asarray(marg.marginalCovariance(L(lid))) for lid in sorted(seen)} if marg else {}
     final_cov = np.asarray(marg.marginalCovariance(X(n))) if marg else np.full((3, 3), np.nan)
-    return GraphSolution(poses, lms, covs, final_cov, time.perf_counter() - t0)
+    pose_covs = None
+    if pose_covariances and marg is not None:
+        # GTSAM's Pose2 marginals live in the body frame; rotate (x, y) into the world frame
+        pose_covs = np.empty((n + 1, 3, 3))
+        for k in range(n + 1):
+            c, s = np.cos(poses[k, 2]), np.sin(poses[k, 2])
+            J = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            pose_covs[k] = J @ np.asarray(marg.marginalCovariance(X(k))) @ J.T
+    return GraphSolution(poses, lms, covs, final_cov, time.perf_counter() - t0, pose_covs)

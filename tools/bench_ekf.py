@@ -1,0 +1,124 @@
+"""Stochastic map (EKF) vs GTSAM landmark graph: agreement, NEES consistency, real-data figures.
+
+Usage: python tools/bench_ekf.py [--runs 50] [--data ../shared/data]
+
+Prints markdown tables: (1) agreement on a small synthetic map, (2) NEES of the robot pose
+averaged over Monte Carlo runs against the 95 % chi-square band, for the EKF (filtering) and
+the factor graph (smoothing, all-pose marginals), (3) MR.CLAM robot 1 and Victoria Park.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def _truth_poses(folder: Path) -> np.ndarray:
+    return np.loadtxt(folder / "poses_truth.txt")[:, 1:4]
+
+
+def _nees_series(est: np.ndarray, covs: np.ndarray, truth: np.ndarray) -> list[float]:
+    """NEES per step of ``(N, 3)`` pose estimates with ``(N, 3, 3)`` covariances."""
+    e = est - truth
+    e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    return [float(x @ np.linalg.solve(P + np.eye(3) * 1e-12, x)) for x, P in zip(e, covs)]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--runs", type=int, default=50)
+    ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
+    args = ap.parse_args(argv)
+    from scipy.stats import chi2
+
+    from datasets_synth.landmarks import generate_landmark_log
+    from submapslam.backend.landmark_graph import solve_landmark_graph
+    from submapslam.ekf import CredibilityParams
+    from submapslam.ekf.runner import landmark_rmse, run_ekf, trajectory_rmse
+    from submapslam.evaluation.metrics import umeyama
+    from submapslam.io.landmark_logs import read_mrclam, read_victoria_park
+
+    keep = CredibilityParams(b=1e9, remove_below=0.0)
+    tmp = Path(tempfile.mkdtemp())
+    # (1) agreement
+    log = read_victoria_park(generate_landmark_log(tmp / "a" / "syn.txt", seed=0, laps=1, sigma_range=0.02,
+                                                   odo_sigma=(0.005, 0.005, 0.002)))
+    run, sol = run_ekf(log, keep), solve_landmark_graph(log)
+    est = {lm["id"]: np.array([lm["x"], lm["y"]]) for lm in run.filter.landmarks()}
+    dl = max(np.linalg.norm(est[k] - sol.landmarks[k]) for k in est)
+    dp = run.poses[-1] - sol.poses[-1]
+    print("## EKF vs GTSAM smoother, small synthetic map (20 landmarks, 1 lap, 127 steps)\n")
+    print("| max landmark difference [m] | final pose difference [m] | final heading difference [deg] | EKF [s] | graph [s] |")
+    print("|---|---|---|---|---|")
+    print(f"| {dl:.4f} | {np.hypot(dp[0], dp[1]):.5f} | {abs(np.rad2deg(dp[2])):.4f} | {run.seconds:.3f} | {sol.seconds:.3f} |\n")
+    # (2) NEES Monte Carlo
+    ekf_nees, fg_nees = [], []
+    for r in range(args.runs):
+        folder = tmp / f"mc{r}"
+        log = read_victoria_park(generate_landmark_log(folder / "syn.txt", seed=100 + r, laps=2, sigma_range=0.05,
+                                                       odo_sigma=(0.03, 0.02, 0.01)))
+        # the log starts at the origin: express the truth relative to its first pose
+        raw = _truth_poses(folder)
+        c, s = np.cos(-raw[0, 2]), np.sin(-raw[0, 2])
+        rel = raw - raw[0]
+        truth = np.c_[c * rel[:, 0] - s * rel[:, 1], s * rel[:, 0] + c * rel[:, 1], rel[:, 2]]
+        run = run_ekf(log, keep)
+        at = truth[run.times.astype(int)]  # a step's time is the index of the pose it ends at
+        ekf_nees.append(_nees_series(run.poses, run.pose_covs, at))
+        res = solve_landmark_graph(log, pose_covariances=True)
+        fg_nees.append(_nees_series(res.poses[1:], res.pose_covs[1:], at))
+    ekf_nees = np.array(ekf_nees).mean(axis=0)
+    fg_nees = np.array(fg_nees).mean(axis=0)
+    lo, hi = chi2.ppf(0.025, 3 * args.runs) / args.runs, chi2.ppf(0.975, 3 * args.runs) / args.runs
+    inside = (ekf_nees >= lo) & (ekf_nees <= hi)
+    fg_inside = (fg_nees >= lo) & (fg_nees <= hi)
+    first_out = int(np.argmax(~inside[5:])) + 5 if (~inside[5:]).any() else None
+    print(f"## NEES of the robot pose over {args.runs} Monte Carlo runs (2 laps, 20 landmarks)\n")
+    print(f"95 % band for the average of {args.runs} runs (3 DOF): [{lo:.2f}, {hi:.2f}]\n")
+    print("| steps | EKF mean NEES | EKF steps inside the band | graph (smoother) mean NEES | graph steps inside |")
+    print("|---|---|---|---|---|")
+    n = len(ekf_nees)
+    for a, b in ((0, n // 4), (n // 4, n // 2), (n // 2, 3 * n // 4), (3 * n // 4, n)):
+        print(f"| {a + 1}-{b} | {ekf_nees[a:b].mean():.2f} | {inside[a:b].mean():.2f} | {fg_nees[a:b].mean():.2f} | "
+              f"{fg_inside[a:b].mean():.2f} |")
+    print(f"\nfirst step (after 5) outside the band: {first_out}\n")
+    # (3) real data
+    mr = args.data / "landmarks" / "utias_mrclam7"
+    if mr.is_dir():
+        log = read_mrclam(mr, 1)
+        run, sol = run_ekf(log, keep), solve_landmark_graph(log)
+        est = {lm["id"]: np.array([lm["x"], lm["y"]]) for lm in run.filter.landmarks()}
+        ids = sorted(est)
+        E = np.array([[*est[i], 0.0] for i in ids])
+        G = np.array([[*log.truth_landmarks[i], 0.0] for i in ids])
+        T, _ = umeyama(E, G, planar=True)
+        aligned = float(np.sqrt(np.mean(np.sum((E @ T[:3, :3].T + T[:3, 3] - G) ** 2, axis=1))))
+        print("## MR.CLAM dataset 7, robot 1\n")
+        print("| | landmark RMSE [m] | landmark RMSE after SE(2) alignment [m] | trajectory RMSE [m] | run time [s] |")
+        print("|---|---|---|---|---|")
+        print(f"| EKF | {landmark_rmse(est, log.truth_landmarks)[0]:.3f} | {aligned:.3f} | "
+              f"{trajectory_rmse(run.times, run.poses, log.truth_times, log.truth_poses):.3f} | {run.seconds:.2f} |")
+        print(f"| GTSAM graph (batch LM) | {landmark_rmse(sol.landmarks, log.truth_landmarks)[0]:.3f} | – | "
+              f"{trajectory_rmse(run.times, sol.poses[1:], log.truth_times, log.truth_poses):.3f} | {sol.seconds:.2f} |\n")
+    vp = args.data / "landmarks" / "victoria_park" / "victoria_park.txt.xz"
+    if vp.is_file():
+        log = read_victoria_park(vp)
+        run, sol = run_ekf(log, keep), solve_landmark_graph(log)
+        est = {lm["id"]: np.array([lm["x"], lm["y"]]) for lm in run.filter.landmarks()}
+        d = [np.linalg.norm(est[k] - sol.landmarks[k]) for k in sol.landmarks]
+        print("## Victoria Park (6,969 steps, 151 landmarks)\n")
+        print("| EKF [s] | graph [s] | EKF vs graph landmark RMS difference [m] | final position difference [m] |")
+        print("|---|---|---|---|")
+        print(f"| {run.seconds:.2f} | {sol.seconds:.2f} | {np.sqrt(np.mean(np.square(d))):.2f} | "
+              f"{np.hypot(*(run.poses[-1][:2] - sol.poses[-1][:2])):.2f} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
