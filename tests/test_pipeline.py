@@ -130,3 +130,26 @@ def test_truncated_log_keeps_what_was_computed(tmp_path):
     assert result.input_error is not None and "truncated" in result.input_error
     assert result.n_scans == 100
     assert len(read_tum(paths["poses_tum.txt"])) == 100
+
+
+def test_manual_hint_closes_a_loop_the_graph_did_not_propose(tmp_path):
+    """A hint pairs the first and the last scan of a lap; with spatial and appearance proposals
+    switched off it is the only hypothesis, and it goes through the same correspondence test."""
+    log = generate("rectangle", tmp_path / "log", seed=0, laps=1)
+    n = len(read_tum(log / "groundtruth_tum.txt"))
+    hints = tmp_path / "hints.txt"
+    hints.write_text(f"# scan indices taken at the same place\n0 {n - 5}\n")
+    cfg = PipelineConfig.model_validate({"loops": {"use_descriptor": False, "spatial_max_radius": 1e-3,
+                                                   "spatial_min_radius": 1e-3}})
+    result, _ = run_log(log, None, config=cfg, hints=hints)
+    sources = {lp.source for lp in result.loops}
+    assert sources == {"hint"}
+    assert result.loops_accepted == 1
+    gt = read_tum(log / "groundtruth_tum.txt")
+    assert np.all(loop_errors(result, gt) < 0.3)
+    bad = tmp_path / "bad.txt"
+    bad.write_text("0 1 2\n")
+    from submapslam.errors import InputError
+
+    with pytest.raises(InputError, match=r"bad\.txt:1: expected two values"):
+        run_log(log, None, hints=bad)
