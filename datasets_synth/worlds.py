@@ -59,13 +59,27 @@ class World:
             c.translate((x, y, h / 2))
             mesh += c
         if self.ground:
-            xmin, ymin, xmax, ymax = self.extent
-            g = o3d.geometry.TriangleMesh()
-            g.vertices = o3d.utility.Vector3dVector(
-                [[xmin - 50, ymin - 50, 0], [xmax + 50, ymin - 50, 0], [xmax + 50, ymax + 50, 0], [xmin - 50, ymax + 50, 0]])
-            g.triangles = o3d.utility.Vector3iVector([[0, 1, 2], [0, 2, 3]])
-            mesh += g
+            mesh += _terrain(o3d, self.extent)
         return mesh
+
+
+def _terrain(o3d, extent, spacing: float = 1.0, amplitude: float = 0.08):
+    """Gently undulating ground (a height field): a perfectly flat plane would give every scan
+    identical ground rings, which pin point-to-point ICP at zero motion."""
+    xmin, ymin, xmax, ymax = extent
+    xs = np.arange(xmin - 40, xmax + 40 + spacing, spacing)
+    ys = np.arange(ymin - 40, ymax + 40 + spacing, spacing)
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    Z = amplitude * (np.sin(X / 3.1) * np.cos(Y / 4.3) + 0.5 * np.sin(X / 1.7 + Y / 2.3))
+    verts = np.stack([X, Y, Z], axis=-1).reshape(-1, 3)
+    nx, ny = len(xs), len(ys)
+    idx = np.arange(nx * ny).reshape(nx, ny)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    tris = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    g = o3d.geometry.TriangleMesh()
+    g.vertices = o3d.utility.Vector3dVector(verts)
+    g.triangles = o3d.utility.Vector3iVector(tris.astype(np.int32))
+    return g
 
 
 def _wall_quad(o3d, x0, y0, x1, y1, height):
@@ -235,6 +249,21 @@ def outdoor(seed: int = 0, blocks: tuple[int, int] = (3, 2), block_size: float =
                 p = (-street + 1.5, ymax + street - 2.0 - s)
             cyl.append((*p, 0.15, rng.uniform(4, 8)))
             s += rng.uniform(8, 20)
+    # parked cars and kiosks along both kerbs of the ring road: irregular street furniture
+    ring_in = [(-1.5, -1.5), (xmax + 1.5, -1.5), (xmax + 1.5, ymax + 1.5), (-1.5, ymax + 1.5)]
+    ring_out = [(-street + 3.0, -street + 3.0), (xmax + street - 3.0, -street + 3.0),
+                (xmax + street - 3.0, ymax + street - 3.0), (-street + 3.0, ymax + street - 3.0)]
+    for ring in (ring_in, ring_out):
+        for k in range(4):
+            a, b = np.array(ring[k]), np.array(ring[(k + 1) % 4])
+            length = float(np.linalg.norm(b - a))
+            d = (b - a) / length
+            s_ = rng.uniform(3, 10)
+            while s_ < length - 3:
+                c = a + d * s_
+                half = np.abs(d) * rng.uniform(1.0, 2.4) + np.abs(d[::-1]) * rng.uniform(0.7, 1.0)
+                boxes.append((c[0] - half[0], c[1] - half[1], 0.0, c[0] + half[0], c[1] + half[1], rng.uniform(1.2, 2.8)))
+                s_ += rng.uniform(6, 18)
     # a wall around the outside of the ring road, broken into pieces
     ring = [(-street - 2, -street - 2), (xmax + street + 2, -street - 2), (xmax + street + 2, ymax + street + 2),
             (-street - 2, ymax + street + 2)]
