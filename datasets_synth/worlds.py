@@ -63,14 +63,15 @@ class World:
         return mesh
 
 
-def _terrain(o3d, extent, spacing: float = 1.0, amplitude: float = 0.08):
-    """Gently undulating ground (a height field): a perfectly flat plane would give every scan
-    identical ground rings, which pin point-to-point ICP at zero motion."""
+def _terrain(o3d, extent, spacing: float = 0.5, amplitude: float = 0.08, roughness: float = 0.04):
+    """Undulating, rough ground (a height field). A flat plane gives every scan identical ground
+    rings, which pin point-to-point ICP at zero motion; real ground has kerbs, grass and bumps."""
     xmin, ymin, xmax, ymax = extent
     xs = np.arange(xmin - 40, xmax + 40 + spacing, spacing)
     ys = np.arange(ymin - 40, ymax + 40 + spacing, spacing)
     X, Y = np.meshgrid(xs, ys, indexing="ij")
     Z = amplitude * (np.sin(X / 3.1) * np.cos(Y / 4.3) + 0.5 * np.sin(X / 1.7 + Y / 2.3))
+    Z += np.random.default_rng(12345).normal(0.0, roughness, Z.shape)
     verts = np.stack([X, Y, Z], axis=-1).reshape(-1, 3)
     nx, ny = len(xs), len(ys)
     idx = np.arange(nx * ny).reshape(nx, ny)
