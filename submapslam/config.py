@@ -84,6 +84,9 @@ class BackendConfig(_Strict):
     gnc_inlier_probability: float = Field(0.99, gt=0, lt=1)
     incremental: bool = Field(True, description="iSAM2 update at every submap")
     final_batch: bool = Field(True, description="Levenberg-Marquardt pass at the end")
+    odometry_registration_covariance: bool = Field(
+        True, description="shape odometry-edge covariances with a registration between consecutive submaps"
+    )
     odometry_drift: float = Field(0.005, gt=0, description="odometry translation sigma per metre")
     odometry_drift_deg_per_m: float = Field(0.1, gt=0, description="odometry heading sigma per metre [deg]")
     odometry_sigma_floor_m: float = Field(0.02, gt=0)

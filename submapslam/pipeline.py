@@ -138,6 +138,8 @@ class SubmapSLAM:
                 prev = self.submaps[k - 1]
                 T_prev_k = inverse(prev.T_odom_anchor) @ submap.T_odom_anchor
                 info = odometry_information(T_prev_k, prev.distance, self.planar, self.config.backend)
+                if self.config.backend.odometry_registration_covariance:
+                    info = self._registration_shaped(info, prev, submap, T_prev_k)
                 self._graph.add_node(k, self._graph.pose(k - 1) @ T_prev_k)
                 self._graph.add_between(k - 1, k, T_prev_k, info, "odometry")
             self._graph.update()
@@ -147,6 +149,28 @@ class SubmapSLAM:
             if any(r.accepted for r in records):
                 with self.timer("optimisation"):
                     self._graph.update(extra_iterations=2)
+
+    def _registration_shaped(self, info: np.ndarray, prev: Submap, new: Submap, T_prev_new: np.ndarray) -> np.ndarray:
+        """Add the registration's own uncertainty to the drift model of an odometry edge.
+
+        The new submap is aligned to the previous one (fine registration from the odometry
+        estimate); the inverse of that registration's information grows where the geometry is
+        degenerate (along a corridor), which is where scan-matching odometry drifts. Edges
+        between submaps that do not overlap keep the drift model alone.
+        """
+        from .topology.correspondence import check_correspondence
+
+        with self.timer("odometry_covariance"):
+            res = check_correspondence(new.points, prev.points, planar=bool(self.planar), initial_guess=T_prev_new,
+                                       refine_only=True, voxel_size=max(self._builder.voxel, 0.05))
+        if res.overlap < 0.1:
+            return info
+        cov_reg = np.linalg.inv(0.5 * (res.information + res.information.T))
+        cap = np.diag([np.deg2rad(20.0) ** 2] * 3 + [2.0**2] * 3)
+        w, V = np.linalg.eigh(cov_reg)
+        cov_reg = (V * np.minimum(w, cap.max())) @ V.T  # never more than the cap in any direction
+        cov = np.linalg.inv(info) + cov_reg
+        return np.linalg.inv(0.5 * (cov + cov.T))
 
     def _hint_pairs(self) -> list[tuple[int, int]]:
         """Manual hints (scan index pairs) whose scans are both in closed submaps."""
