@@ -40,3 +40,12 @@ def test_not_a_mapping_and_bad_yaml(tmp_path):
 def test_values_are_applied():
     cfg = config_from_dict({"submaps": {"max_distance": 4.5}, "backend": {"robust_kernel": "huber"}})
     assert cfg.submaps.max_distance == 4.5 and cfg.backend.robust_kernel == "huber"
+
+
+def test_a_directory_or_binary_file_is_a_config_error(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_config(tmp_path)
+    p = tmp_path / "bin.yaml"
+    p.write_bytes(b"\xff\xfe\x00\x81")
+    with pytest.raises(ConfigError):
+        load_config(p)
