@@ -184,14 +184,29 @@ def _ring_world(name, size, width, rng, fixed_outer=None, fixed_inner=None, desc
 
 
 def rectangle(seed: int = 0, size: tuple[float, float] = (30.0, 20.0), width: float = 3.0,
-              feature_density: float = 1.0) -> World:
+              feature_density: float = 1.0, poles: int = 0) -> World:
     """The seed's cyclic example: four hallways meeting in a rectangle, with doors and pillars.
 
     ``feature_density`` scales how often doors and pillars break the walls (lower: longer
     plain stretches, where scan matching slides along the corridor and odometry drifts).
+    ``poles`` free-standing thin poles (r = 0.1 m) stand 0.6 m from the walls: point
+    landmarks for the stochastic map running on the same log.
     """
-    return _ring_world("rectangle", size, width, np.random.default_rng(seed),
-                       description="four hallways forming a rectangle (planar)", density=feature_density)
+    rng = np.random.default_rng(seed)
+    w = _ring_world("rectangle", size, width, rng, description="four hallways forming a rectangle (planar)",
+                    density=feature_density)
+    if poles:
+        W, H = size
+        prng = np.random.default_rng(seed + 101)
+        cyl = []
+        for _ in range(poles):
+            side = prng.integers(4)
+            t = prng.uniform(0.15, 0.85)
+            off = 0.6 if prng.random() < 0.5 else width - 0.6
+            x, y = {0: (t * W, off), 1: (W - off, t * H), 2: (t * W, H - off), 3: (off, t * H)}[int(side)]
+            cyl.append((x, y, 0.1, 2.0))
+        w.cylinders = np.array(cyl)
+    return w
 
 
 def rooms(seed: int = 0, size: tuple[float, float] = (48.0, 12.0), width: float = 3.0) -> World:

@@ -128,3 +128,27 @@ def test_cli_ekf_on_a_synthetic_log(tmp_path):
     header = (out / "landmarks.csv").read_text().splitlines()[0]
     assert header == "id,x,y,var_xx,var_xy,var_yy,credibility"
     assert (out / "landmarks.png").stat().st_size > 1000 and (out / "poses_tum.txt").exists()
+
+
+def test_pole_detector_on_a_synthetic_laser_log(tmp_path):
+    import itertools
+
+    from datasets_synth import generate
+    from datasets_synth.worlds import rectangle
+    from submapslam.ekf.features import landmark_log_from_cloud_log, poles_from_planar_scan
+    from submapslam.io.registry import open_log
+    from submapslam.io.trajectory import read_tum
+
+    log = generate("rectangle", tmp_path / "log", seed=0, laps=1, poles=12, max_scans=400)
+    poles = rectangle(seed=0, poles=12).cylinders[:, :2]
+    gt = read_tum(log / "groundtruth_tum.txt").poses
+    good = total = 0
+    for scan in itertools.islice(open_log(log), 0, 400, 5):
+        for r, b in poles_from_planar_scan(scan.points):
+            T = gt[scan.index]
+            p = T[:2, :2] @ [r * np.cos(b), r * np.sin(b)] + T[:2, 3]
+            good += np.min(np.linalg.norm(poles - p, axis=1)) < 0.15
+            total += 1
+    assert total > 20 and good / total > 0.75
+    lm_log = landmark_log_from_cloud_log(log)
+    assert len(lm_log.steps) == 400 and all(i is None for s in lm_log.steps for i in s.ids)
