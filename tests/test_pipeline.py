@@ -27,7 +27,7 @@ def loop_errors(result, gt):
     for lp in result.loops:
         if lp.accepted:
             true = inverse(anchors[lp.i]) @ anchors[lp.j]
-            errs.append(float(np.linalg.norm((inverse(true) @ lp.T_i_j)[:2, 3])))
+            errs.append(float(np.linalg.norm((inverse(true) @ lp.T_i_j)[:3, 3])))
     return np.array(errs)
 
 
@@ -153,3 +153,15 @@ def test_manual_hint_closes_a_loop_the_graph_did_not_propose(tmp_path):
 
     with pytest.raises(InputError, match=r"bad\.txt:1: expected two values"):
         run_log(log, None, hints=bad)
+
+
+def test_outdoor_3d_two_laps_closes_loops_without_false_closures(tmp_path):
+    log = generate("outdoor", tmp_path / "log", seed=0, laps=2, blocks=(1, 1))
+    result, _ = run_log(log, None)
+    gt = read_tum(log / "groundtruth_tum.txt")
+    assert not result.planar and result.loops_accepted >= 3
+    assert np.all(loop_errors(result, gt) < FALSE_CLOSURE_M)
+    odo = ate(Trajectory(result.timestamps, result.odometry_poses), gt)["rmse"]
+    slam = ate(Trajectory(result.timestamps, result.poses), gt)["rmse"]
+    wheel = ate(read_tum(log / "odometry_tum.txt"), gt)["rmse"]
+    assert slam <= odo and slam <= wheel / 5
