@@ -12,18 +12,12 @@ from rich.console import Console
 from rich.table import Table
 
 from . import __version__
+from .cli_common import fail
 from .errors import SubmapSlamError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="submapslam: submap-based SLAM for 2D laser and 3D LiDAR logs.")
 console = Console()
-err_console = Console(stderr=True)
-
-
-def fail(exc: BaseException | str) -> typer.Exit:
-    """Print one red error line and return the Exit(1) to raise."""
-    err_console.print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
-    return typer.Exit(1)
 
 
 def _version(value: bool) -> None:

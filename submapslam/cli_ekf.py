@@ -8,6 +8,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from .cli_common import fail
 from .errors import InputError, SubmapSlamError
 
 
@@ -69,6 +70,5 @@ def register(app: typer.Typer) -> None:
                     summary["graph_trajectory_rmse_m"] = trajectory_rmse(run.times, sol.poses[1:], data.truth_times, data.truth_poses)
             write_ekf_results(out, run, summary, data.truth_landmarks or None, data.truth_poses)
         except SubmapSlamError as exc:
-            Console(stderr=True).print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
-            raise typer.Exit(1) from None
+            raise fail(exc) from None
         Console().print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in summary.items()})

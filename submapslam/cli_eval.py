@@ -10,14 +10,10 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from .cli_common import fail
 from .errors import SubmapSlamError
 
 console = Console()
-
-
-def _fail(exc: BaseException) -> typer.Exit:
-    Console(stderr=True).print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
-    return typer.Exit(1)
 
 
 def register(app: typer.Typer) -> None:
@@ -38,7 +34,7 @@ def register(app: typer.Typer) -> None:
         from .io.trajectory import carmen_reference_trajectory, read_relations, read_trajectory
 
         if align not in ("se3", "sim3", "se2", "none"):
-            raise _fail(SubmapSlamError(f"--align must be se3, sim3, se2 or none, not {align!r}"))
+            raise fail(SubmapSlamError(f"--align must be se3, sim3, se2 or none, not {align!r}"))
         try:
             e = read_trajectory(est)
             r = carmen_reference_trajectory(ref, raw_log) if raw_log else read_trajectory(ref)
@@ -46,7 +42,7 @@ def register(app: typer.Typer) -> None:
             p = rpe(e, r, delta=1, unit="frames", max_diff=max_diff)
             rel = relations_error(e, read_relations(relations), max_diff=max_diff) if relations else None
         except SubmapSlamError as exc:
-            raise _fail(exc) from None
+            raise fail(exc) from None
         table = Table(title=f"{est.name} vs {ref.name} ({a['n']} poses, align {align})")
         table.add_column("metric")
         for col in ("rmse", "mean", "median", "std", "max"):
@@ -78,12 +74,12 @@ def register(app: typer.Typer) -> None:
 
         labels = list(label or [])
         if labels and len(labels) != len(est):
-            raise _fail(SubmapSlamError(f"{len(labels)} labels for {len(est)} trajectories"))
+            raise fail(SubmapSlamError(f"{len(labels)} labels for {len(est)} trajectories"))
         try:
             r = carmen_reference_trajectory(ref, raw_log) if raw_log else read_trajectory(ref)
             named = {(labels[k] if labels else p.stem): read_trajectory(p) for k, p in enumerate(est)}
             report = compare_trajectories(r, named, out, align=align)
         except SubmapSlamError as exc:
-            raise _fail(exc) from None
+            raise fail(exc) from None
         console.print(report.markdown)
         console.print(f"report in {out}")

@@ -8,6 +8,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from .cli_common import fail
 from .errors import SubmapSlamError
 
 
@@ -33,8 +34,7 @@ def register(app: typer.Typer) -> None:
             path = generate(world, out, seed=seed, laps=laps, sensor=sensor, max_scans=max_scans,
                             odometry_noise=odometry_noise)
         except SubmapSlamError as exc:
-            Console(stderr=True).print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
-            raise typer.Exit(1) from None
+            raise fail(exc) from None
         meta = yaml.safe_load((path / "meta.yaml").read_text())
         Console().print(f"{meta['n_scans']} scans of {world} ({meta['sensor']['type']}), loop {meta['loop_length_m']:.0f} m "
                         f"x {laps} laps, wheel odometry end drift {meta['odometry_end_drift_m']:.2f} m -> {path}")

@@ -1,0 +1,14 @@
+"""What every CLI command shares: the one-red-line error exit."""
+
+from __future__ import annotations
+
+import typer
+from rich.console import Console
+
+err_console = Console(stderr=True)
+
+
+def fail(exc: BaseException | str) -> typer.Exit:
+    """Print one red error line and return the ``Exit(1)`` to raise."""
+    err_console.print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
+    return typer.Exit(1)
