@@ -41,18 +41,22 @@ class LandmarkLog:
 
 def _numeric_table(path: Path, ncols: int) -> np.ndarray:
     rows = []
-    with open_text(path) as fh:
-        for lineno, line in enumerate(fh, start=1):
-            body = line.strip()
-            if not body or body.startswith("#"):
-                continue
-            tok = body.split()
-            if len(tok) < ncols:
-                raise InputError(path, f"expected {ncols} columns, got {len(tok)}", lineno)
-            try:
-                rows.append([float(v) for v in tok[:ncols]])
-            except ValueError:
-                raise InputError(path, f"non-numeric value in {body[:40]!r}", lineno) from None
+    lineno = 0
+    try:
+        with open_text(path) as fh:
+            for lineno, line in enumerate(fh, start=1):
+                body = line.strip()
+                if not body or body.startswith("#"):
+                    continue
+                tok = body.split()
+                if len(tok) < ncols:
+                    raise InputError(path, f"expected {ncols} columns, got {len(tok)}", lineno)
+                try:
+                    rows.append([float(v) for v in tok[:ncols]])
+                except ValueError:
+                    raise InputError(path, f"non-numeric value in {body[:40]!r}", lineno) from None
+    except (lzma.LZMAError, EOFError, OSError) as exc:
+        raise InputError(path, f"cannot read past line {lineno} ({exc}); truncated or corrupt?") from None
     if not rows:
         raise InputError(path, "no data rows")
     return np.array(rows)
@@ -173,7 +177,7 @@ def read_victoria_park(path: str | Path) -> LandmarkLog:
                         raise ValueError(f"unknown record {tok[0][:20]!r}")
                 except (ValueError, IndexError) as exc:
                     raise InputError(path, f"malformed line ({exc})", lineno) from None
-    except lzma.LZMAError as exc:
+    except (lzma.LZMAError, EOFError) as exc:
         raise InputError(path, f"cannot decompress ({exc})") from None
     if not steps:
         raise InputError(path, "no ODOMETRY/LANDMARK lines")

@@ -1,0 +1,72 @@
+"""Landmark-log readers: MR.CLAM folders (plain and .xz), Victoria Park, bad input."""
+
+import lzma
+
+import numpy as np
+import pytest
+
+from submapslam.errors import InputError
+from submapslam.io.landmark_logs import read_mrclam, read_victoria_park
+
+HEADER = "# a\n# b\n# c\n# d\n"
+
+
+def _mrclam(folder, measurement_rows="100.5 11 2.0 0.1\n100.5 22 1.5 -0.2\n", xz=False):
+    folder.mkdir(parents=True, exist_ok=True)
+    files = {
+        "Robot1_Odometry.dat": "100.0 0.5 0.0\n100.2 0.5 0.0\n101.0 0.0 0.0\n",
+        "Robot1_Measurement.dat": measurement_rows,
+        "Robot1_Groundtruth.dat": "99.9 1.0 2.0 0.0\n100.0 1.0 2.0 0.0\n101.0 1.5 2.0 0.0\n",
+        "Barcodes.dat": "1 11\n2 12\n6 22\n",
+        "Landmark_Groundtruth.dat": "6 3.0 1.7 0.001 0.001\n",
+    }
+    for name, body in files.items():
+        if xz and name.startswith("Robot1_"):
+            with lzma.open(folder / (name + ".xz"), "wt") as fh:
+                fh.write(HEADER + body)
+        else:
+            (folder / name).write_text(HEADER + body)
+    return folder
+
+
+@pytest.mark.parametrize("xz", [False, True])
+def test_mrclam_reader_ignores_robots_and_starts_at_ground_truth(tmp_path, xz):
+    log = read_mrclam(_mrclam(tmp_path / "d", xz=xz), 1)
+    np.testing.assert_allclose(log.initial_pose, [1.0, 2.0, 0.0])  # gt pose at the first odometry time
+    ids = [i for s in log.steps for i in s.ids]
+    assert ids == [6]                        # barcode 11 is robot 1: ignored; 22 -> subject 6
+    np.testing.assert_allclose(log.steps[0].ranges_bearings, [[1.5, -0.2]])
+    assert log.steps[0].motion[0] == pytest.approx(0.25)  # 0.5 s at 0.5 m/s
+    assert set(log.truth_landmarks) == {6}
+
+
+def test_mrclam_garbled_line_names_file_and_line(tmp_path):
+    folder = _mrclam(tmp_path / "d", measurement_rows="100.5 22 1.5 -0.2\n100.6 22 abc 0.1\n")
+    with pytest.raises(InputError, match=r"Robot1_Measurement\.dat.*6"):
+        read_mrclam(folder, 1)
+    folder = _mrclam(tmp_path / "e", measurement_rows="100.5 22 1.5\n")
+    with pytest.raises(InputError, match=r"Robot1_Measurement\.dat"):
+        read_mrclam(folder, 1)
+
+
+def test_truncated_xz_is_an_input_error(tmp_path):
+    folder = _mrclam(tmp_path / "d", xz=True)
+    p = folder / "Robot1_Odometry.dat.xz"
+    p.write_bytes(p.read_bytes()[:-20])
+    with pytest.raises(InputError, match="Robot1_Odometry"):
+        read_mrclam(folder, 1)
+    vp = tmp_path / "vp.txt.xz"
+    with lzma.open(vp, "wt") as fh:
+        fh.write("ODOMETRY 0 1 0.1 0 0 0.01 0 0 0.01 0 0.01\n" * 200)
+    vp.write_bytes(vp.read_bytes()[:-20])
+    with pytest.raises(InputError, match="vp.txt.xz"):
+        read_victoria_park(vp)
+
+
+def test_victoria_park_converts_landmarks_to_range_bearing(tmp_path):
+    p = tmp_path / "vp.txt"
+    p.write_text("ODOMETRY 0 1 1.0 0 0 0.01 0 0 0.01 0 0.001\nLANDMARK 1 7 3.0 4.0 0.4 0 0.4\n")
+    log = read_victoria_park(p)
+    assert len(log.steps) == 1 and log.steps[0].ids == [7]
+    np.testing.assert_allclose(log.steps[0].ranges_bearings, [[5.0, np.arctan2(4.0, 3.0)]])
+    np.testing.assert_allclose(np.diag(log.measurement_cov), [0.4, 0.04])
