@@ -23,6 +23,8 @@ class GraphSolution:
     final_pose_cov: np.ndarray           # (3, 3)
     seconds: float
     pose_covs: np.ndarray | None = None  # (N + 1, 3, 3) world-frame (x, y, theta), when asked for
+    error: float = float("nan")          # final graph error 0.5 * sum of squared whitened residuals
+    initial_error: float = float("nan")  # the same at the initial guess
 
 
 def solve_landmark_graph(log: LandmarkLog, incremental: bool = False, initial: dict | None = None,
@@ -46,27 +48,37 @@ def solve_landmark_graph(log: LandmarkLog, incremental: bool = False, initial: d
     meas_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([b_sigma, r_sigma]))
     seen: set[int] = set()
     init_poses = None if initial is None else initial["poses"]
+    isam = gtsam.ISAM2() if incremental else None
+    new_graph, new_values = graph, values  # what the next iSAM2 update receives
     for k, step in enumerate(log.steps, start=1):
         odo = gtsam.Pose2(*step.motion)
         cov = 0.5 * (step.motion_cov + step.motion_cov.T) + np.eye(3) * 1e-12
-        graph.add(gtsam.BetweenFactorPose2(X(k - 1), X(k), odo, gtsam.noiseModel.Gaussian.Covariance(cov)))
+        factor = gtsam.BetweenFactorPose2(X(k - 1), X(k), odo, gtsam.noiseModel.Gaussian.Covariance(cov))
         pose = pose.compose(odo)
-        values.insert(X(k), gtsam.Pose2(*init_poses[k]) if init_poses is not None else pose)
+        guess_pose = gtsam.Pose2(*init_poses[k]) if init_poses is not None else pose
+        for g in {id(graph): graph, id(new_graph): new_graph}.values():
+            g.add(factor)
+        for v in {id(values): values, id(new_values): new_values}.values():
+            v.insert(X(k), guess_pose)
         for (r, b), lid in zip(step.ranges_bearings, step.ids):
-            graph.add(gtsam.BearingRangeFactor2D(X(k), L(lid), gtsam.Rot2(b), float(r), meas_noise))
+            f = gtsam.BearingRangeFactor2D(X(k), L(lid), gtsam.Rot2(b), float(r), meas_noise)
+            for g in {id(graph): graph, id(new_graph): new_graph}.values():
+                g.add(f)
             if lid not in seen:
                 seen.add(lid)
                 if initial is not None and lid in initial["landmarks"]:
                     guess = gtsam.Point2(*initial["landmarks"][lid])
                 else:
-                    p = values.atPose2(X(k))
-                    guess = p.transformFrom(gtsam.Point2(r * np.cos(b), r * np.sin(b)))
-                values.insert(L(lid), guess)
-    if incremental:
-        isam = gtsam.ISAM2()
-        isam.update(graph, values)
+                    guess = guess_pose.transformFrom(gtsam.Point2(r * np.cos(b), r * np.sin(b)))
+                for v in {id(values): values, id(new_values): new_values}.values():
+                    v.insert(L(lid), guess)
+        if isam is not None:
+            isam.update(new_graph, new_values)
+            pose = isam.calculateEstimatePose2(X(k)) if init_poses is None else pose
+            new_graph, new_values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    if isam is not None:
         result = isam.calculateEstimate()
-        marg = None
+        marg = gtsam.Marginals(graph, result)
     else:
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(100)
@@ -86,4 +98,5 @@ def solve_landmark_graph(log: LandmarkLog, incremental: bool = False, initial: d
             c, s = np.cos(poses[k, 2]), np.sin(poses[k, 2])
             J = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
             pose_covs[k] = J @ np.asarray(marg.marginalCovariance(X(k))) @ J.T
-    return GraphSolution(poses, lms, covs, final_cov, time.perf_counter() - t0, pose_covs)
+    return GraphSolution(poses, lms, covs, final_cov, time.perf_counter() - t0, pose_covs,
+                         float(graph.error(result)), float(graph.error(values)))
