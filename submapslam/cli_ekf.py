@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
+import numpy as np
 import typer
 from rich.console import Console
 
@@ -38,6 +39,7 @@ def register(app: typer.Typer) -> None:
         remove_below: Annotated[float, typer.Option(help="Remove features whose credibility falls below this.")] = 0.0,
         max_range: Annotated[float, typer.Option(help="Sensor range for unobserved predictions [m].")] = float("inf"),
         compare: Annotated[bool, typer.Option(help="Also solve the GTSAM landmark graph and compare.")] = False,
+        incremental: Annotated[bool, typer.Option(help="With --compare: iSAM2 step by step instead of batch LM.")] = False,
     ) -> None:
         """Run the full-covariance EKF (stochastic map with credibility); write poses, landmarks, plot."""
         import numpy as np
@@ -58,17 +60,42 @@ def register(app: typer.Typer) -> None:
                 summary["ekf_trajectory_rmse_m"] = trajectory_rmse(run.times, run.poses, data.truth_times, data.truth_poses)
             if compare:
                 from .backend.landmark_graph import solve_landmark_graph
+                from .evaluation.landmark_compare import compare_landmark_solutions
 
-                sol = solve_landmark_graph(data)
-                diffs = [np.linalg.norm(est[k] - sol.landmarks[k]) for k in sol.landmarks if k in est]
-                summary.update(graph_seconds=round(sol.seconds, 3),
-                               ekf_vs_graph_landmark_rms_m=float(np.sqrt(np.mean(np.square(diffs)))) if diffs else None,
-                               ekf_vs_graph_final_pose=[float(v) for v in run.poses[-1] - sol.poses[-1]])
-                if data.truth_landmarks:
-                    summary["graph_landmark_rmse_m"], _ = landmark_rmse(sol.landmarks, data.truth_landmarks)
-                if data.truth_poses is not None:
-                    summary["graph_trajectory_rmse_m"] = trajectory_rmse(run.times, sol.poses[1:], data.truth_times, data.truth_poses)
+                sol = solve_landmark_graph(data, incremental=incremental)
+                summary["comparison"] = compare_landmark_solutions(data, run, sol)
             write_ekf_results(out, run, summary, data.truth_landmarks or None, data.truth_poses)
         except SubmapSlamError as exc:
             raise fail(exc) from None
         Console().print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in summary.items()})
+
+    @app.command("ekf-nees")
+    def ekf_nees_cmd(
+        out: Annotated[Path, typer.Option("--out", "-o", help="Output folder (nees.json, nees.png).")],
+        runs: Annotated[int, typer.Option(min=2, help="Monte Carlo runs.")] = 50,
+        seed: Annotated[int, typer.Option(help="Seed of the first run.")] = 100,
+        laps: Annotated[int, typer.Option(min=1, help="Laps per synthetic run.")] = 2,
+        graph: Annotated[bool, typer.Option(help="Also the factor graph's (smoother) NEES.")] = True,
+    ) -> None:
+        """NEES of the EKF (and the smoother) over Monte Carlo runs on synthetic landmark worlds."""
+        import json
+        import tempfile
+
+        from .evaluation.landmark_compare import nees_study, plot_nees
+
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            with tempfile.TemporaryDirectory() as tmp:
+                study = nees_study(tmp, runs=runs, seed=seed, laps=laps, with_graph=graph)
+        except (SubmapSlamError, OSError) as exc:
+            raise fail(exc) from None
+        lo, hi = study["band"]
+        inside = float(np.mean((study["ekf"] >= lo) & (study["ekf"] <= hi)))
+        doc = {"runs": runs, "band_95": [lo, hi], "ekf_fraction_inside": inside,
+               "ekf_left_band_at": study["ekf_left_band_at"], "graph_left_band_at": study["graph_left_band_at"],
+               "ekf_mean_nees": study["ekf"].tolist(),
+               "graph_mean_nees": None if study["graph"] is None else study["graph"].tolist()}
+        (out / "nees.json").write_text(json.dumps(doc, indent=1))
+        plot_nees(out / "nees.png", study)
+        Console().print(f"band [{lo:.2f}, {hi:.2f}]; EKF inside for {inside:.0%} of steps; 10-step mean leaves "
+                        f"the band at step {study['ekf_left_band_at']} (graph: {study['graph_left_band_at']})")

@@ -8,6 +8,8 @@ determinants' square roots (ellipse areas) and the symmetric KL divergence.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from ..backend.landmark_graph import GraphSolution
@@ -48,3 +50,79 @@ def compare_landmark_solutions(log: LandmarkLog, run: EkfRun, sol: GraphSolution
         out["ekf_trajectory_rmse_m"] = trajectory_rmse(run.times, run.poses, log.truth_times, log.truth_poses)
         out["graph_trajectory_rmse_m"] = trajectory_rmse(run.times, sol.poses[1:], log.truth_times, log.truth_poses)
     return out
+
+
+def nees_series(est: np.ndarray, covs: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """NEES per step of ``(N, 3)`` pose estimates with ``(N, 3, 3)`` covariances against ``(N, 3)`` truth."""
+    e = np.asarray(est, dtype=np.float64) - truth
+    e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    P = covs + np.eye(3) * 1e-12
+    return np.einsum("ni,ni->n", e, np.linalg.solve(P, e[:, :, None])[:, :, 0])
+
+
+def nees_study(workdir: str | Path, runs: int = 50, seed: int = 100, laps: int = 2,
+               with_graph: bool = True) -> dict:
+    """Monte Carlo NEES of the robot pose on synthetic landmark worlds, EKF and smoother.
+
+    Returns ``{"ekf": (N,), "graph": (N,) or None, "band": (lo, hi), "runs": runs,
+    "ekf_left_band_at": step or None, "graph_left_band_at": ...}``: the per-step NEES averaged
+    over the runs, the two-sided 95 % chi-square band for that average (3 DOF), and the first
+    step where a 10-step moving average of the mean NEES leaves the band.
+    """
+    from scipy.stats import chi2
+
+    from datasets_synth.landmarks import generate_landmark_log
+
+    from ..backend.landmark_graph import solve_landmark_graph
+    from ..ekf.runner import run_ekf
+    from ..ekf.stochastic_map import CredibilityParams
+    from ..io.landmark_logs import read_victoria_park
+
+    keep = CredibilityParams(b=1e9, remove_below=0.0)
+    ekf_all, fg_all = [], []
+    for r in range(runs):
+        folder = Path(workdir) / f"mc{r}"
+        log = read_victoria_park(generate_landmark_log(folder / "syn.txt", seed=seed + r, laps=laps,
+                                                       sigma_range=0.05, odo_sigma=(0.03, 0.02, 0.01)))
+        raw = np.loadtxt(folder / "poses_truth.txt")[:, 1:4]
+        c, s = np.cos(-raw[0, 2]), np.sin(-raw[0, 2])  # the log starts at the origin
+        rel = raw - raw[0]
+        truth = np.c_[c * rel[:, 0] - s * rel[:, 1], s * rel[:, 0] + c * rel[:, 1], rel[:, 2]]
+        run = run_ekf(log, keep)
+        at = truth[run.times.astype(int)]  # a step's time is the index of the pose it ends at
+        ekf_all.append(nees_series(run.poses, run.pose_covs, at))
+        if with_graph:
+            sol = solve_landmark_graph(log, pose_covariances=True)
+            fg_all.append(nees_series(sol.poses[1:], sol.pose_covs[1:], at))
+    lo, hi = chi2.ppf(0.025, 3 * runs) / runs, chi2.ppf(0.975, 3 * runs) / runs
+
+    def left(series: np.ndarray) -> int | None:
+        smooth = np.convolve(series, np.ones(10) / 10, mode="valid")
+        out = np.flatnonzero((smooth < lo) | (smooth > hi))
+        return int(out[0]) + 1 if len(out) else None
+
+    ekf = np.mean(ekf_all, axis=0)
+    graph = np.mean(fg_all, axis=0) if fg_all else None
+    return {"ekf": ekf, "graph": graph, "band": (float(lo), float(hi)), "runs": runs,
+            "ekf_left_band_at": left(ekf), "graph_left_band_at": left(graph) if graph is not None else None}
+
+
+def plot_nees(path: str | Path, study: dict) -> None:
+    """Mean NEES per step with the 95 % band (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4))
+    lo, hi = study["band"]
+    ax.axhspan(lo, hi, color="0.85", label="95 % band")
+    ax.plot(np.arange(1, len(study["ekf"]) + 1), study["ekf"], label="EKF (filter)")
+    if study["graph"] is not None:
+        ax.plot(np.arange(1, len(study["graph"]) + 1), study["graph"], label="factor graph (smoother)")
+    ax.set_xlabel("step")
+    ax.set_ylabel(f"mean NEES over {study['runs']} runs")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

@@ -1,0 +1,43 @@
+"""CLI: ekf --compare writes the comparison; ekf-nees writes the Monte Carlo study; errors are one line."""
+
+import json
+
+import typer
+from typer.testing import CliRunner
+
+from datasets_synth.landmarks import generate_landmark_log
+from submapslam.cli_ekf import register
+
+
+def _app() -> typer.Typer:
+    app = typer.Typer()
+    register(app)
+    return app
+
+
+def test_ekf_compare_incremental_writes_comparison(tmp_path):
+    path = generate_landmark_log(tmp_path / "syn.txt", seed=0, laps=1, sigma_range=0.02, odo_sigma=(0.005, 0.005, 0.002))
+    out = tmp_path / "out"
+    r = CliRunner().invoke(_app(), ["ekf", str(path), "--out", str(out), "--compare", "--incremental"])
+    assert r.exit_code == 0, r.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["comparison"]["ekf_vs_graph_landmark_max_m"] < 0.02
+    assert summary["comparison"]["landmarks_shared"] == summary["features"]
+
+
+def test_ekf_nees_command(tmp_path):
+    out = tmp_path / "nees"
+    r = CliRunner().invoke(_app(), ["ekf-nees", "--out", str(out), "--runs", "3", "--laps", "1", "--no-graph"])
+    assert r.exit_code == 0, r.output
+    doc = json.loads((out / "nees.json").read_text())
+    lo, hi = doc["band_95"]
+    assert lo < 3.0 < hi and doc["graph_mean_nees"] is None
+    assert len(doc["ekf_mean_nees"]) > 100 and 0.0 <= doc["ekf_fraction_inside"] <= 1.0
+    assert (out / "nees.png").stat().st_size > 1000
+
+
+def test_ekf_bad_log_is_one_red_line(tmp_path):
+    bad = tmp_path / "bad.txt"
+    bad.write_text("ODOMETRY 0 1 x 0 0 0.01 0 0 0.01 0 0.01\n")
+    r = CliRunner().invoke(_app(), ["ekf", str(bad), "--out", str(tmp_path / "o")])
+    assert r.exit_code == 1 and "bad.txt:1" in r.output
