@@ -19,28 +19,16 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
-def _truth_poses(folder: Path) -> np.ndarray:
-    return np.loadtxt(folder / "poses_truth.txt")[:, 1:4]
-
-
-def _nees_series(est: np.ndarray, covs: np.ndarray, truth: np.ndarray) -> list[float]:
-    """NEES per step of ``(N, 3)`` pose estimates with ``(N, 3, 3)`` covariances."""
-    e = est - truth
-    e[:, 2] = (e[:, 2] + np.pi) % (2 * np.pi) - np.pi
-    return [float(x @ np.linalg.solve(P + np.eye(3) * 1e-12, x)) for x, P in zip(e, covs)]
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=50)
     ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
     args = ap.parse_args(argv)
-    from scipy.stats import chi2
-
     from datasets_synth.landmarks import generate_landmark_log
     from submapslam.backend.landmark_graph import solve_landmark_graph
     from submapslam.ekf import CredibilityParams
     from submapslam.ekf.runner import landmark_rmse, run_ekf, trajectory_rmse
+    from submapslam.evaluation.landmark_compare import nees_study
     from submapslam.evaluation.metrics import umeyama
     from submapslam.io.landmark_logs import read_mrclam, read_victoria_park
 
@@ -58,31 +46,11 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---|---|---|---|")
     print(f"| {dl:.4f} | {np.hypot(dp[0], dp[1]):.5f} | {abs(np.rad2deg(dp[2])):.4f} | {run.seconds:.3f} | {sol.seconds:.3f} |\n")
     # (2) NEES Monte Carlo
-    ekf_nees, fg_nees = [], []
-    for r in range(args.runs):
-        folder = tmp / f"mc{r}"
-        log = read_victoria_park(generate_landmark_log(folder / "syn.txt", seed=100 + r, laps=2, sigma_range=0.05,
-                                                       odo_sigma=(0.03, 0.02, 0.01)))
-        # the log starts at the origin: express the truth relative to its first pose
-        raw = _truth_poses(folder)
-        c, s = np.cos(-raw[0, 2]), np.sin(-raw[0, 2])
-        rel = raw - raw[0]
-        truth = np.c_[c * rel[:, 0] - s * rel[:, 1], s * rel[:, 0] + c * rel[:, 1], rel[:, 2]]
-        run = run_ekf(log, keep)
-        at = truth[run.times.astype(int)]  # a step's time is the index of the pose it ends at
-        ekf_nees.append(_nees_series(run.poses, run.pose_covs, at))
-        res = solve_landmark_graph(log, pose_covariances=True)
-        fg_nees.append(_nees_series(res.poses[1:], res.pose_covs[1:], at))
-    ekf_nees = np.array(ekf_nees).mean(axis=0)
-    fg_nees = np.array(fg_nees).mean(axis=0)
-    lo, hi = chi2.ppf(0.025, 3 * args.runs) / args.runs, chi2.ppf(0.975, 3 * args.runs) / args.runs
+    study = nees_study(tmp / "mc", runs=args.runs)
+    ekf_nees, fg_nees = study["ekf"], study["graph"]
+    lo, hi = study["band"]
     inside = (ekf_nees >= lo) & (ekf_nees <= hi)
     fg_inside = (fg_nees >= lo) & (fg_nees <= hi)
-    first_out = int(np.argmax(~inside[5:])) + 5 if (~inside[5:]).any() else None
-    smooth = np.convolve(ekf_nees, np.ones(10) / 10, mode="valid")  # 10-step moving average
-    left = np.flatnonzero((smooth < lo) | (smooth > hi))
-    fg_smooth = np.convolve(fg_nees, np.ones(10) / 10, mode="valid")
-    fg_left = np.flatnonzero((fg_smooth < lo) | (fg_smooth > hi))
     print(f"## NEES of the robot pose over {args.runs} Monte Carlo runs (2 laps, 20 landmarks)\n")
     print(f"95 % band for the average of {args.runs} runs (3 DOF): [{lo:.2f}, {hi:.2f}]\n")
     print("| steps | EKF mean NEES | EKF steps inside the band | graph (smoother) mean NEES | graph steps inside |")
@@ -91,9 +59,9 @@ def main(argv: list[str] | None = None) -> int:
     for a, b in ((0, n // 4), (n // 4, n // 2), (n // 2, 3 * n // 4), (3 * n // 4, n)):
         print(f"| {a + 1}-{b} | {ekf_nees[a:b].mean():.2f} | {inside[a:b].mean():.2f} | {fg_nees[a:b].mean():.2f} | "
               f"{fg_inside[a:b].mean():.2f} |")
-    print(f"\nfirst single step (after 5) outside the band: {first_out}; first 10-step window outside: "
-          f"EKF {left[0] + 1 if len(left) else 'none'}, graph {fg_left[0] + 1 if len(fg_left) else 'none'}; "
-          f"max NEES EKF {ekf_nees.max():.2f} (step {int(ekf_nees.argmax()) + 1}), graph {fg_nees.max():.2f}\n")
+    print(f"\nfirst step where the 10-step mean leaves the band: EKF {study['ekf_left_band_at']}, "
+          f"graph {study['graph_left_band_at']}; max NEES EKF {ekf_nees.max():.2f} (step "
+          f"{int(ekf_nees.argmax()) + 1}), graph {fg_nees.max():.2f} (step {int(fg_nees.argmax()) + 1})\n")
     # (3) real data
     mr = args.data / "landmarks" / "utias_mrclam7"
     if mr.is_dir():
