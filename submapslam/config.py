@@ -40,7 +40,7 @@ class SubmapConfig(_Strict):
     """How consecutive scans are fused into submaps (virtual sensors)."""
 
     max_distance: float | None = Field(
-        None, gt=0, description="cut after this much travel [m]; None: 5 for planar logs, 25 for 3D"
+        None, gt=0, description="cut after this much travel [m]; None: 5 for planar logs, 12 for 3D"
     )
     max_scans: int = Field(400, ge=1)
     voxel_size: float | None = Field(None, gt=0, description="[m]; None: odometry voxel / 2")

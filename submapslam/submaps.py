@@ -63,7 +63,7 @@ class SubmapBuilder:
         self.config = config
         self.voxel = voxel_size
         self.planar = planar
-        self.max_distance = config.max_distance or (5.0 if planar else 25.0)
+        self.max_distance = config.max_distance or (5.0 if planar else 12.0)
         self._next_id = 0
         self._reset(None)
 
