@@ -62,7 +62,7 @@ def register(app: typer.Typer) -> None:
                 from .backend.landmark_graph import solve_landmark_graph
                 from .evaluation.landmark_compare import compare_landmark_solutions
 
-                sol = solve_landmark_graph(data, incremental=incremental)
+                sol = solve_landmark_graph(data, incremental=incremental, warm_start=True)
                 summary["comparison"] = compare_landmark_solutions(data, run, sol)
             write_ekf_results(out, run, summary, data.truth_landmarks or None, data.truth_poses)
         except SubmapSlamError as exc:

@@ -19,3 +19,16 @@ def test_isam2_step_by_step_matches_batch_and_marginals_exist(tmp_path):
     for C in list(batch.landmark_covs.values()) + list(inc.landmark_covs.values()):
         assert C.shape == (2, 2) and np.all(np.linalg.eigvalsh(C) > 0)
     assert np.all(np.linalg.eigvalsh(inc.final_pose_cov) > 0)
+
+
+def test_warm_start_escapes_the_dead_reckoning_local_minimum_on_mrclam():
+    from submapslam.ekf.runner import landmark_rmse
+    from submapslam.io.landmark_logs import read_mrclam
+
+    from .conftest import shared_data
+
+    log = read_mrclam(shared_data("landmarks", "utias_mrclam7"), 1)
+    cold = solve_landmark_graph(log)
+    warm = solve_landmark_graph(log, warm_start=True)
+    assert warm.error < 0.2 * cold.error
+    assert landmark_rmse(warm.landmarks, log.truth_landmarks)[0] < landmark_rmse(cold.landmarks, log.truth_landmarks)[0]

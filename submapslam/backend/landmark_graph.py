@@ -28,13 +28,23 @@ class GraphSolution:
 
 
 def solve_landmark_graph(log: LandmarkLog, incremental: bool = False, initial: dict | None = None,
-                         pose_covariances: bool = False) -> GraphSolution:
+                         pose_covariances: bool = False, warm_start: bool = False) -> GraphSolution:
     """Build the factor graph of ``log`` (known association) and solve it.
 
     ``initial`` may hold ``{"poses": (N + 1, 3), "landmarks": {id: (2,)}}`` (e.g. the EKF's
-    estimates); otherwise dead reckoning and first sightings initialise the solver.
+    estimates); otherwise dead reckoning and first sightings initialise the solver, or, with
+    ``warm_start``, a step-by-step iSAM2 pass (batch LM from dead reckoning can stall in a local
+    minimum on long real logs: MR.CLAM graph error 15k vs 0.5k, Victoria Park 105k vs 2.3k).
     """
     import gtsam
+
+    if warm_start and not incremental and initial is None:
+        t_start = time.perf_counter()
+        inc = solve_landmark_graph(log, incremental=True)
+        initial = {"poses": inc.poses, "landmarks": inc.landmarks}
+        sol = solve_landmark_graph(log, initial=initial, pose_covariances=pose_covariances)
+        sol.seconds = time.perf_counter() - t_start
+        return sol
 
     t0 = time.perf_counter()
     X = lambda k: gtsam.symbol("x", k)  # noqa: E731
