@@ -18,6 +18,7 @@ from .backend.pose_graph import PoseGraph
 from .config import PipelineConfig
 from .errors import InputError, SubmapSlamError
 from .geometry import inverse, rotation_angle
+from .io.hints import LoopHint
 from .io.scan import Scan
 from .odometry import Odometry
 from .result import LoopRecord, SlamResult
@@ -72,7 +73,7 @@ class SubmapSLAM:
     Frames: the world frame is the pose of the first scan (its odometry pose is identity).
     """
 
-    def __init__(self, config: PipelineConfig | None = None, hints: list[tuple[int, int]] | None = None) -> None:
+    def __init__(self, config: PipelineConfig | None = None, hints: list[LoopHint] | None = None) -> None:
         self.config = config or PipelineConfig()
         self.timer = StageTimer()
         self.planar: bool | None = None
@@ -173,13 +174,18 @@ class SubmapSLAM:
         return np.linalg.inv(0.5 * (cov + cov.T))
 
     def _hint_pairs(self) -> list[tuple[int, int]]:
-        """Manual hints (scan index pairs) whose scans are both in closed submaps."""
+        """Submap pairs of the manual hints whose scans are both in closed submaps."""
+        if not self._hints:
+            return []
+        stamps = np.asarray(self.timestamps)
         pairs = []
-        for a, b in self._hints:
-            if max(a, b) < len(self._scan_submap):
-                sa, sb = self._scan_submap[a], self._scan_submap[b]
-                if sa >= 0 and sb >= 0 and sa != sb:
-                    pairs.append((min(sa, sb), max(sa, sb)))
+        for hint in self._hints:
+            ia, ib = _hint_scan(hint.a, hint.by_index, stamps), _hint_scan(hint.b, hint.by_index, stamps)
+            if ia is None or ib is None:
+                continue
+            sa, sb = self._scan_submap[ia], self._scan_submap[ib]
+            if sa >= 0 and sb >= 0 and sa != sb:
+                pairs.append((min(sa, sb), max(sa, sb)))
         return pairs
 
     # ------------------------------------------------------------------ reading state
@@ -261,7 +267,7 @@ def run(
     *,
     source: str = "",
     progress: Callable[[int], None] | None = None,
-    hints: list[tuple[float, float]] | None = None,
+    hints: list[LoopHint] | None = None,
 ) -> SlamResult:
     """Run the whole pipeline on an iterable of scans (e.g. ``open_log(path)``).
 
@@ -269,8 +275,7 @@ def run(
     the result covers them and carries the message in ``input_error``.
     """
     config = config or PipelineConfig()
-    slam = SubmapSLAM(config)
-    pending_hints = list(hints or [])
+    slam = SubmapSLAM(config, hints)
     input_error = None
     iterator = iter(scans)
     n = 0
@@ -288,8 +293,6 @@ def run(
             break
         slam.process_scan(scan)
         n += 1
-        if pending_hints:
-            slam._hints = _resolve_hints(pending_hints, slam.timestamps)
         if progress is not None:
             progress(n)
         if config.max_scans is not None and n >= config.max_scans:
@@ -297,20 +300,9 @@ def run(
     return slam.finish(input_error=input_error, source=source)
 
 
-def _resolve_hints(hints: list[tuple[float, float]], timestamps: list[float]) -> list[tuple[int, int]]:
-    """Map hint pairs to scan indices: integers are indices, other values timestamps."""
-    stamps = np.asarray(timestamps)
-    out = []
-    for a, b in hints:
-        ia = _hint_index(a, stamps)
-        ib = _hint_index(b, stamps)
-        if ia is not None and ib is not None:
-            out.append((ia, ib))
-    return out
-
-
-def _hint_index(value: float, stamps: np.ndarray) -> int | None:
-    if float(value).is_integer() and value < 1e6:
+def _hint_scan(value: float, by_index: bool, stamps: np.ndarray) -> int | None:
+    """Scan index of one hint value, or None while that scan has not been read yet."""
+    if by_index:
         return int(value) if value < len(stamps) else None
     if len(stamps) == 0 or value > stamps[-1]:
         return None

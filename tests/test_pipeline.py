@@ -165,3 +165,24 @@ def test_outdoor_3d_two_laps_closes_loops_without_false_closures(tmp_path):
     slam = ate(Trajectory(result.timestamps, result.poses), gt)["rmse"]
     wheel = ate(read_tum(log / "odometry_tum.txt"), gt)["rmse"]
     assert slam <= odo and slam <= wheel / 5
+
+
+def test_hints_by_timestamp_and_bad_hint_lines(tmp_path):
+    from submapslam.errors import InputError
+    from submapslam.io.hints import read_hint_file
+
+    p = tmp_path / "h.txt"
+    p.write_text("3 900  # indices\n1000.0 1088.5\n")
+    hints = read_hint_file(p)
+    assert hints[0].by_index and (hints[0].a, hints[0].b) == (3.0, 900.0)
+    assert not hints[1].by_index and hints[1].b == 1088.5  # 1000.0 is a time, not scan 1000
+    p.write_text("3 1088.5\n")
+    with pytest.raises(InputError, match=r"h\.txt:1: mixes a scan index with a timestamp"):
+        read_hint_file(p)
+    log = generate("rectangle", tmp_path / "log", seed=0, laps=1)
+    gt = read_tum(log / "groundtruth_tum.txt")
+    p.write_text(f"{gt.timestamps[0]:.3f} {gt.timestamps[-5]:.3f}\n")
+    cfg = PipelineConfig.model_validate({"loops": {"use_descriptor": False, "spatial_max_radius": 1e-3,
+                                                   "spatial_min_radius": 1e-3}})
+    result, _ = run_log(log, None, config=cfg, hints=p)
+    assert [lp.source for lp in result.loops] == ["hint"] and result.loops_accepted == 1

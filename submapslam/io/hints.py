@@ -1,19 +1,30 @@
 """Manual loop hints: "a human pushes a button at a known landmark".
 
-A hint file has one pair per line, ``a b``: two scan indices (integers) or two scan
-timestamps [s] that were taken at the same place. ``#`` starts a comment.
+A hint file has one pair per line, ``a b``: two scan indices (written as integers, ``12 873``)
+or two scan timestamps [s] (written with a decimal point, ``1000.5 1088.2``) taken at the same
+place. ``#`` starts a comment.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import InputError
 
 
-def read_hint_file(path: str | Path) -> list[tuple[float, float]]:
-    """Return the hint pairs as floats (integers stand for scan indices)."""
+@dataclass(frozen=True)
+class LoopHint:
+    """Two scans at the same place: scan indices when ``by_index``, else timestamps [s]."""
+
+    a: float
+    b: float
+    by_index: bool
+
+
+def read_hint_file(path: str | Path) -> list[LoopHint]:
+    """Read a hints file; integers are scan indices, decimals are timestamps."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "no such hints file")
@@ -30,5 +41,8 @@ def read_hint_file(path: str | Path) -> list[tuple[float, float]]:
             raise InputError(path, f"not a number: {line.strip()[:40]!r}", lineno) from None
         if not (math.isfinite(a) and math.isfinite(b)) or a < 0 or b < 0:
             raise InputError(path, "hint values must be finite and non-negative", lineno)
-        pairs.append((a, b))
+        integer = [tok.isdigit() for tok in body]
+        if integer[0] != integer[1]:
+            raise InputError(path, "mixes a scan index with a timestamp (write both as integers or both with a decimal point)", lineno)
+        pairs.append(LoopHint(a, b, by_index=integer[0]))
     return pairs
