@@ -8,6 +8,7 @@ Layout written by :func:`generate`::
     OUT/groundtruth_tum.txt  ground truth T_world_base per scan (TUM)
     OUT/groundtruth_kitti.txt  the same, KITTI 3x4
     OUT/meta.yaml            world, seed, sensor, planar flag, loop length, noise, T_base_sensor
+    OUT/landmarks_groundtruth.csv  worlds with poles: ``id,x,y`` of each pole centre (world frame)
     OUT/log.clf              2D lasers with a 180-degree field of view: the same data as CARMEN
 
 The base frame is the sensor frame (T_base_sensor = identity); for 3D worlds the base moves
@@ -86,7 +87,10 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
     sensor = sensor or default_sensor
     if sensor not in ("laser2d", "lidar3d"):
         raise SubmapSlamError(f"unknown sensor {sensor!r}; use laser2d or lidar3d")
-    w: World = builder(seed=seed, **world_options)
+    try:
+        w: World = builder(seed=seed, **world_options)
+    except TypeError as exc:
+        raise SubmapSlamError(f"world {world!r} does not take these options: {exc}") from None
     rng = np.random.default_rng(seed + 7919)
     speed = speed or (1.0 if w.planar else 8.0)
     truth_xyt = loop_path(w.waypoints, laps, speed / rate)
@@ -133,6 +137,9 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
         "odometry_end_drift_m": round(end_drift, 3), "T_base_sensor": np.eye(4).tolist(),
     }
     (out / "meta.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
+    if w.cylinders is not None and len(w.cylinders):
+        rows = "".join(f"{k},{x:.4f},{y:.4f}\n" for k, (x, y) in enumerate(np.asarray(w.cylinders)[:, :2]))
+        (out / "landmarks_groundtruth.csv").write_text("id,x,y\n" + rows)
     if sensor == "laser2d" and abs(dev.fov_deg - 180.0) < 1e-9:
         (out / "log.clf").write_text("\n".join(_carmen_lines(stamps, carmen_ranges, odom, dev.max_range)) + "\n")
     log.info("wrote %d scans of %s to %s", len(truth), world, out)

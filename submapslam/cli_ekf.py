@@ -14,15 +14,18 @@ from .errors import InputError, SubmapSlamError
 
 
 def _load(log: Path, fmt: str | None, robot: int):
+    from .ekf.features import landmark_log_from_cloud_log
     from .io.landmark_logs import read_mrclam, read_victoria_park
 
     if fmt is None:
-        fmt = "mrclam" if log.is_dir() else "victoria"
+        fmt = ("cloud" if (log / "scans").is_dir() else "mrclam") if log.is_dir() else "victoria"
     if fmt == "mrclam":
         return read_mrclam(log, robot)
     if fmt in ("victoria", "synth"):
         return read_victoria_park(log)
-    raise InputError(log, f"unknown landmark log format {fmt!r}; use mrclam, victoria or synth")
+    if fmt == "cloud":
+        return landmark_log_from_cloud_log(log)
+    raise InputError(log, f"unknown landmark log format {fmt!r}; use mrclam, victoria, synth or cloud")
 
 
 def register(app: typer.Typer) -> None:
@@ -30,14 +33,16 @@ def register(app: typer.Typer) -> None:
 
     @app.command("ekf")
     def ekf_cmd(
-        log: Annotated[Path, typer.Argument(help="MR.CLAM folder, or a victoria_park-format file (real or synthetic).")],
+        log: Annotated[Path, typer.Argument(help="MR.CLAM folder, a victoria_park-format file (real or synthetic), "
+                                            "or a point-cloud log folder (pole features, unknown association).")],
         out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
         robot: Annotated[int, typer.Option(help="MR.CLAM robot number.")] = 1,
-        format: Annotated[str | None, typer.Option(help="mrclam, victoria or synth (default: sniffed).")] = None,
+        format: Annotated[str | None, typer.Option(help="mrclam, victoria, synth or cloud (default: sniffed).")] = None,
         a: Annotated[float, typer.Option(help="Credibility learning rate a.")] = 1.0,
         b: Annotated[float, typer.Option(help="Credibility forgetting rate b.")] = 1e9,
         remove_below: Annotated[float, typer.Option(help="Remove features whose credibility falls below this.")] = 0.0,
-        max_range: Annotated[float, typer.Option(help="Sensor range for unobserved predictions [m].")] = float("inf"),
+        max_range: Annotated[float | None, typer.Option(help="Sensor range for unobserved predictions [m] "
+                                                        "(default: the log's; unlimited for landmark logs).")] = None,
         compare: Annotated[bool, typer.Option(help="Also solve the GTSAM landmark graph and compare.")] = False,
         incremental: Annotated[bool, typer.Option(help="With --compare: iSAM2 step by step instead of batch LM.")] = False,
     ) -> None:
@@ -45,7 +50,7 @@ def register(app: typer.Typer) -> None:
         import numpy as np
 
         from .ekf.outputs import write_ekf_results
-        from .ekf.runner import landmark_rmse, run_ekf, trajectory_rmse
+        from .ekf.runner import landmark_errors_nearest, landmark_rmse, run_ekf, trajectory_rmse
         from .ekf.stochastic_map import CredibilityParams
 
         try:
@@ -54,10 +59,16 @@ def register(app: typer.Typer) -> None:
             est = {lm["id"]: np.array([lm["x"], lm["y"]]) for lm in run.filter.landmarks()}
             summary = {"log": data.name, "steps": len(data.steps), "features": run.filter.n, "ekf_seconds": round(run.seconds, 3),
                        "matched": run.matched, "new": run.new, "unobserved": run.unobserved, "removed": run.removed}
-            if data.truth_landmarks:
+            if data.truth_landmarks and data.known_association:
                 summary["ekf_landmark_rmse_m"], summary["landmarks_compared"] = landmark_rmse(est, data.truth_landmarks)
+            elif data.truth_landmarks:
+                near = landmark_errors_nearest(est, data.truth_landmarks)
+                summary["ekf_landmark_rmse_m"], summary["landmarks_compared"] = near["rmse"], near["found"]
+                summary["landmarks_total"], summary["spurious_features"] = near["total"], near["spurious"]
             if data.truth_poses is not None:
                 summary["ekf_trajectory_rmse_m"] = trajectory_rmse(run.times, run.poses, data.truth_times, data.truth_poses)
+            if compare and not data.known_association:
+                raise InputError(log, "--compare needs known association (landmark ids); this log has none")
             if compare:
                 from .backend.landmark_graph import solve_landmark_graph
                 from .evaluation.landmark_compare import compare_landmark_solutions

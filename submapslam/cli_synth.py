@@ -24,6 +24,7 @@ def register(app: typer.Typer) -> None:
         sensor: Annotated[str | None, typer.Option(help="laser2d or lidar3d (default: the world's).")] = None,
         max_scans: Annotated[int | None, typer.Option(help="Cut the log after N scans.")] = None,
         odometry_noise: Annotated[float, typer.Option(help="Scale of the wheel-odometry noise.")] = 1.0,
+        poles: Annotated[int, typer.Option(min=0, help="rectangle: free-standing poles (EKF point features).")] = 0,
     ) -> None:
         """Generate a synthetic loop world and write it as a log folder (and CARMEN for 2D)."""
         import yaml
@@ -31,8 +32,9 @@ def register(app: typer.Typer) -> None:
         from datasets_synth import generate
 
         try:
+            extra = {"poles": poles} if poles else {}
             path = generate(world, out, seed=seed, laps=laps, sensor=sensor, max_scans=max_scans,
-                            odometry_noise=odometry_noise)
+                            odometry_noise=odometry_noise, **extra)
         except SubmapSlamError as exc:
             raise fail(exc) from None
         meta = yaml.safe_load((path / "meta.yaml").read_text())

@@ -84,6 +84,8 @@ def landmark_log_from_cloud_log(path, sigma_range: float = 0.05, sigma_bearing: 
     """
     from pathlib import Path
 
+    import yaml
+
     from ..errors import InputError
     from ..geometry import inverse, matrix_to_se2
     from ..io.landmark_logs import LandmarkLog, Step
@@ -91,13 +93,18 @@ def landmark_log_from_cloud_log(path, sigma_range: float = 0.05, sigma_bearing: 
     from ..io.trajectory import read_tum
 
     reader = open_log(Path(path), "cloud_folder")
+    meta_file = Path(path) / "meta.yaml"
+    sensor = (yaml.safe_load(meta_file.read_text()) or {}).get("sensor", {}) if meta_file.is_file() else {}
     if reader.odometry is None:
         raise InputError(path, "the log has no odometry_tum.txt: the EKF needs odometry")
     gt_file = Path(path) / "groundtruth_tum.txt"
     truth = read_tum(gt_file) if gt_file.is_file() else None
     steps = []
     prev = None
+    planar = True
+    planar_range = 15.0  # poles_from_planar_scan's default reach
     for scan in reader:
+        planar = scan.planar
         if prev is None:
             motion = np.zeros(3)
         else:
@@ -115,4 +122,22 @@ def landmark_log_from_cloud_log(path, sigma_range: float = 0.05, sigma_bearing: 
         init = matrix_to_se2(truth.poses[0])
         truth_times, truth_poses = truth.timestamps, matrix_to_se2(truth.poses)
     return LandmarkLog(f"poles from {Path(path).name}", init, steps, np.diag([sigma_range**2, sigma_bearing**2]),
-                       truth_times, truth_poses)
+                       truth_times, truth_poses, _truth_poles(Path(path) / "landmarks_groundtruth.csv"),
+                       known_association=False, max_range=planar_range if planar else 30.0,
+                       fov=np.deg2rad(float(sensor.get("fov_deg", 360.0))) if planar else 2 * np.pi)
+
+
+def _truth_poles(path) -> dict[int, np.ndarray]:
+    """``landmarks_groundtruth.csv`` (``id,x,y``, world frame) written by the synthetic generator, if any."""
+    from ..errors import InputError
+
+    if not path.is_file():
+        return {}
+    out = {}
+    for lineno, line in enumerate(path.read_text().splitlines()[1:], start=2):
+        try:
+            k, x, y = line.split(",")[:3]
+            out[int(k)] = np.array([float(x), float(y)])
+        except ValueError:
+            raise InputError(path, f"expected id,x,y, got {line[:40]!r}", lineno) from None
+    return out

@@ -24,10 +24,18 @@ class EkfRun:
     removed: int
 
 
-def run_ekf(log: LandmarkLog, credibility: CredibilityParams | None = None, max_range: float = np.inf,
-            fov: float = 2 * np.pi, known_association: bool = True) -> EkfRun:
-    """Predict with each step's motion, then run the matching step on its observations."""
+def run_ekf(log: LandmarkLog, credibility: CredibilityParams | None = None, max_range: float | None = None,
+            fov: float | None = None, known_association: bool | None = None) -> EkfRun:
+    """Predict with each step's motion, then run the matching step on its observations.
+
+    ``max_range``, ``fov`` (the sensor model for unobserved predictions) and
+    ``known_association`` default to the log's; ``known_association=False`` forces gating.
+    """
     t0 = time.perf_counter()
+    max_range = log.max_range if max_range is None else max_range
+    fov = log.fov if fov is None else fov
+    if known_association is None:
+        known_association = log.known_association
     ekf = StochasticMap(log.initial_pose, np.eye(3) * 1e-9, credibility, max_range=max_range, fov=fov)
     times, poses, covs = [], [], []
     counts = dict(matched=0, new=0, unobserved=0, removed=0)
@@ -53,6 +61,25 @@ def landmark_rmse(estimates: dict[int, np.ndarray], truth: dict[int, np.ndarray]
         return float("nan"), 0
     err = np.array([np.linalg.norm(estimates[k] - truth[k]) for k in common])
     return float(np.sqrt(np.mean(err**2))), len(common)
+
+
+def landmark_errors_nearest(estimates: dict[int, np.ndarray], truth: dict[int, np.ndarray],
+                            max_distance: float = 1.0) -> dict:
+    """Errors when ids are not shared (unknown association): each true landmark's nearest estimate.
+
+    Returns ``rmse`` [m] over the true landmarks found within ``max_distance``, how many were
+    ``found`` of ``total``, and ``spurious``: estimates with no true landmark within ``max_distance``.
+    """
+    E = np.array(list(estimates.values())).reshape(-1, 2)
+    G = np.array(list(truth.values())).reshape(-1, 2)
+    if len(E) == 0 or len(G) == 0:
+        return {"rmse": float("nan"), "found": 0, "total": len(G), "spurious": len(E)}
+    d = np.linalg.norm(G[:, None, :] - E[None, :, :], axis=2)  # (truth, estimates)
+    nearest = d.min(axis=1)
+    found = nearest <= max_distance
+    rmse = float(np.sqrt(np.mean(nearest[found] ** 2))) if found.any() else float("nan")
+    return {"rmse": rmse, "found": int(found.sum()), "total": len(G),
+            "spurious": int((d.min(axis=0) > max_distance).sum())}
 
 
 def trajectory_rmse(times: np.ndarray, poses: np.ndarray, truth_times: np.ndarray, truth_poses: np.ndarray) -> float:

@@ -37,6 +37,9 @@ class LandmarkLog:
     truth_times: np.ndarray | None = None     # ground truth (N,), (N, 3)
     truth_poses: np.ndarray | None = None
     truth_landmarks: dict[int, np.ndarray] = field(default_factory=dict)
+    known_association: bool = True            # observations carry landmark ids
+    max_range: float = np.inf                 # sensor model for unobserved predictions [m]
+    fov: float = 2 * np.pi                    # [rad], centred on the robot's heading
 
 
 def _numeric_table(path: Path, ncols: int) -> np.ndarray:
