@@ -30,6 +30,10 @@ class OdometryConfig(_Strict):
     max_points_per_voxel: int = Field(20, ge=1)
     deskew: bool = False
     use_wheel_odometry: bool = Field(True, description="wheel odometry as the ICP initial guess")
+    planar_point_to_line: bool = Field(
+        True, description="2D lasers: refine each pose point-to-line against the last scans (removes the "
+        "lag of point-to-point ICP on sparse scans)"
+    )
     initial_threshold: float = Field(2.0, gt=0)
     min_motion_threshold: float = Field(0.1, ge=0)
     max_iterations: int = Field(500, ge=1)

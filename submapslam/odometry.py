@@ -3,8 +3,9 @@
 We drive KISS-ICP's building blocks (preprocessor, voxel hash map, adaptive threshold,
 point-to-point registration) ourselves so that the ICP initial guess can come from the wheel
 odometry increment when the log has one (else KISS-ICP's constant-velocity model).
-Planar scans (z = 0) stay planar: point-to-point ICP is well-posed on them, and the estimate is
-projected back onto SE(2) after every step.
+Planar scans (z = 0) stay planar: point-to-point ICP is well-posed on them, the estimate is
+projected back onto SE(2) after every step, and then refined point-to-line against the last
+scans (:mod:`.planar_refine`), which removes point-to-point ICP's lag on sparse 2D scans.
 """
 
 from __future__ import annotations
@@ -53,6 +54,11 @@ class Odometry:
         self.last_delta = np.eye(4)
         self._last_wheel: np.ndarray | None = None
         self.n_registered = 0
+        self._refiner = None
+        if planar and config.planar_point_to_line:
+            from .planar_refine import RecentScanMap
+
+            self._refiner = RecentScanMap()
 
     def register(self, scan: Scan) -> tuple[np.ndarray, np.ndarray]:
         """Register one scan; return ``(T_odom_base, points_deskewed)``.
@@ -83,7 +89,12 @@ class Odometry:
                 kernel=sigma,
             )
         if self.planar:
-            new_pose = se2_to_matrix(*matrix_to_se2(new_pose))
+            xyt = matrix_to_se2(new_pose)
+            if self._refiner is not None:
+                # degenerate directions take the prediction (wheel odometry when the log has it)
+                xyt, _ = self._refiner.refine(frame_down[:, :2], xyt, matrix_to_se2(initial_guess))
+                self._refiner.add(frame_down[:, :2], xyt)
+            new_pose = se2_to_matrix(*xyt)
         self._threshold.update_model_deviation(inverse(initial_guess) @ new_pose)
         self._local_map.update(frame_down, new_pose)
         self._advance(new_pose)
