@@ -17,7 +17,7 @@ import numpy as np
 from .backend.pose_graph import PoseGraph
 from .config import PipelineConfig
 from .errors import InputError, SubmapSlamError
-from .geometry import inverse, rotation_angle
+from .geometry import blend_poses, inverse, rotation_angle
 from .io.hints import LoopHint
 from .io.scan import Scan
 from .odometry import Odometry
@@ -194,14 +194,30 @@ class SubmapSLAM:
         return {s.id: self._graph.pose(s.id) @ inverse(s.T_odom_anchor) for s in self.submaps}
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
-        """Current ``(timestamps (N,), T_world_base (N, 4, 4))`` of every scan so far."""
+        """Current ``(timestamps (N,), T_world_base (N, 4, 4))`` of every scan so far.
+
+        A scan takes its submap's correction (optimised anchor vs odometry), blended towards the
+        next submap's by the share of the odometry path between the two anchors it has covered:
+        the odometry's drift inside a submap is spread over it instead of jumping at the next anchor.
+        """
         corr = self._corrections()
         last = corr[max(corr)] if corr else np.eye(4)
         poses = np.array(self._odom_poses).reshape(-1, 4, 4)
         ids = np.array(self._scan_submap, dtype=int)
+        steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1) if len(poses) > 1 else np.zeros(0)
+        travelled = np.concatenate([[0.0], np.cumsum(steps)])  # odometry path length at each scan
+        start = {s.id: travelled[s.scan_indices[0]] for s in self.submaps}
         out = np.empty_like(poses)
         for n, sid in enumerate(ids):
-            out[n] = (corr[sid] if sid >= 0 else last) @ poses[n]
+            if sid < 0:
+                out[n] = last @ poses[n]
+                continue
+            C = corr[sid]
+            if sid + 1 in corr:
+                span = start[sid + 1] - start[sid]
+                alpha = float(np.clip((travelled[n] - start[sid]) / span, 0.0, 1.0)) if span > 1e-9 else 0.0
+                C = blend_poses(C, corr[sid + 1], alpha)
+            out[n] = C @ poses[n]
         return np.asarray(self.timestamps), out
 
     def map_points(self, voxel: float | None = None) -> np.ndarray:

@@ -21,13 +21,14 @@ VARIANTS = {
     "rooms": {"size": (36.0, 12.0)},
     "figure8": {},
     "rectangle-sparse": {"world": "rectangle", "feature_density": 0.4, "sensor_options": {"max_range": 8.0}},
+    "rectangle-short-range": {"world": "rectangle", "sensor_options": {"beams": 181, "range_noise": 0.03, "max_range": 10.0}},
     "outdoor": {"blocks": (2, 1)},
 }
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--worlds", nargs="+", default=["rectangle", "rooms", "figure8", "rectangle-sparse"])
+    ap.add_argument("--worlds", nargs="+", default=["rectangle", "rooms", "figure8", "rectangle-sparse", "rectangle-short-range"])
     ap.add_argument("--laps", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
