@@ -26,10 +26,15 @@ def line_normals(points: np.ndarray, tree: cKDTree, k: int = 7, max_flatness: fl
     k = min(k, len(points))
     _, idx = tree.query(points, k=k)
     nb = points[idx] - points[idx].mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", nb, nb)
-    w, vecs = np.linalg.eigh(cov)
-    normals = vecs[:, :, 0].copy()
-    normals[w[:, 0] > max_flatness * np.maximum(w[:, 1], 1e-12)] = np.nan
+    # closed-form eigen decomposition of each 2x2 scatter matrix [[a, b], [b, c]]
+    a = np.einsum("nk,nk->n", nb[:, :, 0], nb[:, :, 0])
+    b = np.einsum("nk,nk->n", nb[:, :, 0], nb[:, :, 1])
+    c = np.einsum("nk,nk->n", nb[:, :, 1], nb[:, :, 1])
+    half_gap = np.sqrt((0.5 * (a - c)) ** 2 + b**2)
+    small, large = 0.5 * (a + c) - half_gap, 0.5 * (a + c) + half_gap
+    angle = 0.5 * np.arctan2(2 * b, a - c)  # direction of the larger eigenvector (the line)
+    normals = np.stack([-np.sin(angle), np.cos(angle)], axis=1)
+    normals[small > max_flatness * np.maximum(large, 1e-12)] = np.nan
     return normals
 
 
@@ -60,20 +65,19 @@ class RecentScanMap:
 
     def _rebuild(self) -> None:
         pts = np.concatenate(list(self._scans))
-        _, keep = np.unique(np.floor(pts / self.voxel).astype(np.int64), axis=0, return_index=True)
+        ij = np.floor(pts / self.voxel).astype(np.int64)
+        _, keep = np.unique(ij[:, 0] * 4_000_003 + ij[:, 1], return_index=True)  # one point per voxel
         pts = pts[keep]
         self._since_rebuild = 0
         if len(pts) < 10:
             self._tree = None
             return
-        tree = cKDTree(pts)
-        normals = line_normals(pts, tree)
-        ok = np.isfinite(normals[:, 0])
-        self._points, self._normals = pts[ok], normals[ok]
-        self._tree = cKDTree(self._points) if ok.sum() >= 10 else None
+        self._tree = cKDTree(pts)
+        self._points = pts
+        self._normals = line_normals(pts, self._tree)  # NaN rows (corners, clutter) never correspond
 
     def refine(self, points_xy: np.ndarray, xyt: np.ndarray, prior_xyt: np.ndarray | None = None,
-               iterations: int = 6) -> tuple[np.ndarray, int]:
+               iterations: int = 5) -> tuple[np.ndarray, int]:
         """Refine ``xyt`` (odometry frame) of a scan ``(N, 2)``; returns the pose and the inlier count.
 
         Directions the scene does not constrain (a plain corridor's axis) take ``prior_xyt``
@@ -84,12 +88,17 @@ class RecentScanMap:
             return xyt, 0
         x = np.asarray(xyt, dtype=np.float64).copy()
         prior = None if prior_xyt is None else np.asarray(prior_xyt, dtype=np.float64)
+        # yaw is scaled by the rms lever arm so the three directions compare in metres
+        lever = max(float(np.sqrt(np.mean(np.einsum("ij,ij->i", points_xy, points_xy)))), 1e-3)
+        S = np.array([1.0, 1.0, 1.0 / lever])
+        S_outer = S[:, None] * S[None, :]
         n_used = 0
         for _ in range(iterations):
             c, s = np.cos(x[2]), np.sin(x[2])
             rotated = points_xy @ np.array([[c, s], [-s, c]])
             d, nn = self._tree.query(rotated + x[:2], distance_upper_bound=self.max_correspondence)
             ok = np.isfinite(d)
+            ok[ok] = np.isfinite(self._normals[nn[ok], 0])
             n_used = int(ok.sum())
             if n_used < 20:
                 return np.asarray(xyt, dtype=np.float64), 0
@@ -99,11 +108,8 @@ class RecentScanMap:
             w = 1.0 / (1.0 + (r / self.kernel) ** 2)  # Cauchy
             H = (J * w[:, None]).T @ J
             g = (J * w[:, None]).T @ r
-            # solve only in directions the scene constrains; yaw is scaled by the rms lever arm
-            # so the three directions compare in metres
-            lever = max(float(np.sqrt(np.mean(np.sum(p**2, axis=1)))), 1e-3)
-            S = np.array([1.0, 1.0, 1.0 / lever])
-            Hs = H * S[:, None] * S[None, :]
+            # solve only in directions the scene constrains
+            Hs = H * S_outer
             evals, evecs = np.linalg.eigh(Hs)
             keep = evals > self.min_eigen_fraction * np.trace(Hs)
             step_s = -(evecs[:, keep] @ ((evecs[:, keep].T @ (S * g)) / evals[keep]))
@@ -115,6 +121,6 @@ class RecentScanMap:
                 step_s = step_s + Vd @ (Vd.T @ (to_prior / S))
             step = S * step_s
             x += step
-            if np.linalg.norm(step[:2]) < 1e-5 and abs(step[2]) < 1e-6:
+            if np.linalg.norm(step[:2]) < 2e-4 and abs(step[2]) < 1e-4:
                 break
         return x, n_used
