@@ -15,6 +15,7 @@ axis) keep the initial guess: the update is projected onto the well-constrained 
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import numpy as np
@@ -41,7 +42,7 @@ def line_normals(points: np.ndarray, tree: cKDTree, k: int = 7, max_flatness: fl
 class RecentScanMap:
     """The last ``window`` scans as a 2D point-to-line target in the odometry frame."""
 
-    def __init__(self, window: int = 20, rebuild_every: int = 4, voxel: float = 0.05,
+    def __init__(self, window: int = 20, rebuild_every: int = 8, voxel: float = 0.05,
                  max_correspondence: float = 0.3, kernel: float = 0.05, min_eigen_fraction: float = 0.02) -> None:
         self.window = window
         self.rebuild_every = rebuild_every
@@ -72,12 +73,13 @@ class RecentScanMap:
         if len(pts) < 10:
             self._tree = None
             return
-        self._tree = cKDTree(pts)
-        self._points = pts
-        self._normals = line_normals(pts, self._tree)  # NaN rows (corners, clutter) never correspond
+        normals = line_normals(pts, cKDTree(pts))
+        line = np.isfinite(normals[:, 0])  # corners and clutter have no line normal: not targets
+        self._points, self._normals = pts[line], normals[line]
+        self._tree = cKDTree(self._points) if line.sum() >= 10 else None
 
     def refine(self, points_xy: np.ndarray, xyt: np.ndarray, prior_xyt: np.ndarray | None = None,
-               iterations: int = 5) -> tuple[np.ndarray, int]:
+               iterations: int = 6) -> tuple[np.ndarray, int]:
         """Refine ``xyt`` (odometry frame) of a scan ``(N, 2)``; returns the pose and the inlier count.
 
         Directions the scene does not constrain (a plain corridor's axis) take ``prior_xyt``
@@ -88,39 +90,43 @@ class RecentScanMap:
             return xyt, 0
         x = np.asarray(xyt, dtype=np.float64).copy()
         prior = None if prior_xyt is None else np.asarray(prior_xyt, dtype=np.float64)
-        # yaw is scaled by the rms lever arm so the three directions compare in metres
-        lever = max(float(np.sqrt(np.mean(np.einsum("ij,ij->i", points_xy, points_xy)))), 1e-3)
-        S = np.array([1.0, 1.0, 1.0 / lever])
-        S_outer = S[:, None] * S[None, :]
         n_used = 0
+        points_xy = np.ascontiguousarray(points_xy, dtype=np.float64)
+        threshold = self.min_eigen_fraction
         for _ in range(iterations):
-            c, s = np.cos(x[2]), np.sin(x[2])
+            c, s = math.cos(x[2]), math.sin(x[2])
             rotated = points_xy @ np.array([[c, s], [-s, c]])
             d, nn = self._tree.query(rotated + x[:2], distance_upper_bound=self.max_correspondence)
-            ok = np.isfinite(d)
-            ok[ok] = np.isfinite(self._normals[nn[ok], 0])
-            n_used = int(ok.sum())
+            ok = d < np.inf
+            n_used = int(np.count_nonzero(ok))
             if n_used < 20:
                 return np.asarray(xyt, dtype=np.float64), 0
-            p, q, n = rotated[ok], self._points[nn[ok]], self._normals[nn[ok]]
-            r = np.einsum("ij,ij->i", p + x[:2] - q, n)
-            J = np.stack([n[:, 0], n[:, 1], n[:, 1] * p[:, 0] - n[:, 0] * p[:, 1]], axis=1)
-            w = 1.0 / (1.0 + (r / self.kernel) ** 2)  # Cauchy
-            H = (J * w[:, None]).T @ J
-            g = (J * w[:, None]).T @ r
-            # solve only in directions the scene constrains
-            Hs = H * S_outer
+            idx = nn[ok]
+            p, n = rotated[ok], self._normals[idx]
+            r = np.einsum("ij,ij->i", p + x[:2] - self._points[idx], n)
+            J = np.empty((n_used, 3))
+            J[:, :2] = n
+            J[:, 2] = n[:, 1] * p[:, 0] - n[:, 0] * p[:, 1]
+            Jw = J * (1.0 / (1.0 + (r / self.kernel) ** 2))[:, None]  # Cauchy weights
+            H = Jw.T @ J
+            g = Jw.T @ r
+            # solve only in directions the scene constrains; yaw is scaled by the rms lever arm of
+            # the matched points so the three directions compare in metres
+            lever = max(math.sqrt(float(np.einsum("ij,ij->", p, p)) / n_used), 1e-3)
+            S = np.array([1.0, 1.0, 1.0 / lever])
+            Hs = H * np.outer(S, S)
             evals, evecs = np.linalg.eigh(Hs)
-            keep = evals > self.min_eigen_fraction * np.trace(Hs)
-            step_s = -(evecs[:, keep] @ ((evecs[:, keep].T @ (S * g)) / evals[keep]))
+            keep = evals > threshold * (evals[0] + evals[1] + evals[2])
+            Vk = evecs[:, keep]
+            step_s = -(Vk @ ((Vk.T @ (S * g)) / evals[keep]))
             if prior is not None and not keep.all():
                 # degenerate directions: move to the prior (wheel odometry) instead of keeping the guess
                 to_prior = prior - x
-                to_prior[2] = np.angle(np.exp(1j * to_prior[2]))
+                to_prior[2] = math.remainder(to_prior[2], 2 * math.pi)
                 Vd = evecs[:, ~keep]
                 step_s = step_s + Vd @ (Vd.T @ (to_prior / S))
             step = S * step_s
             x += step
-            if np.linalg.norm(step[:2]) < 2e-4 and abs(step[2]) < 1e-4:
+            if abs(step[0]) + abs(step[1]) < 5e-5 and abs(step[2]) < 3e-6:
                 break
         return x, n_used

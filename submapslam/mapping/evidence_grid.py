@@ -38,6 +38,7 @@ class EvidenceGrid:
         self.origin = np.asarray(origin_xy, dtype=np.float64)
         self.params = params
         self.logodds = np.zeros(shape, dtype=np.float32)
+        self._is_hit: np.ndarray | None = None  # scratch mask reused by integrate_scan
 
     @classmethod
     def covering(cls, points_xy: np.ndarray, params: GridParams, margin: float = 1.0) -> EvidenceGrid:
@@ -64,9 +65,11 @@ class EvidenceGrid:
         p = self.params
         hits = transform_points(T_grid_sensor, points)[:, :2]
         flat = self.logodds.reshape(-1)
-        hit_mask = np.zeros(flat.shape, dtype=bool)  # each cell counts once per scan
+        width = self.logodds.shape[1]
         r, c, inside = self.cells(hits)
-        hit_mask[r[inside] * self.logodds.shape[1] + c[inside]] = True
+        hit_idx = r[inside] * width + c[inside]
+        # ``a[idx] = a[idx] + v`` adds v once per distinct index even when idx repeats: each cell
+        # counts once per scan without sorting or full-grid masks
         if carve_free:
             origin = T_grid_sensor[:2, 3]
             vec = hits - origin
@@ -78,12 +81,14 @@ class EvidenceGrid:
             dist = offsets * p.resolution
             free_xy = origin + vec[ray] * (dist / lengths[ray])[:, None]
             r, c, inside = self.cells(free_xy)
-            free_mask = np.zeros(flat.shape, dtype=bool)
-            free_mask[r[inside] * self.logodds.shape[1] + c[inside]] = True
-            free_mask &= ~hit_mask
-            flat[free_mask] += p.l_free
-        flat[hit_mask] += p.l_occ
-        np.clip(flat, p.l_min, p.l_max, out=flat)
+            free_idx = r[inside] * width + c[inside]
+            if self._is_hit is None:
+                self._is_hit = np.zeros(flat.shape, dtype=bool)
+            self._is_hit[hit_idx] = True
+            free_idx = free_idx[~self._is_hit[free_idx]]  # a hit cell is not also free
+            self._is_hit[hit_idx] = False
+            flat[free_idx] = np.maximum(flat[free_idx] + p.l_free, p.l_min)
+        flat[hit_idx] = np.minimum(flat[hit_idx] + p.l_occ, p.l_max)
 
     def probabilities(self) -> np.ndarray:
         """Occupancy probability per cell, ``(rows, cols)``."""
