@@ -88,45 +88,63 @@ class RecentScanMap:
         """
         if self._tree is None or len(points_xy) < 20:
             return xyt, 0
-        x = np.asarray(xyt, dtype=np.float64).copy()
-        prior = None if prior_xyt is None else np.asarray(prior_xyt, dtype=np.float64)
-        n_used = 0
-        points_xy = np.ascontiguousarray(points_xy, dtype=np.float64)
-        threshold = self.min_eigen_fraction
-        for _ in range(iterations):
-            c, s = math.cos(x[2]), math.sin(x[2])
-            rotated = points_xy @ np.array([[c, s], [-s, c]])
-            d, nn = self._tree.query(rotated + x[:2], distance_upper_bound=self.max_correspondence)
-            ok = d < np.inf
-            n_used = int(np.count_nonzero(ok))
-            if n_used < 20:
-                return np.asarray(xyt, dtype=np.float64), 0
-            idx = nn[ok]
-            p, n = rotated[ok], self._normals[idx]
-            r = np.einsum("ij,ij->i", p + x[:2] - self._points[idx], n)
-            J = np.empty((n_used, 3))
-            J[:, :2] = n
-            J[:, 2] = n[:, 1] * p[:, 0] - n[:, 0] * p[:, 1]
-            Jw = J * (1.0 / (1.0 + (r / self.kernel) ** 2))[:, None]  # Cauchy weights
-            H = Jw.T @ J
-            g = Jw.T @ r
-            # solve only in directions the scene constrains; yaw is scaled by the rms lever arm of
-            # the matched points so the three directions compare in metres
-            lever = max(math.sqrt(float(np.einsum("ij,ij->", p, p)) / n_used), 1e-3)
-            S = np.array([1.0, 1.0, 1.0 / lever])
-            Hs = H * np.outer(S, S)
-            evals, evecs = np.linalg.eigh(Hs)
-            keep = evals > threshold * (evals[0] + evals[1] + evals[2])
-            Vk = evecs[:, keep]
-            step_s = -(Vk @ ((Vk.T @ (S * g)) / evals[keep]))
-            if prior is not None and not keep.all():
-                # degenerate directions: move to the prior (wheel odometry) instead of keeping the guess
-                to_prior = prior - x
-                to_prior[2] = math.remainder(to_prior[2], 2 * math.pi)
-                Vd = evecs[:, ~keep]
-                step_s = step_s + Vd @ (Vd.T @ (to_prior / S))
-            step = S * step_s
-            x += step
-            if abs(step[0]) + abs(step[1]) < 5e-5 and abs(step[2]) < 3e-6:
-                break
-        return x, n_used
+        return point_to_line(points_xy, xyt, self._tree, self._points, self._normals,
+                             max_correspondence=self.max_correspondence, kernel=self.kernel,
+                             min_eigen_fraction=self.min_eigen_fraction, prior_xyt=prior_xyt,
+                             iterations=iterations)
+
+
+def point_to_line(points_xy: np.ndarray, xyt: np.ndarray, tree: cKDTree, target: np.ndarray, normals: np.ndarray, *,
+                  max_correspondence: float = 0.3, kernel: float = 0.05, min_eigen_fraction: float = 0.02,
+                  prior_xyt: np.ndarray | None = None, iterations: int = 6) -> tuple[np.ndarray, int]:
+    """Gauss-Newton on point-to-line residuals (Cauchy kernel) of ``points_xy (N, 2)`` moved by ``xyt``
+    against line points ``target (M, 2)`` (k-d ``tree`` over them) with unit ``normals (M, 2)``.
+
+    The update is solved only along well-constrained directions; degenerate ones move to
+    ``prior_xyt`` when given, else keep ``xyt``. Returns the pose and the correspondences used
+    (``xyt`` and 0 when fewer than 20 correspond).
+    """
+    if len(points_xy) < 20 or len(target) < 10:
+        return np.asarray(xyt, dtype=np.float64), 0
+    x = np.asarray(xyt, dtype=np.float64).copy()
+    prior = None if prior_xyt is None else np.asarray(prior_xyt, dtype=np.float64)
+    n_used = 0
+    points_xy = np.ascontiguousarray(points_xy, dtype=np.float64)
+    threshold = min_eigen_fraction
+    for _ in range(iterations):
+        c, s = math.cos(x[2]), math.sin(x[2])
+        rotated = points_xy @ np.array([[c, s], [-s, c]])
+        d, nn = tree.query(rotated + x[:2], distance_upper_bound=max_correspondence)
+        ok = d < np.inf
+        n_used = int(np.count_nonzero(ok))
+        if n_used < 20:
+            return np.asarray(xyt, dtype=np.float64), 0
+        idx = nn[ok]
+        p, n = rotated[ok], normals[idx]
+        r = np.einsum("ij,ij->i", p + x[:2] - target[idx], n)
+        J = np.empty((n_used, 3))
+        J[:, :2] = n
+        J[:, 2] = n[:, 1] * p[:, 0] - n[:, 0] * p[:, 1]
+        Jw = J * (1.0 / (1.0 + (r / kernel) ** 2))[:, None]  # Cauchy weights
+        H = Jw.T @ J
+        g = Jw.T @ r
+        # solve only in directions the scene constrains; yaw is scaled by the rms lever arm of
+        # the matched points so the three directions compare in metres
+        lever = max(math.sqrt(float(np.einsum("ij,ij->", p, p)) / n_used), 1e-3)
+        S = np.array([1.0, 1.0, 1.0 / lever])
+        Hs = H * np.outer(S, S)
+        evals, evecs = np.linalg.eigh(Hs)
+        keep = evals > threshold * (evals[0] + evals[1] + evals[2])
+        Vk = evecs[:, keep]
+        step_s = -(Vk @ ((Vk.T @ (S * g)) / evals[keep]))
+        if prior is not None and not keep.all():
+            # degenerate directions: move to the prior (wheel odometry) instead of keeping the guess
+            to_prior = prior - x
+            to_prior[2] = math.remainder(to_prior[2], 2 * math.pi)
+            Vd = evecs[:, ~keep]
+            step_s = step_s + Vd @ (Vd.T @ (to_prior / S))
+        step = S * step_s
+        x += step
+        if abs(step[0]) + abs(step[1]) < 5e-5 and abs(step[2]) < 3e-6:
+            break
+    return x, n_used

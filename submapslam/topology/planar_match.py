@@ -275,7 +275,27 @@ def match_planar(source: np.ndarray, target: np.ndarray, *, initial_guess: np.nd
         info_g, fitness_g, rmse_g = registration_information(src, tgt, xyt_g, inlier_distance, tree)
         if fitness_g >= fitness:
             xyt, info, fitness, rmse = xyt_g, info_g, fitness_g, rmse_g
+    # point-to-point ICP follows where walls end and samples differ between submaps; a
+    # point-to-line pass removes that bias (degenerate directions keep the ICP result)
+    refined = _point_to_line_pass(src, tgt, xyt, inlier_distance)
+    if refined is not None:
+        info_r, fitness_r, rmse_r = registration_information(src, tgt, refined, inlier_distance, tree)
+        if fitness_r >= fitness - 0.02:
+            xyt, info, fitness, rmse = refined, info_r, fitness_r, rmse_r
     return PlanarMatch(xyt=xyt, score=score, ambiguity=amb, fitness=fitness, inlier_rmse=rmse, information=info)
+
+
+def _point_to_line_pass(src: np.ndarray, tgt: np.ndarray, xyt: np.ndarray, inlier_distance: float) -> np.ndarray | None:
+    """Point-to-line Gauss-Newton from ``xyt`` against the target's line-like points, or None."""
+    from ..planar_refine import line_normals, point_to_line
+
+    normals = line_normals(tgt, cKDTree(tgt))
+    line = np.isfinite(normals[:, 0])
+    if line.sum() < 10:
+        return None
+    xyt_r, used = point_to_line(src, xyt, cKDTree(tgt[line]), tgt[line], normals[line],
+                                max_correspondence=inlier_distance, iterations=10)
+    return xyt_r if used else None
 
 
 def _search_about_centroid(src, tgt, yaws, resolution, window):
