@@ -89,9 +89,11 @@ class BackendConfig(_Strict):
     incremental: bool = Field(True, description="iSAM2 update at every submap")
     final_batch: bool = Field(True, description="Levenberg-Marquardt pass at the end")
     odometry_registration_covariance: bool = Field(
-        False, description="shape odometry-edge covariances with a registration between consecutive submaps "
-        "(off by default: it widens them along corridors, where the odometry is now held by the wheel "
-        "prediction, and lets slid loop closures through)"
+        True, description="shape odometry-edge covariances with a registration between consecutive submaps"
+    )
+    wheel_drift: float = Field(
+        0.02, gt=0, description="[m/m] wheel-odometry translation sigma per metre: where the planar "
+        "odometry follows the wheels (degenerate directions), the registration-shaped covariance stops here"
     )
     odometry_drift: float = Field(0.005, gt=0, description="odometry translation sigma per metre")
     odometry_drift_deg_per_m: float = Field(0.1, gt=0, description="odometry heading sigma per metre [deg]")

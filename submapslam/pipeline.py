@@ -78,6 +78,7 @@ class SubmapSLAM:
         self.timer = StageTimer()
         self.planar: bool | None = None
         self._odometry: Odometry | None = None
+        self._wheel_scans = 0  # scans that came with wheel odometry
         self._builder: SubmapBuilder | None = None
         self._graph = PoseGraph(self.config.backend)
         self._loop_closer = None
@@ -107,6 +108,7 @@ class SubmapSLAM:
             self.empty_scans += 1
         with self.timer("odometry"):
             T_odom_base, frame = self._odometry.register(scan)
+        self._wheel_scans += scan.odometry is not None
         self.timestamps.append(scan.timestamp)
         self._odom_poses.append(T_odom_base)
         self._scan_submap.append(-1)
@@ -156,7 +158,7 @@ class SubmapSLAM:
 
         The new submap is aligned to the previous one (fine registration from the odometry
         estimate); the inverse of that registration's information grows where the geometry is
-        degenerate (along a corridor), which is where scan-matching odometry drifts. Edges
+        degenerate (along a corridor), which is where scan matching alone cannot see. Edges
         between submaps that do not overlap keep the drift model alone.
         """
         from .topology.correspondence import check_correspondence
@@ -167,9 +169,16 @@ class SubmapSLAM:
         if res.overlap < 0.1:
             return info
         cov_reg = np.linalg.inv(0.5 * (res.information + res.information.T))
-        cap = np.diag([np.deg2rad(20.0) ** 2] * 3 + [2.0**2] * 3)
-        w, V = np.linalg.eigh(cov_reg)
-        cov_reg = (V * np.minimum(w, cap.max())) @ V.T  # never more than the cap in any direction
+        # Never more than a cap in any direction: 2 m / 20 deg, or, where the wheel odometry
+        # holds the directions scan matching cannot see (planar refinement), the wheel's drift
+        # over the edge.
+        cap_m, cap_rad = 2.0, np.deg2rad(20.0)
+        odo_cfg = self.config.odometry
+        if self.planar and odo_cfg.planar_point_to_line and odo_cfg.use_wheel_odometry and self._wheel_scans:
+            cap_m = max(0.05, self.config.backend.wheel_drift * prev.distance)
+        scale = np.array([1.0 / cap_rad] * 3 + [1.0 / cap_m] * 3)  # whiten by the caps, clip at 1
+        w, V = np.linalg.eigh(cov_reg * np.outer(scale, scale))
+        cov_reg = ((V * np.minimum(w, 1.0)) @ V.T) / np.outer(scale, scale)
         cov = np.linalg.inv(info) + cov_reg
         return np.linalg.inv(0.5 * (cov + cov.T))
 
