@@ -95,7 +95,7 @@ def demo(
     table.add_column("trajectory")
     table.add_column("ATE RMSE [m]", justify="right")
     table.add_column("ATE max [m]", justify="right")
-    for name in ("wheel odometry", "odometry (KISS-ICP)", "submapslam"):
+    for name in ("wheel odometry", "odometry (no loop closure)", "submapslam"):
         r = report["ate"][name]
         table.add_row(name, f"{r['rmse']:.3f}", f"{r['max']:.3f}")
     console.print(table)

@@ -9,8 +9,10 @@ so edge samples do not pull along it.
 
 :class:`RecentScanMap` keeps the last scans (odometry frame), rebuilds a k-d tree with a line
 normal per point every few scans, and refines a pose by Gauss-Newton on the point-to-line
-residuals with a Cauchy kernel. Directions the scene does not constrain (a plain corridor's
-axis) keep the initial guess: the update is projected onto the well-constrained eigenvectors.
+residuals with a Cauchy kernel (:func:`point_to_line`, also the last step of planar submap
+matching). The update is solved along the well-constrained eigenvectors only; directions the
+scene does not constrain (a plain corridor's axis) take the prediction instead (the wheel
+odometry when the log has it), else keep the initial guess.
 """
 
 from __future__ import annotations
