@@ -94,7 +94,11 @@ def landmark_log_from_cloud_log(path, sigma_range: float = 0.05, sigma_bearing: 
 
     reader = open_log(Path(path), "cloud_folder")
     meta_file = Path(path) / "meta.yaml"
-    sensor = (yaml.safe_load(meta_file.read_text()) or {}).get("sensor", {}) if meta_file.is_file() else {}
+    try:
+        meta = yaml.safe_load(meta_file.read_text()) if meta_file.is_file() else {}
+    except yaml.YAMLError as exc:
+        raise InputError(meta_file, f"not valid YAML ({str(exc).splitlines()[0]})") from None
+    sensor = (meta or {}).get("sensor", {}) if isinstance(meta, dict) else {}
     if reader.odometry is None:
         raise InputError(path, "the log has no odometry_tum.txt: the EKF needs odometry")
     gt_file = Path(path) / "groundtruth_tum.txt"
