@@ -67,13 +67,14 @@ def register(app: typer.Typer) -> None:
                 summary["landmarks_total"], summary["spurious_features"] = near["total"], near["spurious"]
             if data.truth_poses is not None:
                 summary["ekf_trajectory_rmse_m"] = trajectory_rmse(run.times, run.poses, data.truth_times, data.truth_poses)
-            if compare and not data.known_association:
-                raise InputError(log, "--compare needs known association (landmark ids); this log has none")
             if compare:
                 from .backend.landmark_graph import solve_landmark_graph
+                from .ekf.runner import with_ekf_association
                 from .evaluation.landmark_compare import compare_landmark_solutions
 
-                sol = solve_landmark_graph(data, incremental=incremental, warm_start=True)
+                # without ids in the log, the graph gets the filter's own data association
+                graph_data = data if data.known_association else with_ekf_association(data, run)
+                sol = solve_landmark_graph(graph_data, incremental=incremental, warm_start=True)
                 summary["comparison"] = compare_landmark_solutions(data, run, sol)
             write_ekf_results(out, run, summary, data.truth_landmarks or None, data.truth_poses)
         except SubmapSlamError as exc:

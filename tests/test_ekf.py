@@ -175,22 +175,30 @@ def test_ekf_on_pole_features_of_a_point_cloud_log_beats_wheel_odometry(tmp_path
     wheel_rmse = float(np.sqrt(np.mean(np.sum((wheel[:, :2, 3] - gt.poses[:, :2, 3]) ** 2, axis=1))))
     assert wheel_rmse > 0.5
     assert summary["ekf_trajectory_rmse_m"] < 0.3 * wheel_rmse
-    # every pole mapped to within centimetres; the detector's pseudo-poles are extra features
-    assert summary["landmarks_compared"] == summary["landmarks_total"] == 40
-    assert summary["ekf_landmark_rmse_m"] < 0.12
+    # poles mapped to within centimetres (two pairs stand so close that each pair is one feature);
+    # the detector's pseudo-poles are extra features
+    assert summary["landmarks_total"] == 40 and summary["landmarks_compared"] >= 38
+    assert summary["ekf_landmark_rmse_m"] < 0.08
     # the submap pipeline on the same log does at least as well on the trajectory
     res, _ = run_log(log, None)
     assert ate(Trajectory(res.timestamps, res.poses), gt)["rmse"] < summary["ekf_trajectory_rmse_m"]
 
 
-def test_ekf_compare_on_a_log_without_landmark_ids_fails_cleanly(tmp_path):
+def test_ekf_compare_on_a_log_without_landmark_ids_uses_the_filters_association(tmp_path):
+    import json
+
     from typer.testing import CliRunner
 
     from datasets_synth import generate
     from submapslam.cli import app
 
-    log = generate("rectangle", tmp_path / "log", seed=0, laps=1, poles=5, max_scans=30)
+    log = generate("rectangle", tmp_path / "log", seed=0, laps=1, poles=40, max_scans=300)
     r = CliRunner().invoke(app, ["ekf", str(log), "--out", str(tmp_path / "o"), "--compare"])
-    assert r.exit_code == 1 and "needs known association" in r.output
+    assert r.exit_code == 0, r.output
+    cmp = json.loads((tmp_path / "o" / "summary.json").read_text())["comparison"]
+    # same observations, same association: the smoother and the filter agree closely
+    assert cmp["landmarks_shared"] >= 10
+    assert cmp["ekf_vs_graph_landmark_rms_m"] < 0.05
+    assert cmp["graph_landmark_rmse_m"] < 0.1 and cmp["ekf_landmark_rmse_m"] < 0.1
     r = CliRunner().invoke(app, ["synth", "rooms", "--out", str(tmp_path / "r"), "--poles", "3"])
     assert r.exit_code == 1 and "does not take these options" in r.output

@@ -22,6 +22,7 @@ class EkfRun:
     new: int
     unobserved: int
     removed: int
+    associations: list[list[int | None]] | None = None  # per step, the feature id of each observation
 
 
 def run_ekf(log: LandmarkLog, credibility: CredibilityParams | None = None, max_range: float | None = None,
@@ -39,19 +40,39 @@ def run_ekf(log: LandmarkLog, credibility: CredibilityParams | None = None, max_
     ekf = StochasticMap(log.initial_pose, np.eye(3) * 1e-9, credibility, max_range=max_range, fov=fov)
     times, poses, covs = [], [], []
     counts = dict(matched=0, new=0, unobserved=0, removed=0)
+    associations: list[list[int | None]] = []
     for step in log.steps:
         ekf.predict(step.motion, step.motion_cov)
+        ids: list[int | None] = [None] * len(step.ranges_bearings)
         if len(step.ranges_bearings):
             rep = ekf.observe(step.ranges_bearings, log.measurement_cov, step.ids if known_association else None)
+            for m, fid in rep.matched + rep.new:
+                ids[m] = fid
             counts["matched"] += len(rep.matched)
             counts["new"] += len(rep.new)
             counts["unobserved"] += len(rep.unobserved)
             counts["removed"] += len(rep.removed)
+        associations.append(ids)
         times.append(step.t)
         poses.append(ekf.pose)
         covs.append(ekf.P[:3, :3].copy())
     return EkfRun(np.array(times), np.array(poses).reshape(-1, 3), np.array(covs).reshape(-1, 3, 3), ekf,
-                  time.perf_counter() - t0, **counts)
+                  time.perf_counter() - t0, **counts, associations=associations)
+
+
+def with_ekf_association(log: LandmarkLog, run: EkfRun) -> LandmarkLog:
+    """``log`` with the ids the filter's gating gave each observation (ambiguous ones dropped),
+    so a factor graph can solve the same data with the same data association."""
+    from dataclasses import replace
+
+    from ..io.landmark_logs import Step
+
+    steps = []
+    for step, ids in zip(log.steps, run.associations or []):
+        keep = [m for m, fid in enumerate(ids) if fid is not None]
+        steps.append(Step(step.t, step.motion, step.motion_cov, step.ranges_bearings[keep].reshape(-1, 2),
+                          [ids[m] for m in keep]))
+    return replace(log, steps=steps, known_association=True)
 
 
 def landmark_rmse(estimates: dict[int, np.ndarray], truth: dict[int, np.ndarray]) -> tuple[float, int]:
@@ -64,22 +85,23 @@ def landmark_rmse(estimates: dict[int, np.ndarray], truth: dict[int, np.ndarray]
 
 
 def landmark_errors_nearest(estimates: dict[int, np.ndarray], truth: dict[int, np.ndarray],
-                            max_distance: float = 1.0) -> dict:
-    """Errors when ids are not shared (unknown association): each true landmark's nearest estimate.
+                            max_distance: float = 0.5) -> dict:
+    """Errors when ids are not shared (unknown association): true landmarks and estimates that are
+    each other's nearest neighbour within ``max_distance`` [m] form pairs.
 
-    Returns ``rmse`` [m] over the true landmarks found within ``max_distance``, how many were
-    ``found`` of ``total``, and ``spurious``: estimates with no true landmark within ``max_distance``.
+    Returns ``rmse`` [m] over the pairs, how many true landmarks were ``found`` of ``total``, and
+    ``spurious``: estimates in no pair (clutter the filter mapped, or landmarks far off).
     """
     E = np.array(list(estimates.values())).reshape(-1, 2)
     G = np.array(list(truth.values())).reshape(-1, 2)
     if len(E) == 0 or len(G) == 0:
         return {"rmse": float("nan"), "found": 0, "total": len(G), "spurious": len(E)}
     d = np.linalg.norm(G[:, None, :] - E[None, :, :], axis=2)  # (truth, estimates)
-    nearest = d.min(axis=1)
-    found = nearest <= max_distance
-    rmse = float(np.sqrt(np.mean(nearest[found] ** 2))) if found.any() else float("nan")
-    return {"rmse": rmse, "found": int(found.sum()), "total": len(G),
-            "spurious": int((d.min(axis=0) > max_distance).sum())}
+    best_e = d.argmin(axis=1)
+    mutual = (d.argmin(axis=0)[best_e] == np.arange(len(G))) & (d[np.arange(len(G)), best_e] <= max_distance)
+    errors = d[np.arange(len(G)), best_e][mutual]
+    rmse = float(np.sqrt(np.mean(errors**2))) if len(errors) else float("nan")
+    return {"rmse": rmse, "found": int(mutual.sum()), "total": len(G), "spurious": len(E) - int(mutual.sum())}
 
 
 def trajectory_rmse(times: np.ndarray, poses: np.ndarray, truth_times: np.ndarray, truth_poses: np.ndarray) -> float:

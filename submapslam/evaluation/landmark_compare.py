@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..backend.landmark_graph import GraphSolution
-from ..ekf.runner import EkfRun, landmark_rmse, trajectory_rmse
+from ..ekf.runner import EkfRun, landmark_errors_nearest, landmark_rmse, trajectory_rmse
 from ..io.landmark_logs import LandmarkLog
 
 
@@ -43,9 +43,12 @@ def compare_landmark_solutions(log: LandmarkLog, run: EkfRun, sol: GraphSolution
         kl = [_sym_kl(ekf_cov[k], sol.landmark_covs[k]) for k in with_cov]
         out["cov_area_ratio_median"] = float(np.median(area))   # EKF ellipse area / graph ellipse area
         out["cov_sym_kl_median"] = float(np.median(kl))
-    if log.truth_landmarks:
+    if log.truth_landmarks and log.known_association:
         out["ekf_landmark_rmse_m"], _ = landmark_rmse(est, log.truth_landmarks)
         out["graph_landmark_rmse_m"], _ = landmark_rmse(sol.landmarks, log.truth_landmarks)
+    elif log.truth_landmarks:  # ids are the filter's own: match each true landmark to the nearest
+        out["ekf_landmark_rmse_m"] = landmark_errors_nearest(est, log.truth_landmarks)["rmse"]
+        out["graph_landmark_rmse_m"] = landmark_errors_nearest(sol.landmarks, log.truth_landmarks)["rmse"]
     if log.truth_poses is not None:
         out["ekf_trajectory_rmse_m"] = trajectory_rmse(run.times, run.poses, log.truth_times, log.truth_poses)
         out["graph_trajectory_rmse_m"] = trajectory_rmse(run.times, sol.poses[1:], log.truth_times, log.truth_poses)
