@@ -24,6 +24,13 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 
+def first_point_per_cell(xy: np.ndarray, cell: float) -> np.ndarray:
+    """Indices (ascending) of the first of ``(N, 2)`` points in each occupied ``cell`` x ``cell`` square."""
+    ij = np.floor(xy / cell).astype(np.int64)
+    _, first = np.unique(ij[:, 0] * 4_000_003 + ij[:, 1], return_index=True)  # one key per cell
+    return np.sort(first)
+
+
 def line_normals(points: np.ndarray, tree: cKDTree, k: int = 7, max_flatness: float = 0.1) -> np.ndarray:
     """Unit normals ``(M, 2)`` of 2D points from their ``k`` nearest neighbours; NaN where not line-like."""
     k = min(k, len(points))
@@ -68,9 +75,7 @@ class RecentScanMap:
 
     def _rebuild(self) -> None:
         pts = np.concatenate(list(self._scans))
-        ij = np.floor(pts / self.voxel).astype(np.int64)
-        _, keep = np.unique(ij[:, 0] * 4_000_003 + ij[:, 1], return_index=True)  # one point per voxel
-        pts = pts[keep]
+        pts = pts[first_point_per_cell(pts, self.voxel)]
         self._since_rebuild = 0
         if len(pts) < 10:
             self._tree = None

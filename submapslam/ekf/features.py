@@ -10,9 +10,12 @@ from __future__ import annotations
 
 import numpy as np
 
+PLANAR_POLE_RANGE = 15.0  # [m] how far the pole detectors look (and the EKF expects to see poles)
+SPATIAL_POLE_RANGE = 30.0
+
 
 def poles_from_planar_scan(points: np.ndarray, *, max_width: float = 0.22, min_points: int = 3,
-                           jump: float = 0.3, max_range: float = 15.0, radius: float = 0.1) -> np.ndarray:
+                           jump: float = 0.3, max_range: float = PLANAR_POLE_RANGE, radius: float = 0.1) -> np.ndarray:
     """``(N, 3)`` planar points in beam order -> ``(K, 2)`` range-bearing of pole centres.
 
     Consecutive points closer than ``jump`` form a segment; a segment narrower than
@@ -44,7 +47,7 @@ def poles_from_planar_scan(points: np.ndarray, *, max_width: float = 0.22, min_p
 
 
 def poles_from_3d_scan(points: np.ndarray, *, z_band: tuple[float, float] = (-1.0, 0.5), cell: float = 0.25,
-                       max_width: float = 0.6, min_points: int = 5, max_range: float = 30.0) -> np.ndarray:
+                       max_width: float = 0.6, min_points: int = 5, max_range: float = SPATIAL_POLE_RANGE) -> np.ndarray:
     """``(N, 3)`` points (sensor frame, z up) -> ``(K, 2)`` range-bearing of pole-like clusters.
 
     Points in the height band are binned on a 2D grid; connected occupied cells form clusters
@@ -106,7 +109,6 @@ def landmark_log_from_cloud_log(path, sigma_range: float = 0.05, sigma_bearing: 
     steps = []
     prev = None
     planar = True
-    planar_range = 15.0  # poles_from_planar_scan's default reach
     for scan in reader:
         planar = scan.planar
         if prev is None:
@@ -127,7 +129,7 @@ def landmark_log_from_cloud_log(path, sigma_range: float = 0.05, sigma_bearing: 
         truth_times, truth_poses = truth.timestamps, matrix_to_se2(truth.poses)
     return LandmarkLog(f"poles from {Path(path).name}", init, steps, np.diag([sigma_range**2, sigma_bearing**2]),
                        truth_times, truth_poses, _truth_poles(Path(path) / "landmarks_groundtruth.csv"),
-                       known_association=False, max_range=planar_range if planar else 30.0,
+                       known_association=False, max_range=PLANAR_POLE_RANGE if planar else SPATIAL_POLE_RANGE,
                        fov=np.deg2rad(float(sensor.get("fov_deg", 360.0))) if planar else 2 * np.pi)
 
 

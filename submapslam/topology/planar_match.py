@@ -24,6 +24,7 @@ from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
 from ..geometry import matrix_to_se2, se2_to_matrix
+from ..planar_refine import first_point_per_cell, line_normals, point_to_line
 
 
 @dataclass
@@ -48,9 +49,7 @@ def _rotate(xy: np.ndarray, yaw: float) -> np.ndarray:
 
 
 def _subsample(xy: np.ndarray, cell: float, max_points: int, rng: np.random.Generator) -> np.ndarray:
-    keys = np.floor(xy / cell).astype(np.int64)
-    _, idx = np.unique(keys, axis=0, return_index=True)
-    xy = xy[np.sort(idx)]
+    xy = xy[first_point_per_cell(xy, cell)]
     if len(xy) > max_points:
         xy = xy[rng.choice(len(xy), max_points, replace=False)]
     return xy
@@ -188,25 +187,22 @@ def icp_2d(source: np.ndarray, target: np.ndarray, xyt: np.ndarray, *, max_dista
     return xyt, inl, nn
 
 
-def _normals_2d(points: np.ndarray, tree: cKDTree, k: int = 8) -> np.ndarray:
-    """Unit normals ``(M, 2)`` of 2D points from the PCA of their ``k`` nearest neighbours."""
-    k = min(k, len(points))
-    _, idx = tree.query(points, k=k)
-    nb = points[idx] - points[idx].mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", nb, nb)
-    _, vecs = np.linalg.eigh(cov)
-    return vecs[:, :, 0]  # eigenvector of the smallest eigenvalue
+def target_normals(target: np.ndarray, tree: cKDTree) -> np.ndarray:
+    """Unit normals ``(M, 2)`` of every target point (8-neighbour PCA, corners included)."""
+    return line_normals(target, tree, k=8, max_flatness=np.inf)
 
 
 def registration_information(source: np.ndarray, target: np.ndarray, xyt: np.ndarray,
                              inlier_distance: float, tree: cKDTree | None = None,
-                             effective_points: int = 100) -> tuple[np.ndarray, float, float]:
+                             effective_points: int = 100,
+                             normals: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
     """Point-to-line information ``(3, 3)`` over ``(x, y, yaw)``, fitness and inlier RMSE at ``xyt``.
 
     Each inlier contributes ``J^T J`` with ``J = n^T [I, dR p]`` (``n`` the target normal), so a
     corridor gives little information along its axis: degenerate matches stay uncertain where
     they are degenerate. Neighbouring points are not independent, so the sum is scaled to
-    ``effective_points`` observations at the inlier residual variance.
+    ``effective_points`` observations at the inlier residual variance. ``normals`` ``(M, 2)``
+    of the target (from :func:`target_normals`) can be passed to share them between calls.
     """
     tree = tree or cKDTree(target)
     c, s = np.cos(xyt[2]), np.sin(xyt[2])
@@ -217,7 +213,7 @@ def registration_information(source: np.ndarray, target: np.ndarray, xyt: np.nda
     if inl.sum() < 3:
         return np.eye(3) * 1e-6, fitness, float("inf")
     rmse = float(np.sqrt(np.mean(d[inl] ** 2)))
-    normals = _normals_2d(target, tree)[nn[inl]]
+    normals = (target_normals(target, tree) if normals is None else normals)[nn[inl]]
     P = moved[inl] - xyt[:2]  # rotated source points (lever arms about the source origin)
     J = np.stack([normals[:, 0], normals[:, 1], normals[:, 1] * P[:, 0] - normals[:, 0] * P[:, 1]], axis=1)
     sigma2 = max(rmse, 0.02) ** 2
@@ -239,6 +235,7 @@ def match_planar(source: np.ndarray, target: np.ndarray, *, initial_guess: np.nd
     """
     src, tgt = source[:, :2], target[:, :2]
     tree = cKDTree(tgt)
+    normals = target_normals(tgt, tree)  # shared by every information evaluation below
     if refine_only:
         if initial_guess is None:
             raise ValueError("refine_only needs an initial_guess")
@@ -266,30 +263,29 @@ def match_planar(source: np.ndarray, target: np.ndarray, *, initial_guess: np.nd
         score = score_f
     xyt, _, _ = icp_2d(src, tgt, xyt0, max_distance=3 * resolution + inlier_distance,
                        min_distance=inlier_distance, tree=tree)
-    info, fitness, rmse = registration_information(src, tgt, xyt, inlier_distance, tree)
+    info, fitness, rmse = registration_information(src, tgt, xyt, inlier_distance, tree, normals=normals)
     if initial_guess is not None and not refine_only:
         # The correlative score can prefer a slightly slid pose along self-similar corridors;
         # ICP straight from the guess competes, and the better fit wins.
         xyt_g, _, _ = icp_2d(src, tgt, matrix_to_se2(initial_guess), max_distance=1.0,
                              min_distance=inlier_distance, tree=tree)
-        info_g, fitness_g, rmse_g = registration_information(src, tgt, xyt_g, inlier_distance, tree)
+        info_g, fitness_g, rmse_g = registration_information(src, tgt, xyt_g, inlier_distance, tree, normals=normals)
         if fitness_g >= fitness:
             xyt, info, fitness, rmse = xyt_g, info_g, fitness_g, rmse_g
     # point-to-point ICP follows where walls end and samples differ between submaps; a
     # point-to-line pass removes that bias (degenerate directions keep the ICP result)
-    refined = _point_to_line_pass(src, tgt, xyt, inlier_distance)
+    refined = _point_to_line_pass(src, tgt, tree, xyt, inlier_distance)
     if refined is not None:
-        info_r, fitness_r, rmse_r = registration_information(src, tgt, refined, inlier_distance, tree)
+        info_r, fitness_r, rmse_r = registration_information(src, tgt, refined, inlier_distance, tree, normals=normals)
         if fitness_r >= fitness - 0.02:
             xyt, info, fitness, rmse = refined, info_r, fitness_r, rmse_r
     return PlanarMatch(xyt=xyt, score=score, ambiguity=amb, fitness=fitness, inlier_rmse=rmse, information=info)
 
 
-def _point_to_line_pass(src: np.ndarray, tgt: np.ndarray, xyt: np.ndarray, inlier_distance: float) -> np.ndarray | None:
+def _point_to_line_pass(src: np.ndarray, tgt: np.ndarray, tree: cKDTree, xyt: np.ndarray,
+                        inlier_distance: float) -> np.ndarray | None:
     """Point-to-line Gauss-Newton from ``xyt`` against the target's line-like points, or None."""
-    from ..planar_refine import line_normals, point_to_line
-
-    normals = line_normals(tgt, cKDTree(tgt))
+    normals = line_normals(tgt, tree)
     line = np.isfinite(normals[:, 0])
     if line.sum() < 10:
         return None
