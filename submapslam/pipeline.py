@@ -14,7 +14,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from .backend.pose_graph import PoseGraph
+from .backend.pose_graph import PoseGraph, cap_covariance
 from .config import PipelineConfig
 from .errors import InputError, SubmapSlamError
 from .geometry import blend_poses, inverse, rotation_angle
@@ -176,9 +176,7 @@ class SubmapSLAM:
         odo_cfg = self.config.odometry
         if self.planar and odo_cfg.planar_point_to_line and odo_cfg.use_wheel_odometry and self._wheel_scans:
             cap_m = max(0.05, self.config.backend.wheel_drift * prev.distance)
-        scale = np.array([1.0 / cap_rad] * 3 + [1.0 / cap_m] * 3)  # whiten by the caps, clip at 1
-        w, V = np.linalg.eigh(cov_reg * np.outer(scale, scale))
-        cov_reg = ((V * np.minimum(w, 1.0)) @ V.T) / np.outer(scale, scale)
+        cov_reg = cap_covariance(cov_reg, cap_m, cap_rad)
         cov = np.linalg.inv(info) + cov_reg
         return np.linalg.inv(0.5 * (cov + cov.T))
 

@@ -202,3 +202,17 @@ def test_ekf_compare_on_a_log_without_landmark_ids_uses_the_filters_association(
     assert cmp["graph_landmark_rmse_m"] < 0.1 and cmp["ekf_landmark_rmse_m"] < 0.1
     r = CliRunner().invoke(app, ["synth", "rooms", "--out", str(tmp_path / "r"), "--poles", "3"])
     assert r.exit_code == 1 and "does not take these options" in r.output
+
+
+def test_pole_log_with_a_garbled_landmark_file_fails_in_one_line(tmp_path):
+    from typer.testing import CliRunner
+
+    from datasets_synth import generate
+    from submapslam.cli import app
+
+    log = generate("rectangle", tmp_path / "log", seed=0, laps=1, poles=5, max_scans=30)
+    (log / "landmarks_groundtruth.csv").write_text("id,x,y\n0,1.0,2.0\n1,oops\n")
+    r = CliRunner().invoke(app, ["ekf", str(log), "--out", str(tmp_path / "o")])
+    assert r.exit_code == 1
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "landmarks_groundtruth.csv:3:" in lines[0] and "expected id,x,y" in lines[0]

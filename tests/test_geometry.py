@@ -50,3 +50,15 @@ def test_se2_helpers():
 def test_transform_points():
     T = g.se2_to_matrix(1.0, 0.0, np.pi / 2)
     np.testing.assert_allclose(g.transform_points(T, [[1.0, 0.0, 0.0]]), [[1.0, 1.0, 0.0]], atol=1e-12)
+
+
+def test_blend_poses_follows_the_geodesic():
+    from submapslam.geometry import blend_poses, rotation_angle, so3_exp
+
+    A = np.eye(4)
+    B = np.eye(4)
+    B[:3, :3] = so3_exp(np.array([0.0, 0.0, 1.0]))
+    B[:3, 3] = [2.0, 0.0, 4.0]
+    assert np.allclose(blend_poses(A, B, 0.0), A) and np.allclose(blend_poses(A, B, 1.0), B)
+    half = blend_poses(A, B, 0.5)
+    assert np.isclose(rotation_angle(half), 0.5) and np.allclose(half[:3, 3], [1.0, 0.0, 2.0])

@@ -92,3 +92,13 @@ def test_g2o_round_trip(tmp_path):
 
     graph, initial = gtsam.readG2o(str(path), True)
     assert initial.size() == len(truth)
+
+
+def test_cap_covariance_cuts_only_the_directions_beyond_the_caps():
+    from submapslam.backend.pose_graph import cap_covariance
+
+    # GTSAM order (rx, ry, rz, tx, ty, tz): a corridor along x (5 m sigma), 1 cm across, 0.1 deg yaw
+    sig = np.array([1e-4, 1e-4, np.deg2rad(0.1), 5.0, 0.01, 1e-4])
+    capped = cap_covariance(np.diag(sig**2), sigma_m=0.1, sigma_rad=np.deg2rad(20))
+    assert np.isclose(np.sqrt(capped[3, 3]), 0.1)                      # the axis is cut to the cap
+    assert np.allclose(np.sqrt(np.diag(capped))[[0, 1, 2, 4, 5]], sig[[0, 1, 2, 4, 5]])  # the rest kept

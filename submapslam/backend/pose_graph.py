@@ -41,6 +41,17 @@ def floor_information(information: np.ndarray, sigma_m: float, sigma_rad: float)
     return (V / w) @ V.T
 
 
+def cap_covariance(cov: np.ndarray, sigma_m: float, sigma_rad: float) -> np.ndarray:
+    """Clip a ``(6, 6)`` covariance (GTSAM order) so no direction is less certain than the caps.
+
+    Directions are compared after whitening by the caps, so a corridor's long axis is cut to
+    ``sigma_m`` while well-constrained directions keep their own, smaller variance.
+    """
+    scale = np.array([1.0 / sigma_rad] * 3 + [1.0 / sigma_m] * 3)
+    w, V = np.linalg.eigh(cov * np.outer(scale, scale))
+    return ((V * np.minimum(w, 1.0)) @ V.T) / np.outer(scale, scale)
+
+
 class PoseGraph:
     """Incremental submap pose graph (iSAM2) with an optional final batch LM pass."""
 
