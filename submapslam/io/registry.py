@@ -59,4 +59,4 @@ def open_log(path: str | Path, format: str | None = None) -> LogReader:
 
 
 def _ensure_builtin() -> None:
-    from . import carmen, cloud_folder  # noqa: F401  (importing registers the readers)
+    from . import carmen, cloud_folder, rosbag  # noqa: F401  (importing registers the readers)
