@@ -33,3 +33,7 @@ class ConfigError(SubmapSlamError):
 
 class DependencyError(SubmapSlamError):
     """A required third-party library could not be loaded."""
+
+
+class DivergenceError(SubmapSlamError):
+    """An estimator's state stopped being finite (a filter linearised too far from the truth)."""

@@ -33,6 +33,7 @@ def test_ekf_nees_command(tmp_path):
     lo, hi = doc["band_95"]
     assert lo < 3.0 < hi and doc["graph_mean_nees"] is None
     assert len(doc["ekf_mean_nees"]) > 100 and 0.0 <= doc["ekf_fraction_inside"] <= 1.0
+    assert len(doc["ekf_fej_mean_nees"]) == len(doc["ekf_mean_nees"])
     assert (out / "nees.png").stat().st_size > 1000
 
 

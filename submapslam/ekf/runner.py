@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import DivergenceError
 from ..io.landmark_logs import LandmarkLog
 from .stochastic_map import CredibilityParams, StochasticMap
 
@@ -26,7 +27,8 @@ class EkfRun:
 
 
 def run_ekf(log: LandmarkLog, credibility: CredibilityParams | None = None, max_range: float | None = None,
-            fov: float | None = None, known_association: bool | None = None) -> EkfRun:
+            fov: float | None = None, known_association: bool | None = None,
+            first_estimate_jacobians: bool = False) -> EkfRun:
     """Predict with each step's motion, then run the matching step on its observations.
 
     ``max_range``, ``fov`` (the sensor model for unobserved predictions) and
@@ -37,15 +39,22 @@ def run_ekf(log: LandmarkLog, credibility: CredibilityParams | None = None, max_
     fov = log.fov if fov is None else fov
     if known_association is None:
         known_association = log.known_association
-    ekf = StochasticMap(log.initial_pose, np.eye(3) * 1e-9, credibility, max_range=max_range, fov=fov)
+    ekf = StochasticMap(log.initial_pose, np.eye(3) * 1e-9, credibility, max_range=max_range, fov=fov,
+                        first_estimate_jacobians=first_estimate_jacobians)
     times, poses, covs = [], [], []
     counts = dict(matched=0, new=0, unobserved=0, removed=0)
     associations: list[list[int | None]] = []
-    for step in log.steps:
-        ekf.predict(step.motion, step.motion_cov)
+    for k, step in enumerate(log.steps):
+        with np.errstate(over="ignore", invalid="ignore"):
+            ekf.predict(step.motion, step.motion_cov)
         ids: list[int | None] = [None] * len(step.ranges_bearings)
         if len(step.ranges_bearings):
-            rep = ekf.observe(step.ranges_bearings, log.measurement_cov, step.ids if known_association else None)
+            with np.errstate(over="ignore", invalid="ignore"):
+                rep = ekf.observe(step.ranges_bearings, log.measurement_cov, step.ids if known_association else None)
+            if not (np.isfinite(ekf.x).all() and np.isfinite(ekf.P[:3, :3]).all()):  # NaN spreads through the robot block
+                raise DivergenceError(f"{log.name}: the EKF diverged at step {k + 1} of {len(log.steps)} (t = {step.t:.2f})"
+                                      + ("; the first-estimates Jacobians were too far off, run without them"
+                                         if first_estimate_jacobians else ""))
             for m, fid in rep.matched + rep.new:
                 ids[m] = fid
             counts["matched"] += len(rep.matched)

@@ -14,6 +14,12 @@ frame. Matching has the seed's three outcomes:
 Each feature's credibility is ``c = 1 - exp(-(n_s/a - n_u/b))`` clamped to [0, 1] (eq. 5.70);
 a feature whose credibility falls below a threshold is removed (its rows and columns dropped,
 which is the exact marginalisation of a Gaussian).
+
+``first_estimate_jacobians=True`` is the FEJ-EKF of Huang, Mourikis & Roumeliotis (2008): the
+same filter, but the Jacobians are evaluated at the robot's predicted positions and each
+feature's first estimate, so the linearised system keeps the unobservable global pose
+unobservable and the filter stays consistent longer (NEES study in BENCHMARKS.md). It needs
+first estimates that are roughly right: after long blind stretches it can diverge.
 """
 
 from __future__ import annotations
@@ -33,6 +39,17 @@ def credibility(n_s: float, n_u: float, a: float, b: float) -> float:
 
 def wrap(a):
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def _jacobians(robot_xy: np.ndarray, feature_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Range-bearing Jacobians ``(2, 3)`` w.r.t. the robot ``(x, y, theta)`` and ``(2, 2)`` w.r.t.
+    the feature ``(x, y)``, evaluated at the given world positions."""
+    dx, dy = feature_xy - robot_xy
+    q = dx * dx + dy * dy
+    r = np.sqrt(q)
+    Hr = np.array([[-dx / r, -dy / r, 0.0], [dy / q, -dx / q, -1.0]])
+    Hf = np.array([[dx / r, dy / r], [-dy / q, dx / q]])
+    return Hr, Hf
 
 
 @dataclass
@@ -60,7 +77,7 @@ class StochasticMap:
     def __init__(self, pose: np.ndarray, pose_cov: np.ndarray | None = None,
                  credibility_params: CredibilityParams | None = None, max_range: float = np.inf,
                  fov: float = 2 * np.pi, gate: float = CHI2_2DOF_999,
-                 new_feature_d2: float = NEW_FEATURE_D2) -> None:
+                 new_feature_d2: float = NEW_FEATURE_D2, first_estimate_jacobians: bool = False) -> None:
         self.x = np.asarray(pose, dtype=np.float64).reshape(3).copy()
         self.P = np.zeros((3, 3)) if pose_cov is None else np.asarray(pose_cov, dtype=np.float64).copy()
         self.ids: list[int] = []          # feature id per state slot
@@ -72,6 +89,12 @@ class StochasticMap:
         self.gate = gate
         self.new_feature_d2 = new_feature_d2
         self._next_id = 0
+        # First-estimates Jacobians (Huang, Mourikis & Roumeliotis 2008): linearise at the
+        # robot's predicted position and each feature's first estimate, so the filter does not
+        # gain spurious information about the unobservable global heading.
+        self.fej = first_estimate_jacobians
+        self._first_xy: dict[int, np.ndarray] = {}       # feature id -> position at initialisation
+        self._prior_xy = self.x[:2].copy()               # robot position before the last update
 
     # ------------------------------------------------------------------ state access
     @property
@@ -104,7 +127,12 @@ class StochasticMap:
         dx, dy, dth = u
         c, s = np.cos(th), np.sin(th)
         self.x[:3] = [x + c * dx - s * dy, y + s * dx + c * dy, wrap(th + dth)]
-        F = np.array([[1, 0, -s * dx - c * dy], [0, 1, c * dx - s * dy], [0, 0, 1]])
+        if self.fej:  # position change measured from the previous *predicted* position
+            d = self.x[:2] - self._prior_xy
+            F = np.array([[1, 0, -d[1]], [0, 1, d[0]], [0, 0, 1]])
+            self._prior_xy = self.x[:2].copy()
+        else:
+            F = np.array([[1, 0, -s * dx - c * dy], [0, 1, c * dx - s * dy], [0, 0, 1]])
         G = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
         P = self.P
         P[:3, :3] = F @ P[:3, :3] @ F.T + G @ Q @ G.T
@@ -128,17 +156,14 @@ class StochasticMap:
     # ------------------------------------------------------------------ measurement model
     def _h(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Predicted range-bearing of the feature at slot ``k`` and its Jacobians w.r.t. robot, feature."""
-        x, y, th = self.x[:3]
-        dx, dy = self.x[k] - x, self.x[k + 1] - y
-        q = dx * dx + dy * dy
-        r = np.sqrt(q)
-        z = np.array([r, wrap(np.arctan2(dy, dx) - th)])
-        Hr = np.array([[-dx / r, -dy / r, 0.0], [dy / q, -dx / q, -1.0]])
-        Hf = np.array([[dx / r, dy / r], [-dy / q, dx / q]])
-        return z, Hr, Hf
+        dx, dy = self.x[k] - self.x[0], self.x[k + 1] - self.x[1]
+        z = np.array([np.hypot(dx, dy), wrap(np.arctan2(dy, dx) - self.x[2])])
+        return (z, *_jacobians(self.x[:2], self.x[k:k + 2]))
 
     def _innovation(self, k: int, z: np.ndarray, R: np.ndarray):
         zh, Hr, Hf = self._h(k)
+        if self.fej:
+            Hr, Hf = _jacobians(self._prior_xy, self._first_xy[self.ids[(k - 3) // 2]])
         nu = np.array([z[0] - zh[0], wrap(z[1] - zh[1])])
         Prr, Prf, Pff = self.P[:3, :3], self.P[:3, k:k + 2], self.P[k:k + 2, k:k + 2]
         S = Hr @ Prr @ Hr.T + Hr @ Prf @ Hf.T + Hf @ Prf.T @ Hr.T + Hf @ Pff @ Hf.T + R
@@ -172,6 +197,7 @@ class StochasticMap:
             fid = self._next_id
         self._next_id = max(self._next_id, fid + 1)
         self.ids.append(fid)
+        self._first_xy[fid] = m.copy()
         self.n_s.append(1.0)
         self.n_u.append(0.0)
         return fid
@@ -184,6 +210,7 @@ class StochasticMap:
         self.x = self.x[keep]
         self.P = self.P[np.ix_(keep, keep)]
         del self.ids[i], self.n_s[i], self.n_u[i]
+        self._first_xy.pop(fid, None)
 
     def _in_view(self, k: int) -> bool:
         zh, _, _ = self._h(k)

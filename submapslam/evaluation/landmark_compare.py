@@ -65,12 +65,14 @@ def nees_series(est: np.ndarray, covs: np.ndarray, truth: np.ndarray) -> np.ndar
 
 def nees_study(workdir: str | Path, runs: int = 50, seed: int = 100, laps: int = 2,
                with_graph: bool = True) -> dict:
-    """Monte Carlo NEES of the robot pose on synthetic landmark worlds, EKF and smoother.
+    """Monte Carlo NEES of the robot pose on synthetic landmark worlds: EKF, FEJ-EKF, smoother.
 
-    Returns ``{"ekf": (N,), "graph": (N,) or None, "band": (lo, hi), "runs": runs,
-    "ekf_left_band_at": step or None, "graph_left_band_at": ...}``: the per-step NEES averaged
-    over the runs, the two-sided 95 % chi-square band for that average (3 DOF), and the first
-    step where a 10-step moving average of the mean NEES leaves the band.
+    Returns ``{"ekf": (N,), "ekf_fej": (N,), "graph": (N,) or None, "band": (lo, hi), "runs": runs,
+    "ekf_left_band_at": step or None, "ekf_fej_left_band_at": ..., "graph_left_band_at": ...}``:
+    the per-step NEES averaged over the runs (the seed's EKF, the same filter with
+    first-estimates Jacobians, and the factor graph's all-pose marginals), the two-sided 95 %
+    chi-square band for that average (3 DOF), and the first step where a 10-step moving average
+    of the mean NEES leaves the band.
     """
     from scipy.stats import chi2
 
@@ -82,7 +84,7 @@ def nees_study(workdir: str | Path, runs: int = 50, seed: int = 100, laps: int =
     from ..io.landmark_logs import read_victoria_park
 
     keep = CredibilityParams(b=1e9, remove_below=0.0)
-    ekf_all, fg_all = [], []
+    ekf_all, fej_all, fg_all = [], [], []
     for r in range(runs):
         folder = Path(workdir) / f"mc{r}"
         log = read_victoria_park(generate_landmark_log(folder / "syn.txt", seed=seed + r, laps=laps,
@@ -94,6 +96,8 @@ def nees_study(workdir: str | Path, runs: int = 50, seed: int = 100, laps: int =
         run = run_ekf(log, keep)
         at = truth[run.times.astype(int)]  # a step's time is the index of the pose it ends at
         ekf_all.append(nees_series(run.poses, run.pose_covs, at))
+        fej = run_ekf(log, keep, first_estimate_jacobians=True)
+        fej_all.append(nees_series(fej.poses, fej.pose_covs, at))
         if with_graph:
             sol = solve_landmark_graph(log, pose_covariances=True)
             fg_all.append(nees_series(sol.poses[1:], sol.pose_covs[1:], at))
@@ -104,10 +108,11 @@ def nees_study(workdir: str | Path, runs: int = 50, seed: int = 100, laps: int =
         out = np.flatnonzero((smooth < lo) | (smooth > hi))
         return int(out[0]) + 1 if len(out) else None
 
-    ekf = np.mean(ekf_all, axis=0)
+    ekf, ekf_fej = np.mean(ekf_all, axis=0), np.mean(fej_all, axis=0)
     graph = np.mean(fg_all, axis=0) if fg_all else None
-    return {"ekf": ekf, "graph": graph, "band": (float(lo), float(hi)), "runs": runs,
-            "ekf_left_band_at": left(ekf), "graph_left_band_at": left(graph) if graph is not None else None}
+    return {"ekf": ekf, "ekf_fej": ekf_fej, "graph": graph, "band": (float(lo), float(hi)), "runs": runs,
+            "ekf_left_band_at": left(ekf), "ekf_fej_left_band_at": left(ekf_fej),
+            "graph_left_band_at": left(graph) if graph is not None else None}
 
 
 def plot_nees(path: str | Path, study: dict) -> None:
@@ -121,6 +126,8 @@ def plot_nees(path: str | Path, study: dict) -> None:
     lo, hi = study["band"]
     ax.axhspan(lo, hi, color="0.85", label="95 % band")
     ax.plot(np.arange(1, len(study["ekf"]) + 1), study["ekf"], label="EKF (filter)")
+    if study.get("ekf_fej") is not None:
+        ax.plot(np.arange(1, len(study["ekf_fej"]) + 1), study["ekf_fej"], label="FEJ-EKF (first-estimates Jacobians)")
     if study["graph"] is not None:
         ax.plot(np.arange(1, len(study["graph"]) + 1), study["graph"], label="factor graph (smoother)")
     ax.set_xlabel("step")
