@@ -5,7 +5,7 @@ Messages read:
     ``sensor_msgs/msg/PointCloud2``  x, y, z (float32/float64) at their offsets, honouring
         ``point_step``, ``row_step`` and ``is_bigendian``; per-point times from a ``t``,
         ``time`` or ``timestamp`` field, normalised to [0, 1] over the sweep; NaN/inf points
-        are dropped.
+        are dropped. A cloud whose points all have z = 0 (a projected 2D laser) is planar.
     ``sensor_msgs/msg/LaserScan``    ranges -> planar points (z = 0); NaN/inf beams and beams
         outside ``[range_min, range_max]`` are dropped; ``planar=True``.
     ``nav_msgs/msg/Odometry``        optional wheel odometry ``T_odom_base``, interpolated at
@@ -281,10 +281,10 @@ def _open_bag(path: Path) -> _AnyBag | _PartialMcap:
     try:
         return _AnyBag(path)
     except errors as exc:
-        problem = _first_line(exc)
+        problem = _first_line(exc).rstrip(".")
         mcap = _single_mcap(path)
         if mcap is not None and ("end magic" in problem or "footer" in problem.lower()):
-            log.warning("%s: %s; reading the MCAP data linearly up to the damage", path, problem)
+            log.debug("%s: %s; reading the MCAP data linearly up to the damage", path, problem)
             try:
                 return _PartialMcap(mcap)
             except (*errors, ImportError, AttributeError):  # rosbags internals moved: no recovery
@@ -329,13 +329,19 @@ class RosbagReader:
         bag = _open_bag(self.path)
         try:
             topics = bag.topics()
+            self.partial = bag.partial
+            if self.partial and not topics:
+                raise InputError(self.path, "MCAP file is cut off before its first complete chunk: "
+                                            "no topics could be read")
             self.topic = self._choose_scan_topic(topics, topic)
             self.msgtype = topics[self.topic][0]
             self.count = topics[self.topic][1]
             self.odometry_topic = self._choose_odometry_topic(topics, odometry_topic)
-            self.partial = bag.partial
         finally:
             bag.close()
+        if self.partial:
+            log.warning("%s: MCAP file without summary/footer (cut off while recording?): "
+                        "reading its data linearly up to the damage", self.path)
         self.odometry = self._read_odometry() if self.odometry_topic else None
 
     def __len__(self) -> int:
@@ -400,18 +406,20 @@ class RosbagReader:
     def __iter__(self) -> Iterator[Scan]:
         bag = _open_bag(self.path)
         index = 0
-        planar = self.msgtype == LASER_TYPE
+        laser = self.msgtype == LASER_TYPE
         try:
             for _topic, _typ, msg in bag.messages({self.topic}):
                 what = f"{self.topic} message {index}"
-                if planar:
+                if laser:
                     points, times = laserscan_to_points(msg)
+                    planar = True
                 else:
                     points, times = pointcloud2_to_points(msg, self.path, what)
+                    planar = len(points) > 0 and not np.any(points[:, 2])  # a projected 2D laser
                 t_ns = stamp_ns(msg.header)
                 yield Scan(
                     index=index,
-                    timestamp=t_ns * 1e-9,
+                    timestamp=int(msg.header.stamp.sec) + int(msg.header.stamp.nanosec) * 1e-9,
                     points=points,
                     point_times=times,
                     odometry=None if self.odometry is None else self.odometry.at(t_ns),
