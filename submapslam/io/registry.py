@@ -36,10 +36,15 @@ def available_formats() -> list[str]:
     return sorted(_READERS)
 
 
-def open_log(path: str | Path, format: str | None = None) -> LogReader:
-    """Open a log (file or folder) with the reader ``format`` or the first that sniffs it."""
+def open_log(path: str | Path, format: str | None = None, **options: object) -> LogReader:
+    """Open a log (file or folder) with the reader ``format`` or the first that sniffs it.
+
+    ``options`` go to the reader (e.g. ``topic=`` and ``odometry_topic=`` for ROS bags); options
+    that are ``None`` are left out, and one the reader does not take is an :class:`InputError`.
+    """
     _ensure_builtin()
     path = Path(path)
+    options = {k: v for k, v in options.items() if v is not None}
     if not path.exists():
         raise InputError(path, "no such file or directory")
     if format is not None:
@@ -47,15 +52,26 @@ def open_log(path: str | Path, format: str | None = None) -> LogReader:
             raise UnknownFormatError(
                 path, f"unknown format {format!r}; known formats: {', '.join(available_formats())}"
             )
-        return _READERS[format][1](path)
-    for _name, (sniff, factory) in _READERS.items():
+        return _make(format, _READERS[format][1], path, options)
+    for name, (sniff, factory) in _READERS.items():
         if sniff(path):
-            return factory(path)
+            return _make(name, factory, path, options)
     raise UnknownFormatError(
         path,
         "cannot tell the log format from the path; use --format with one of: "
         + ", ".join(available_formats()),
     )
+
+
+def _make(name: str, factory: ReaderFactory, path: Path, options: dict[str, object]) -> LogReader:
+    if options:
+        import inspect
+
+        accepted = inspect.signature(factory).parameters
+        unknown = sorted(k for k in options if k not in accepted)
+        if unknown:
+            raise InputError(path, f"option {', '.join(unknown)} does not apply to {name} logs")
+    return factory(path, **options)  # type: ignore[call-arg]
 
 
 def _ensure_builtin() -> None:
