@@ -211,6 +211,12 @@ def test_several_scan_topics_need_a_choice(tmp_path):
     assert len(list(RosbagReader(path, topic="/velodyne_points"))) == 1
     with pytest.raises(InputError, match=r"no topic '/nope'; scan topics: /scan"):
         RosbagReader(path, topic="/nope")
+    # the same choice through open_log (what the CLI's --topic passes on)
+    assert open_log(path, topic="/scan", odometry_topic=None).topic == "/scan"
+    clf = tmp_path / "a.clf"
+    clf.write_text("ODOM 0 0 0 0 0 0 99.0 host 0.0\n")
+    with pytest.raises(InputError, match=r"a\.clf: option topic does not apply to carmen logs"):
+        open_log(clf, topic="/scan")
 
 
 def test_bag_without_scan_topics_and_cloud_without_xyz(tmp_path):
@@ -242,6 +248,8 @@ def test_corrupt_files_are_one_line_input_errors(tmp_path):
 
 def test_truncated_mcap_yields_scans_before_the_damage(tmp_path):
     clouds = random_clouds(8, 40000)  # 640 kB messages: rosbags closes a 1 MiB chunk every 2 scans
+    for c in clouds:
+        c[:38000] = np.nan  # dropped by the reader: 2000 points per scan keep the run below fast
     w = BagWriter(tmp_path / "full.mcap")
     for k, c in enumerate(clouds):
         w.odom("/odom", T0 + 0.1 * k, 0.5 * k, 0.0, 0.0)
@@ -259,8 +267,14 @@ def test_truncated_mcap_yields_scans_before_the_damage(tmp_path):
             got.append(s)
     assert 2 <= len(got) < 8
     for k, s in enumerate(got):
-        np.testing.assert_array_equal(s.points, clouds[k].astype(np.float64))
+        np.testing.assert_array_equal(s.points, clouds[k][38000:].astype(np.float64))
         assert s.odometry[0, 3] == pytest.approx(0.5 * k)
+    # `run` keeps the scans read before the damage, writes their results and exits 1 with one line
+    r = CliRunner().invoke(app, ["run", str(cut), "--out", str(tmp_path / "out"), "--no-loops"])
+    assert r.exit_code == 1
+    last = r.output.strip().splitlines()[-1]
+    assert last.startswith("error:") and "cut.mcap" in last and f"the {len(got)} scans read before it" in last
+    assert len(read_tum(tmp_path / "out" / "poses_tum.txt")) == len(got)
     # a ROS 1 bag loses its index at the end: no scans, an actionable message
     w = BagWriter(tmp_path / "full.bag")
     for k, c in enumerate(clouds[:3]):
