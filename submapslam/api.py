@@ -29,8 +29,11 @@ def run_log(
     max_scans: int | None = None,
     loops: bool = True,
     progress: bool = False,
+    reader_options: dict | None = None,
 ) -> tuple[SlamResult, dict[str, Path]]:
     """Open ``log_path``, run the pipeline, write results to ``out_dir`` (if given).
+
+    ``reader_options`` go to the log reader (ROS bags: ``topic``, ``odometry_topic``).
 
     Returns the result and the written paths. Input errors found mid-log keep what was
     computed: results are written and ``result.input_error`` says what stopped the reading.
@@ -50,7 +53,7 @@ def run_log(
     if updates:
         cfg = cfg.model_copy(update=updates)
     hint_pairs = read_hint_file(cfg.loops.hints_file) if cfg.loops.hints_file else None
-    reader = open_log(log_path, format)
+    reader = open_log(log_path, format, **(reader_options or {}))
     try:
         total = len(reader)  # type: ignore[arg-type]
     except TypeError:

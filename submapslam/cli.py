@@ -38,20 +38,25 @@ def _main(
 
 @app.command()
 def run(
-    log: Annotated[Path, typer.Argument(help="Log: CARMEN file, folder of .bin/.ply/.pcd scans, synthetic log folder.")],
+    log: Annotated[Path, typer.Argument(help="Log: CARMEN file, folder of .bin/.ply/.pcd scans, synthetic log folder, "
+                                        "ROS bag (.bag, ROS 2 folder, .mcap).")],
     out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
     config: Annotated[Path | None, typer.Option("--config", "-c", help="YAML config (see dump-config).")] = None,
     format: Annotated[str | None, typer.Option("--format", "-f", help="Force the log format.")] = None,
     hints: Annotated[Path | None, typer.Option("--hints", help="Manual loop hints: 'a b' scan indices or timestamps per line.")] = None,
     max_scans: Annotated[int | None, typer.Option("--max-scans", help="Stop after N scans.")] = None,
     no_loops: Annotated[bool, typer.Option("--no-loops", help="Odometry and submaps only.")] = False,
+    topic: Annotated[str | None, typer.Option("--topic", help="ROS bag: the PointCloud2/LaserScan topic to read.")] = None,
+    odometry_topic: Annotated[str | None, typer.Option(
+        "--odometry-topic", help="ROS bag: the nav_msgs/Odometry topic ('' for none).")] = None,
 ) -> None:
     """Build a map and trajectory from LOG; write poses, graph, map and summary into OUT."""
     from .api import run_log
 
     try:
         result, paths = run_log(log, out, config=config, format=format, hints=hints,
-                                max_scans=max_scans, loops=not no_loops, progress=True)
+                                max_scans=max_scans, loops=not no_loops, progress=True,
+                                reader_options={"topic": topic, "odometry_topic": odometry_topic})
     except SubmapSlamError as exc:
         raise fail(exc) from None
     s = result.summary()

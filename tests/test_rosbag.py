@@ -327,3 +327,18 @@ def test_run_on_a_bag_matches_the_cloud_folder_run(small_rectangle, tmp_path):
     # LaserScan re-derives points from float32 ranges/angles (~1e-6 m); scan matching turns that
     # into millimetres, so this run is held to 1 cm
     assert np.abs(outs["laser"].poses[:, :3, 3] - ref.poses[:, :3, 3]).max() < 1e-2
+
+
+def test_run_cli_topic_options_pick_the_scan_and_odometry_topics(tmp_path):
+    w = BagWriter(tmp_path / "two.bag")
+    for k in range(3):
+        w.laser("/scan", T0 + 0.1 * k, np.full(30, 3.0))
+        w.cloud("/velodyne_points", T0 + 0.1 * k + 0.05, random_clouds(1, 50)[0])
+        w.odom("/odom", T0 + 0.1 * k, 0.0, 0.0, 0.0)
+    path = w.write()
+    r = CliRunner().invoke(app, ["run", str(path), "--out", str(tmp_path / "none"), "--no-loops"])
+    assert r.exit_code == 1 and "pick one" in r.output
+    r = CliRunner().invoke(app, ["run", str(path), "--out", str(tmp_path / "scan"), "--no-loops",
+                                 "--topic", "/scan", "--odometry-topic", "/odom"])
+    assert r.exit_code == 0, r.output
+    assert len(read_tum(tmp_path / "scan" / "poses_tum.txt")) == 3
