@@ -212,9 +212,14 @@ class StochasticMap:
         del self.ids[i], self.n_s[i], self.n_u[i]
         self._first_xy.pop(fid, None)
 
-    def _in_view(self, k: int) -> bool:
-        zh, _, _ = self._h(k)
-        return zh[0] <= self.max_range and abs(zh[1]) <= self.fov / 2
+    def _predicted_in_view(self) -> set[int]:
+        """Ids of the features whose predicted range-bearing lies inside the sensor's range and FOV."""
+        if not self.n:
+            return set()
+        d = self.x[3:].reshape(-1, 2) - self.x[:2]
+        bearing = wrap(np.arctan2(d[:, 1], d[:, 0]) - self.x[2])
+        inside = (np.hypot(d[:, 0], d[:, 1]) <= self.max_range) & (np.abs(bearing) <= self.fov / 2)
+        return {fid for fid, ok in zip(self.ids, inside) if ok}
 
     # ------------------------------------------------------------------ the matching step
     def observe(self, observations: np.ndarray, R: np.ndarray, ids: list[int | None] | None = None) -> MatchReport:
@@ -227,7 +232,7 @@ class StochasticMap:
         """
         obs = np.asarray(observations, dtype=np.float64).reshape(-1, 2)
         report = MatchReport()
-        predicted = {fid for fid in self.ids if self._in_view(self._slot(fid))}
+        predicted = self._predicted_in_view()
         seen: set[int] = set()
         for m, z in enumerate(obs):
             fid = None if ids is None else ids[m]
