@@ -42,3 +42,29 @@ def test_ekf_bad_log_is_one_red_line(tmp_path):
     bad.write_text("ODOMETRY 0 1 x 0 0 0.01 0 0 0.01 0 0.01\n")
     r = CliRunner().invoke(_app(), ["ekf", str(bad), "--out", str(tmp_path / "o")])
     assert r.exit_code == 1 and "bad.txt:1" in r.output
+
+
+def test_ekf_fej_divergence_is_one_line_and_writes_no_nan_results(tmp_path):
+    from .conftest import shared_data
+
+    out = tmp_path / "fej"
+    r = CliRunner().invoke(_app(), ["ekf", str(shared_data("landmarks", "utias_mrclam7")), "--out", str(out), "--fej"])
+    assert r.exit_code == 1
+    assert "diverged at step" in r.output and "first-estimates Jacobians" in r.output
+    assert not (out / "landmarks.csv").exists()
+
+
+def test_ekf_fej_on_a_synthetic_log_agrees_with_the_plain_filter(tmp_path):
+    path = generate_landmark_log(tmp_path / "syn.txt", seed=0, laps=1, sigma_range=0.02, odo_sigma=(0.005, 0.005, 0.002))
+    marks = {}
+    for flag in ("--fej", "--no-fej"):
+        out = tmp_path / flag
+        r = CliRunner().invoke(_app(), ["ekf", str(path), "--out", str(out), flag])
+        assert r.exit_code == 0, r.output
+        assert json.loads((out / "summary.json").read_text())["jacobians"] == (
+            "first estimates" if flag == "--fej" else "current estimates")
+        rows = (out / "landmarks.csv").read_text().splitlines()[1:]
+        marks[flag] = {int(r.split(",")[0]): tuple(map(float, r.split(",")[1:3])) for r in rows}
+    assert marks["--fej"].keys() == marks["--no-fej"].keys() and len(marks["--fej"]) >= 10
+    # small noise: both linearisations land on the same map within a few centimetres
+    assert max(abs(a - b) for k in marks["--fej"] for a, b in zip(marks["--fej"][k], marks["--no-fej"][k])) < 0.05
