@@ -113,6 +113,7 @@ def _register_subcommands() -> None:
 
     for module in (cli_eval, cli_synth, cli_ekf):
         module.register(app)
+    __import__(f"{__package__}.cli_localize", fromlist=["register"]).register(app)  # submapslam localize
 
 
 _register_subcommands()

@@ -1,0 +1,28 @@
+"""Write a :class:`~submapslam.localization.LocalizationResult` to a folder."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+from ..localization import LocalizationResult
+from .trajectory import Trajectory, write_kitti, write_tum
+
+
+def write_localization(result: LocalizationResult, out_dir: str | Path, extra: dict | None = None) -> dict[str, Path]:
+    """Write ``poses_tum.txt`` (one line per scan, the log's timestamps), ``poses_kitti.txt``,
+    ``localization.csv`` (timestamp, fitness, rmse, lost per scan) and ``summary.json``
+    (:meth:`LocalizationResult.summary` plus ``extra``); return ``{name: path}``."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = {name: out / name for name in ("poses_tum.txt", "poses_kitti.txt", "localization.csv", "summary.json")}
+    write_tum(paths["poses_tum.txt"], Trajectory(result.timestamps, result.poses))
+    write_kitti(paths["poses_kitti.txt"], result.poses)
+    with open(paths["localization.csv"], "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["timestamp", "fitness", "rmse", "lost"])
+        for t, f, r, lost in zip(result.timestamps, result.fitness, result.inlier_rmse, result.lost):
+            w.writerow([f"{t:.6f}", f"{f:.4f}", f"{r:.4f}", int(lost)])
+    paths["summary.json"].write_text(json.dumps({**result.summary(), **(extra or {})}, indent=2) + "\n")
+    return paths

@@ -1,0 +1,443 @@
+"""Localization against a fixed map (Cartographer's "pure localization"): the map never changes.
+
+A map built once (``map.ply`` of a ``submapslam run`` output folder, or any PLY/PCD cloud) is
+loaded as a rigid target; every scan of a new log is registered against it, starting from a
+prediction: the previous pose composed with the wheel-odometry increment when the log has
+odometry (``Scan.odometry``), else with the last increment (constant velocity).
+
+Registration reuses the package's matchers, nothing new:
+
+* planar maps (2D laser, z = 0): point-to-line Gauss-Newton (:func:`.planar_refine.point_to_line`)
+  against the map's line-like points, once with a wide and once with a tight correspondence
+  distance; directions the scene does not constrain (a corridor's axis) take the prediction.
+  The global search is the correlative FFT search + ICP of :func:`.topology.planar_match.match_planar`.
+* 3D maps: generalized ICP from the prediction (open3d); the global search is FPFH + RANSAC,
+  then GICP (:func:`.topology.correspondence.check_correspondence`).
+
+Frames: the map's frame is the world frame (for a ``submapslam run`` folder: the pose of that
+run's first scan). Every pose is ``T_world_base``, a ``(4, 4)`` float64 array; scan points are
+``(N, 3)`` in the base/sensor frame.
+
+Without an initial pose the first scan is searched for in the whole map. That global search
+can pick the wrong place where the map repeats itself (identical rooms, plain corridors); it
+is only accepted when its fitness clears :attr:`LocalizationConfig.relocalize_min_fitness`
+and (planar) the second-best place scores clearly lower (``max_ambiguity``). When the fitness
+of tracking stays below ``min_fitness`` for ``lost_after`` scans the robot is declared lost,
+poses are dead-reckoned and the global search is retried (relocalisation) on the scans
+gathered since the loss, fused by dead reckoning into one cloud; the lost span's poses are then
+re-anchored on the fix.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .errors import InputError, SubmapSlamError
+from .geometry import inverse, matrix_to_se2, se2_to_matrix
+from .io.scan import Scan
+from .planar_refine import first_point_per_cell, line_normals, point_to_line
+
+log = logging.getLogger(__name__)
+
+PLANAR_Z_TOL = 1e-6  # a map whose |z| never exceeds this is a 2D laser map
+
+
+@dataclass
+class LocalizationConfig:
+    """Parameters of :class:`Localizer` and :func:`localize_log`.
+
+    ``voxel_size`` / ``inlier_distance`` default (None) to 0.05 / 0.2 m for planar maps and
+    0.4 / 0.8 m for 3D maps.
+    """
+
+    min_range: float = 0.1              # [m] drop closer scan points
+    max_range: float = 80.0             # [m] drop farther scan points
+    voxel_size: float | None = None     # [m] scan (and 3D map) downsampling
+    inlier_distance: float | None = None  # [m] a scan point is an inlier if a map point is this close
+    min_fitness: float = 0.5            # tracking gate: inlier fraction of a well-localised scan
+    lost_after: int = 5                 # consecutive scans below the gate before "lost"
+    relocalize_min_fitness: float = 0.7  # a global-search fix must reach this fitness
+    max_ambiguity: float = 0.9          # planar global search: second place / best place at most this
+    global_scans: int = 10              # scans fused (dead reckoning) into the global-search cloud
+    relocalize_every: int = 5           # while lost, retry the global search every this many scans
+    use_wheel_odometry: bool = True     # predict from Scan.odometry when the log has it
+
+
+@dataclass
+class LocalizationResult:
+    """Per-scan outcome of :func:`localize_log` (``N`` scans, in log order).
+
+    ``poses`` ``(N, 4, 4)`` are ``T_world_base`` in the map frame. While ``lost`` the pose is
+    dead reckoning, re-anchored on the next fix (before the first fix there is none: the
+    scans before it are lost too and take the fix's dead-reckoned past).
+    """
+
+    timestamps: np.ndarray          # (N,) [s], the log's own
+    poses: np.ndarray               # (N, 4, 4) T_world_base
+    fitness: np.ndarray             # (N,) inlier fraction against the map, [0, 1]
+    inlier_rmse: np.ndarray         # (N,) [m], inf without inliers
+    lost: np.ndarray                # (N,) bool
+    relocalisations: int = 0        # fixes by the global search after the robot was lost
+    global_searches: int = 0        # global searches tried (initialisation included)
+    initialised_at: int = 0         # index of the scan of the first fix
+    timings: dict[str, float] = field(default_factory=dict)  # seconds: total, tracking, global_search
+    planar: bool = True
+
+    @property
+    def n_scans(self) -> int:
+        return len(self.timestamps)
+
+    def lost_spans(self) -> list[tuple[int, int]]:
+        """``[(first, last), ...]`` scan index ranges (inclusive) during which the robot was lost."""
+        spans, start = [], None
+        for k, flag in enumerate(self.lost):
+            if flag and start is None:
+                start = k
+            elif not flag and start is not None:
+                spans.append((start, k - 1))
+                start = None
+        if start is not None:
+            spans.append((start, len(self.lost) - 1))
+        return spans
+
+    def summary(self) -> dict:
+        """JSON-ready summary: scans, lost scans and spans, relocalisations, wall time, scans/s."""
+        total = self.timings.get("total", 0.0)
+        return {
+            "scans": self.n_scans,
+            "lost_scans": int(self.lost.sum()),
+            "lost_spans": [{"first_scan": a, "last_scan": b, "t_start": float(self.timestamps[a]),
+                            "t_end": float(self.timestamps[b])} for a, b in self.lost_spans()],
+            "relocalisations": self.relocalisations,
+            "global_searches": self.global_searches,
+            "initialised_at_scan": self.initialised_at,
+            "mean_fitness": float(np.mean(self.fitness)) if self.n_scans else 0.0,
+            "wall_time_s": round(total, 3),
+            "scans_per_s": round(self.n_scans / total, 1) if total > 0 else None,
+            "time_s": {k: round(v, 3) for k, v in self.timings.items()},
+            "planar": self.planar,
+        }
+
+
+def load_map(path: str | Path) -> np.ndarray:
+    """Map points ``(M, 3)`` (world frame) from a run folder (its ``map.ply``) or a PLY/PCD file.
+
+    Raises :class:`InputError` naming the file when it is missing, not a point cloud or empty.
+    """
+    path = Path(path)
+    if path.is_dir():
+        if not (path / "map.ply").is_file():
+            raise InputError(path, "no map.ply in this folder (expected a `submapslam run` output folder)")
+        path = path / "map.ply"
+    if not path.exists():
+        raise InputError(path, "no such file or directory")
+    suffix = path.suffix.lower()
+    if suffix not in (".ply", ".pcd"):
+        raise InputError(path, "not a point cloud: the map must be a run folder, a .ply or a .pcd file")
+    with open(path, "rb") as fh:
+        head = fh.read(512)
+    if suffix == ".ply" and not head.startswith(b"ply"):
+        raise InputError(path, "not a PLY point cloud (the file does not start with 'ply')")
+    if suffix == ".pcd" and not any(key in head for key in (b"VERSION", b"FIELDS")):
+        raise InputError(path, "not a PCD point cloud (no VERSION/FIELDS header)")
+    from ._deps import open3d
+
+    pcd = open3d().io.read_point_cloud(str(path))
+    points = np.asarray(pcd.points, dtype=np.float64)
+    if len(points) == 0:
+        raise InputError(path, "the map holds no points (unreadable or empty point cloud)")
+    if not np.isfinite(points).all():
+        points = points[np.isfinite(points).all(axis=1)]
+    if len(points) < 20:
+        raise InputError(path, f"the map holds only {len(points)} finite points; at least 20 are needed")
+    return points
+
+
+class Localizer:
+    """Registers scans against a fixed map ``(M, 3)`` (world frame); the map is never modified."""
+
+    def __init__(self, map_points: np.ndarray, config: LocalizationConfig | None = None) -> None:
+        pts = np.asarray(map_points, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3 or len(pts) < 20:
+            raise SubmapSlamError(f"the map must be (M, 3) points with M >= 20, got shape {pts.shape}")
+        self.config = config or LocalizationConfig()
+        self.planar = bool(np.abs(pts[:, 2]).max() <= PLANAR_Z_TOL)
+        c = self.config
+        self.voxel = c.voxel_size or (0.05 if self.planar else 0.4)
+        self.inlier = c.inlier_distance or (0.2 if self.planar else 2.0 * self.voxel)
+        self.map_points = pts
+        if self.planar:
+            xy = pts[first_point_per_cell(pts[:, :2], self.voxel), :2]
+            self._xy = xy
+            self._tree = cKDTree(xy)
+            normals = line_normals(xy, self._tree)
+            line = np.isfinite(normals[:, 0])
+            if line.sum() < 10:
+                raise SubmapSlamError("the planar map has fewer than 10 line-like points: nothing to localise against")
+            self._line_pts, self._line_normals = xy[line], normals[line]
+            self._line_tree = cKDTree(self._line_pts)
+            self._map3d = np.column_stack([xy, np.zeros(len(xy))])
+        else:
+            from .topology.correspondence import SpatialCloud
+
+            self._cloud = SpatialCloud(pts, self.voxel)
+
+    # --- scans ---------------------------------------------------------------------------------
+    def preprocess(self, points: np.ndarray) -> np.ndarray:
+        """Range-filter and voxel-downsample scan points ``(N, 3)`` (base frame) -> ``(K, 3)``."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        r = np.linalg.norm(pts, axis=1)
+        pts = pts[np.isfinite(r) & (r >= self.config.min_range) & (r <= self.config.max_range)]
+        if self.planar:
+            pts = pts[first_point_per_cell(pts[:, :2], self.voxel)]
+            pts[:, 2] = 0.0
+            return pts
+        from .submaps import voxel_downsample
+
+        return voxel_downsample(pts, self.voxel / 2) if len(pts) else pts
+
+    def localize(self, scan: np.ndarray, odometry_prior: np.ndarray) -> tuple[np.ndarray, float, float]:
+        """Register preprocessed scan points ``(N, 3)`` (base frame) starting from the predicted
+        ``T_world_base`` ``odometry_prior`` ``(4, 4)``.
+
+        Returns ``(T_world_base (4, 4), fitness, inlier_rmse)``: fitness is the fraction of scan
+        points with a map point within the inlier distance, RMSE is over those inliers [m].
+        """
+        prior = np.asarray(odometry_prior, dtype=np.float64)
+        if len(scan) < 20:
+            return prior, 0.0, float("inf")
+        if self.planar:
+            xy = scan[:, :2]
+            xyt0 = matrix_to_se2(prior)
+            xyt = xyt0
+            for max_corr, kernel in ((3.0 * self.inlier, 2.0 * self.inlier / 4), (self.inlier, self.inlier / 4)):
+                xyt, _ = point_to_line(xy, xyt, self._line_tree, self._line_pts, self._line_normals,
+                                       max_correspondence=max_corr, kernel=kernel, prior_xyt=xyt0, iterations=8)
+            T = se2_to_matrix(*xyt)
+            fitness, rmse = self._score_planar(xy, xyt)
+            return T, fitness, rmse
+        return self._gicp(scan, prior)
+
+    def _score_planar(self, xy: np.ndarray, xyt: np.ndarray) -> tuple[float, float]:
+        c, s = np.cos(xyt[2]), np.sin(xyt[2])
+        d, _ = self._tree.query(xy @ np.array([[c, s], [-s, c]]) + xyt[:2], distance_upper_bound=self.inlier)
+        inl = np.isfinite(d)
+        if not inl.any():
+            return 0.0, float("inf")
+        return float(inl.mean()), float(np.sqrt(np.mean(d[inl] ** 2)))
+
+    def _gicp(self, scan: np.ndarray, guess: np.ndarray) -> tuple[np.ndarray, float, float]:
+        from ._deps import open3d
+        from .topology.correspondence import SpatialCloud
+
+        reg = open3d().pipelines.registration
+        src = SpatialCloud(scan, self.voxel).pcd
+        T = guess
+        for dist in (3.0 * self.inlier, self.inlier):
+            icp = reg.registration_generalized_icp(src, self._cloud.pcd, dist, T,
+                                                   reg.TransformationEstimationForGeneralizedICP(),
+                                                   reg.ICPConvergenceCriteria(max_iteration=30))
+            T = np.asarray(icp.transformation)
+        ev = reg.evaluate_registration(src, self._cloud.pcd, self.inlier, T)
+        fitness = float(ev.fitness)
+        return T, fitness, (float(ev.inlier_rmse) if fitness > 0 else float("inf"))
+
+    def global_search(self, cloud: np.ndarray) -> tuple[np.ndarray, float, float, float]:
+        """Find ``cloud`` ``(N, 3)`` (base frame) anywhere in the map, without a guess.
+
+        Returns ``(T_world_base, fitness, inlier_rmse, ambiguity)``; ambiguity is the score of
+        the best clearly different place over the best (planar; 0 for 3D). Can fail where the
+        map repeats itself: check fitness and ambiguity before trusting the pose.
+        """
+        if len(cloud) < 20:
+            return np.eye(4), 0.0, float("inf"), 1.0
+        if self.planar:
+            from .topology.planar_match import match_planar
+
+            m = match_planar(cloud, self._map3d, resolution=0.1, inlier_distance=self.inlier)
+            T, fitness, rmse = self.localize(cloud, m.T)
+            return T, fitness, rmse, float(m.ambiguity)
+        from .topology.correspondence import SpatialCloud, check_correspondence
+
+        res = check_correspondence(SpatialCloud(cloud, self.voxel), self._cloud, planar=False,
+                                   voxel_size=self.voxel)
+        T, fitness, rmse = self._gicp(cloud, res.T_target_source)
+        return T, fitness, rmse, 0.0
+
+
+def parse_initial_pose(initial_pose: np.ndarray | tuple | str | None) -> np.ndarray | None:
+    """``"x y yaw"`` (string or 3 numbers) or a ``(4, 4)`` matrix -> ``T_world_base``, or None."""
+    if initial_pose is None:
+        return None
+    if isinstance(initial_pose, str):
+        try:
+            vals = [float(v) for v in initial_pose.replace(",", " ").split()]
+        except ValueError:
+            vals = []
+        if len(vals) != 3:
+            raise SubmapSlamError(f"initial pose {initial_pose!r}: expected three numbers \"x y yaw\" (yaw in rad)")
+        return se2_to_matrix(*vals)
+    arr = np.asarray(initial_pose, dtype=np.float64)
+    if arr.shape == (3,):
+        return se2_to_matrix(*arr)
+    if arr.shape != (4, 4) or not np.isfinite(arr).all():
+        raise SubmapSlamError(f"initial pose must be (x, y, yaw) or a finite (4, 4) matrix, got shape {arr.shape}")
+    return arr
+
+
+def localize_log(
+    log_reader: Iterable[Scan],
+    map_dir_or_points: str | Path | np.ndarray,
+    initial_pose: np.ndarray | tuple | str | None = None,
+    *,
+    config: LocalizationConfig | None = None,
+    start: int = 0,
+    max_scans: int | None = None,
+    on_scan: Callable[[int], None] | None = None,
+) -> LocalizationResult:
+    """Localise every scan of ``log_reader`` (scans in log order) in a fixed map.
+
+    ``map_dir_or_points``: a run folder, a PLY/PCD file, or ``(M, 3)`` points (world frame).
+    ``initial_pose``: ``T_world_base`` of the first localised scan (``(4, 4)``, ``(x, y, yaw)``
+    or ``"x y yaw"``); None: global search in the whole map. ``start`` skips that many scans
+    of the log, ``max_scans`` stops after that many localised scans. ``on_scan(k)`` is called
+    after each scan (progress). The map is not modified.
+    """
+    cfg = config or LocalizationConfig()
+    t_total = time.perf_counter()
+    points = map_dir_or_points if isinstance(map_dir_or_points, np.ndarray) else load_map(map_dir_or_points)
+    loc = Localizer(points, cfg)
+    T0 = parse_initial_pose(initial_pose)
+    stamps, poses, fits, rmses, lost = [], [], [], [], []
+    t_track = t_global = 0.0
+    tracking = T0 is not None   # False: searching (initialisation or lost)
+    ever_fixed = tracking
+    initialised_at = 0
+    n_relocs = n_searches = 0
+    bad_streak = 0
+    pending: list[int] = []     # indices since tracking became doubtful (dead-reckoned, re-anchored on a fix)
+    dr: list[np.ndarray] = []   # dead-reckoning chain T_dr_base of every scan (prediction increments only)
+    clouds: list[np.ndarray] = []  # preprocessed points of the pending scans
+    last_wheel: np.ndarray | None = None
+    last_delta = np.eye(4)
+    since_search = 0
+    k = -1
+    for n, scan in enumerate(log_reader):
+        if n < start:
+            continue
+        if max_scans is not None and k + 1 >= max_scans:
+            break
+        k += 1
+        if scan.planar != loc.planar:
+            raise InputError(scan.source or f"scan {scan.index}",
+                             f"a {'2D' if scan.planar else '3D'} scan cannot be localised in a "
+                             f"{'2D (planar)' if loc.planar else '3D'} map")
+        wheel = scan.odometry if cfg.use_wheel_odometry else None
+        delta = inverse(last_wheel) @ wheel if (wheel is not None and last_wheel is not None) else last_delta
+        if loc.planar:
+            delta = se2_to_matrix(*matrix_to_se2(delta))
+        last_wheel = wheel
+        dr.append(np.eye(4) if k == 0 else dr[-1] @ delta)
+        pts = loc.preprocess(scan.points)
+        stamps.append(scan.timestamp)
+        prev = poses[-1] if poses else (T0 if T0 is not None else np.eye(4))
+        prior = prev if k == 0 else prev @ delta
+        if tracking:
+            t = time.perf_counter()
+            T, fit, rmse = loc.localize(pts, prior)
+            t_track += time.perf_counter() - t
+            if fit >= cfg.min_fitness:
+                bad_streak = 0
+                pending.clear()
+                clouds.clear()
+                poses.append(T)
+                fits.append(fit)
+                rmses.append(rmse)
+                lost.append(False)
+            else:
+                bad_streak += 1
+                pending.append(k)
+                clouds.append(pts)
+                poses.append(T if fit > 0 else prior)
+                fits.append(fit)
+                rmses.append(rmse)
+                lost.append(False)
+                if bad_streak >= cfg.lost_after:
+                    log.info("lost at scan %d (fitness %.2f for %d scans)", k, fit, bad_streak)
+                    tracking = False
+                    since_search = cfg.relocalize_every  # search right away
+                    for j in pending:
+                        lost[j] = True
+        else:
+            poses.append(prior)
+            fits.append(0.0)
+            rmses.append(float("inf"))
+            lost.append(True)
+            pending.append(k)
+            clouds.append(pts)
+            since_search += 1
+            if since_search >= cfg.relocalize_every or not ever_fixed:
+                since_search = 0
+                del clouds[:-cfg.global_scans]
+                t = time.perf_counter()
+                recent = pending[-len(clouds):]
+                fused = _fuse(clouds, [inverse(dr[k]) @ dr[j] for j in recent], loc)
+                T, fit, rmse, amb = loc.global_search(fused)
+                t_global += time.perf_counter() - t
+                n_searches += 1
+                if fit >= cfg.relocalize_min_fitness and amb <= cfg.max_ambiguity:
+                    T_cur, fit_c, rmse_c = loc.localize(pts, T)
+                    if fit_c >= fit - 0.05:
+                        T, fit, rmse = T_cur, fit_c, rmse_c
+                    log.info("fix at scan %d: fitness %.2f, ambiguity %.2f", k, fit, amb)
+                    _reanchor(poses, dr, pending, k, T)
+                    poses[k], fits[k], rmses[k], lost[k] = T, fit, rmse, False
+                    if ever_fixed:
+                        n_relocs += 1
+                    else:
+                        initialised_at = k
+                        ever_fixed = True
+                        last_delta = np.eye(4)
+                    tracking = True
+                    bad_streak = 0
+                    pending.clear()
+                    clouds.clear()
+        if k >= 1:
+            last_delta = inverse(poses[-2]) @ poses[-1] if not lost[-1] else delta
+        if on_scan is not None:
+            on_scan(k)
+    if k < 0:
+        raise SubmapSlamError("the log holds no scans to localise")
+    if not ever_fixed:
+        raise SubmapSlamError(
+            f"the robot was not found in the map in {k + 1} scans ({n_searches} global searches); "
+            "give an initial pose (--initial-pose \"x y yaw\")")
+    timings = {"total": time.perf_counter() - t_total, "tracking": t_track, "global_search": t_global}
+    return LocalizationResult(
+        timestamps=np.asarray(stamps, dtype=np.float64), poses=np.stack(poses), fitness=np.asarray(fits),
+        inlier_rmse=np.asarray(rmses), lost=np.asarray(lost, dtype=bool), relocalisations=n_relocs,
+        global_searches=n_searches, initialised_at=initialised_at, timings=timings, planar=loc.planar)
+
+
+def _fuse(clouds: list[np.ndarray], T_cur_j: list[np.ndarray], loc: Localizer) -> np.ndarray:
+    """Scan clouds moved into the current base frame by ``T_cur_j`` and downsampled: ``(K, 3)``."""
+    pts = np.vstack([c @ T[:3, :3].T + T[:3, 3] for c, T in zip(clouds, T_cur_j)])
+    if loc.planar:
+        return pts[first_point_per_cell(pts[:, :2], loc.voxel)]
+    from .submaps import voxel_downsample
+
+    return voxel_downsample(pts, loc.voxel / 2)
+
+
+def _reanchor(poses: list[np.ndarray], dr: list[np.ndarray], pending: list[int], k: int, T_fix: np.ndarray) -> None:
+    """Poses of the dead-reckoned scans ``pending`` re-expressed relative to the fix at scan ``k``."""
+    T_world_dr = T_fix @ inverse(dr[k])
+    for j in pending:
+        poses[j] = T_world_dr @ dr[j]
