@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .errors import ConfigError
 
@@ -107,8 +107,20 @@ class MappingConfig(_Strict):
     """Fused output map and evidence grids."""
 
     map_voxel_size: float = Field(0.1, gt=0, description="[m] voxel size of map.ply")
-    grid_resolution: float = Field(0.05, gt=0, description="[m] cell size of occupancy grids")
+    grid_resolution: float = Field(0.05, gt=0, description="[m] cell size of occupancy grids from 2D lasers")
+    grid_resolution_3d: float = Field(0.2, gt=0, description="[m] cell size of occupancy grids from 3D LiDAR")
+    grid_min_height: float = Field(0.3, description="[m] 3D LiDAR: lowest obstacle height above the ground")
+    grid_max_height: float = Field(2.0, description="[m] 3D LiDAR: highest obstacle height above the ground")
+    grid_ground_z: float | None = Field(
+        None, description="[m] 3D LiDAR: ground height in the sensor frame (e.g. -1.7); null estimates it per scan")
     write_grid: bool = True
+
+    @model_validator(mode="after")
+    def _band_order(self) -> MappingConfig:
+        if self.grid_max_height <= self.grid_min_height:
+            raise ValueError(f"grid_max_height ({self.grid_max_height}) must exceed grid_min_height "
+                             f"({self.grid_min_height})")
+        return self
 
 
 class PipelineConfig(_Strict):

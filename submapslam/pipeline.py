@@ -122,12 +122,24 @@ class SubmapSLAM:
         cfg = self.config
         self._odometry = Odometry(cfg.odometry, self.planar)
         voxel = cfg.submaps.voxel_size or self._odometry.voxel_size / 2.0
-        self._builder = SubmapBuilder(cfg.submaps, voxel, self.planar)
+        self._builder = SubmapBuilder(cfg.submaps, voxel, self.planar, grid_points=self._grid_slice())
         if cfg.loops.enabled:
             from .topology.loop_closure import LoopCloser
 
             self._loop_closer = LoopCloser(cfg.loops, planar=self.planar, voxel_size=voxel,
                                            max_range=cfg.odometry.max_range, timer=self.timer)
+
+    def _grid_slice(self):
+        """For 3D runs with grids on: scan -> its obstacle slice (what the occupancy grid traces)."""
+        mapping = self.config.mapping
+        if self.planar or not mapping.write_grid:
+            return None
+        from functools import partial
+
+        from .mapping.height_band import obstacle_points
+
+        return partial(obstacle_points, cell=mapping.grid_resolution_3d, min_above_ground=mapping.grid_min_height,
+                       max_above_ground=mapping.grid_max_height, ground_z=mapping.grid_ground_z)
 
     def _close_submap(self, submap: Submap) -> None:
         self.submaps.append(submap)

@@ -38,8 +38,9 @@ class SlamResult:
         submap_points: list of ``(M_k, 3)`` submap clouds in their anchor frames.
         submap_scan_indices: list of scan-index lists per submap.
         submap_scan_poses: list of ``(K, 4, 4)`` ``T_anchor_scan`` per submap.
-        submap_scan_points: planar runs: per submap, each scan's ``(n, 3)`` sensor-frame
-            points (for occupancy grids); empty lists for 3D runs.
+        submap_scan_points: per submap, each scan's ``(n, 3)`` sensor-frame points for the
+            occupancy grids: the whole scan of a 2D laser, the obstacle slice of a 3D scan
+            (empty lists when grids are off).
         edges: ``(i, j, T_i_j (4,4), information (6,6), kind)`` tuples of the submap graph.
         loops: every tested hypothesis.
         stage_seconds: wall time per stage.

@@ -7,6 +7,7 @@ submap is a rigid unit; the global optimiser only moves its anchor.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -36,8 +37,9 @@ class Submap:
         points: ``(M, 3)`` fused, voxel-downsampled points in the anchor frame.
         distance: path length covered [m].
         planar: 2D laser submap (all z = 0).
-        scan_points: planar submaps only: each scan's ``(n, 3)`` points in its sensor frame
-            (kept for the evidence grids, which need the rays).
+        scan_points: each scan's ``(n, 3)`` points in its sensor frame, kept for the evidence
+            grids, which need the rays: all points of a 2D laser scan; for 3D scans, the
+            obstacle slice the builder's ``grid_points`` gives (empty without one).
     """
 
     id: int
@@ -59,10 +61,15 @@ class SubmapBuilder:
     the odometry edge between anchors is exactly the last ``T_anchor_scan`` of submap k.
     """
 
-    def __init__(self, config: SubmapConfig, voxel_size: float, planar: bool) -> None:
+    def __init__(self, config: SubmapConfig, voxel_size: float, planar: bool,
+                 grid_points: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+        """``grid_points`` maps a 3D scan ``(N, 3)`` to the points an occupancy grid should trace
+        rays to (e.g. :func:`~submapslam.mapping.height_band.obstacle_points`); planar scans
+        are kept whole."""
         self.config = config
         self.voxel = voxel_size
         self.planar = planar
+        self.grid_points = grid_points
         self.max_distance = config.max_distance or (5.0 if planar else 12.0)
         self._next_id = 0
         self._reset(None)
@@ -96,6 +103,8 @@ class SubmapBuilder:
         self._chunks.append(transform_points(T_anchor_scan, points))
         if self.planar:
             self._scan_points.append(points.astype(np.float32))
+        elif self.grid_points is not None:
+            self._scan_points.append(self.grid_points(points))
         self._buffered += len(points)
         if self._buffered > 50_000:
             self._compact()

@@ -22,7 +22,8 @@ def write_results(result: SlamResult, out_dir: str | Path) -> dict[str, Path]:
     Files: ``poses_tum.txt``, ``poses_kitti.txt``, ``odometry_tum.txt``, ``graph.g2o``,
     ``map.ply``, ``config.yaml``, ``summary.json``, ``loops.csv``, ``submaps.csv`` (anchor poses
     and marginal standard deviations), and for planar runs ``map.pgm`` + ``map.yaml`` (occupancy
-    grid in the ROS map_server format, moving objects cleared).
+    grid in the ROS map_server format, moving objects cleared; for 3D LiDAR from the
+    obstacle slice of each scan).
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -38,7 +39,7 @@ def write_results(result: SlamResult, out_dir: str | Path) -> dict[str, Path]:
     paths["summary.json"].write_text(json.dumps(result.summary(), indent=2) + "\n")
     _write_loops(paths["loops.csv"], result)
     _write_submaps(paths["submaps.csv"], result)
-    if result.planar and result.config.mapping.write_grid and result.n_submaps:
+    if result.config.mapping.write_grid and any(len(p) for scans in result.submap_scan_points for p in scans):
         from ..mapping.global_map import build_global_grid
         from .grid import write_pgm_yaml
 

@@ -1,4 +1,5 @@
-"""Global occupancy map of a planar run: local grids per submap fused through optimised anchors."""
+"""Global occupancy map: local grids per submap fused through optimised anchors (2D lasers, and
+3D LiDAR through the obstacle slice of each scan)."""
 
 from __future__ import annotations
 
@@ -21,9 +22,17 @@ def local_grid(T_anchor_scans: np.ndarray, scan_points: list[np.ndarray], params
     return grid
 
 
+def grid_params(result: SlamResult) -> GridParams:
+    """Grid parameters for a run: the configured cell size; 3D LiDAR carves free space farther."""
+    mapping = result.config.mapping
+    if result.planar:
+        return GridParams(resolution=mapping.grid_resolution)
+    return GridParams(resolution=mapping.grid_resolution_3d, max_free_range=30.0)
+
+
 def build_global_grid(result: SlamResult, params: GridParams | None = None) -> tuple[EvidenceGrid, int]:
     """Fuse every submap's local grid in time order; return the grid and cells cleared as dynamic."""
-    params = params or GridParams(resolution=result.config.mapping.grid_resolution)
+    params = params or grid_params(result)
     corners = []
     locals_: list[tuple[EvidenceGrid, np.ndarray]] = []
     for k, T_world_anchor in enumerate(result.submap_poses):
