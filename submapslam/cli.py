@@ -109,11 +109,10 @@ def demo(
 
 
 def _register_subcommands() -> None:
-    from . import cli_ekf, cli_eval, cli_synth
+    from . import cli_ekf, cli_eval, cli_localize, cli_synth
 
-    for module in (cli_eval, cli_synth, cli_ekf):
+    for module in (cli_eval, cli_synth, cli_ekf, cli_localize):
         module.register(app)
-    __import__(f"{__package__}.cli_localize", fromlist=["register"]).register(app)  # submapslam localize
 
 
 _register_subcommands()
