@@ -146,15 +146,17 @@ class SubmapSLAM:
         for idx in submap.scan_indices:
             self._scan_submap[idx] = submap.id
         k = submap.id
+        info = T_prev_k = None
+        if k > 0:
+            prev = self.submaps[k - 1]
+            T_prev_k = inverse(prev.T_odom_anchor) @ submap.T_odom_anchor
+            info = odometry_information(T_prev_k, prev.distance, self.planar, self.config.backend)
+            if self.config.backend.odometry_registration_covariance:
+                info = self._registration_shaped(info, prev, submap, T_prev_k)  # its own stage
         with self.timer("optimisation"):
             if k == 0:
                 self._graph.add_node(0, submap.T_odom_anchor, PRIOR_INFORMATION)
             else:
-                prev = self.submaps[k - 1]
-                T_prev_k = inverse(prev.T_odom_anchor) @ submap.T_odom_anchor
-                info = odometry_information(T_prev_k, prev.distance, self.planar, self.config.backend)
-                if self.config.backend.odometry_registration_covariance:
-                    info = self._registration_shaped(info, prev, submap, T_prev_k)
                 self._graph.add_node(k, self._graph.pose(k - 1) @ T_prev_k)
                 self._graph.add_between(k - 1, k, T_prev_k, info, "odometry")
             self._graph.update()
@@ -173,11 +175,15 @@ class SubmapSLAM:
         degenerate (along a corridor), which is where scan matching alone cannot see. Edges
         between submaps that do not overlap keep the drift model alone.
         """
-        from .topology.correspondence import check_correspondence
+        from .topology.correspondence import check_correspondence, match_voxel, submap_cloud
 
         with self.timer("odometry_covariance"):
-            res = check_correspondence(new.points, prev.points, planar=bool(self.planar), initial_guess=T_prev_new,
-                                       refine_only=True, voxel_size=max(self._builder.voxel, 0.05))
+            voxel = match_voxel(self._builder.voxel, bool(self.planar))
+            src, tgt = new.points, prev.points
+            if not self.planar:  # the clouds (and normals) the loop tests use too
+                src, tgt = submap_cloud(new, voxel), submap_cloud(prev, voxel)
+            res = check_correspondence(src, tgt, planar=bool(self.planar), initial_guess=T_prev_new,
+                                       refine_only=True, voxel_size=voxel)
         if res.overlap < 0.1:
             return info
         cov_reg = np.linalg.inv(0.5 * (res.information + res.information.T))

@@ -24,7 +24,7 @@ from ..config import LoopConfig
 from ..geometry import inverse, rotation_angle, so3_log
 from ..result import LoopRecord
 from ..submaps import Submap
-from .correspondence import CorrespondenceResult, check_correspondence
+from .correspondence import CorrespondenceResult, check_correspondence, match_voxel, submap_cloud
 from .descriptors import DescriptorIndex, compute_descriptor
 
 log = logging.getLogger(__name__)
@@ -55,8 +55,7 @@ class LoopCloser:
         self.config = config
         self.planar = planar
         self.voxel = voxel_size
-        # 3D submaps are dense: test them at twice the map voxel (4x fewer points), planar at the map voxel
-        self._match_voxel = max(voxel_size, 0.05) if planar else 2.0 * voxel_size
+        self._match_voxel = match_voxel(voxel_size, planar)
         self.max_range = max_range
         self.index = DescriptorIndex()
         self._tested: set[tuple[int, int]] = set()
@@ -115,8 +114,12 @@ class LoopCloser:
     def _correspond(self, target: Submap, source: Submap, initial_guess, yaw_hint, search_radius,
                     refine_only: bool = False) -> CorrespondenceResult:
         c = self.config
+        if self.planar:
+            src, tgt = source.points, target.points
+        else:  # downsampled cloud, normals and features once per submap
+            src, tgt = submap_cloud(source, self._match_voxel), submap_cloud(target, self._match_voxel)
         return check_correspondence(
-            source.points, target.points, planar=self.planar, initial_guess=initial_guess,
+            src, tgt, planar=self.planar, initial_guess=initial_guess,
             yaw_hint=yaw_hint, voxel_size=self._match_voxel, min_fitness=c.min_fitness,
             max_inlier_rmse=c.max_inlier_rmse, min_overlap=c.min_overlap, search_radius=search_radius,
             yaw_window_deg=c.yaw_window_deg, refine_only=refine_only,
@@ -176,6 +179,30 @@ class LoopCloser:
             return False, f"implausible under current uncertainty (Mahalanobis^2 {m2:.1f} > {limit})"
         return True, "plausible"
 
+    def _reachable(self, hyp: Hypothesis, graph: PoseGraph) -> tuple[bool, str]:
+        """Cheap check before registering a descriptor hypothesis: can it pass :meth:`_plausible`?
+
+        A descriptor match means the two anchors see one place within the descriptor radius
+        ``R``, so the loop's translation is at most ``R``. Its error against the estimate is then
+        at least ``d - R`` (``d``: the anchors' estimated distance), and the gate's Mahalanobis
+        distance at least ``(d - R)^2 / lambda_max`` of the translation block (a marginal never
+        exceeds the joint form). When even that bound fails, no registration result can pass.
+        """
+        if hyp.source != "descriptor" or self.planar:  # planar tests are cheap; 2D results stay as they were
+            return True, ""
+        _, cov = graph.odometry_chain(hyp.i, hyp.j)
+        d = float(np.linalg.norm((inverse(graph.pose(hyp.i)) @ graph.pose(hyp.j))[:3, 3]))
+        excess = d - self.config.descriptor_radius
+        if excess <= 0:
+            return True, ""
+        S = cov[3:6, 3:6] + np.eye(3) * 0.2**2  # the submap-level floor of _plausible
+        bound = excess**2 / float(np.linalg.eigvalsh(S).max())
+        limit = _CHI2_999[6]
+        if bound > limit:
+            return False, (f"implausible under current uncertainty before registration (anchors {d:.1f} m apart, "
+                           f"Mahalanobis^2 >= {bound:.1f} > {limit})")
+        return True, ""
+
     def process(self, new: Submap, submaps: list[Submap], graph: PoseGraph,
                 hint_pairs: list[tuple[int, int]]) -> list[LoopRecord]:
         """Test the hypotheses for a newly closed submap; add accepted loops to ``graph``."""
@@ -189,6 +216,10 @@ class LoopCloser:
         with self._time("loop_testing"):
             for hyp in hyps:
                 self._tested.add((hyp.i, hyp.j))
+                reachable, why = self._reachable(hyp, graph)
+                if not reachable:
+                    records.append(LoopRecord(hyp.i, hyp.j, hyp.source, False, 0.0, 0.0, float("inf"), why, None))
+                    continue
                 res = self._correspond(submaps[hyp.i], submaps[hyp.j], hyp.initial_guess, hyp.yaw_hint, hyp.search_radius)
                 accepted, reason = res.accepted, res.reason
                 if accepted:
