@@ -15,6 +15,7 @@ ambiguity of the correlative peak. The reason string names the gate that failed.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,17 +32,25 @@ class CorrespondenceResult:
     """Outcome of a correspondence test.
 
     ``T_target_source`` maps source-submap points into the target submap's anchor frame;
-    ``information`` is ``(6, 6)`` in GTSAM Pose3 tangent order ``(rx, ry, rz, tx, ty, tz)``.
+    ``information`` is ``(6, 6)`` in GTSAM Pose3 tangent order ``(rx, ry, rz, tx, ty, tz)``
+    (3D results compute it on first access: most tested hypotheses are rejected and never
+    need it).
     """
 
     accepted: bool
     T_target_source: np.ndarray
-    information: np.ndarray
+    _information: np.ndarray | Callable[[], np.ndarray]
     fitness: float
     inlier_rmse: float
     overlap: float
     reason: str
     ambiguity: float = 0.0
+
+    @property
+    def information(self) -> np.ndarray:
+        if callable(self._information):
+            self._information = self._information()
+        return self._information
 
     @property
     def information_gtsam(self) -> np.ndarray:
@@ -234,8 +243,11 @@ def _spatial(source: SpatialCloud, target: SpatialCloud, initial_guess, yaw_hint
     fitness, rmse = float(icp.fitness), float(icp.inlier_rmse) if icp.fitness > 0 else float("inf")
     back = reg.evaluate_registration(tgt, src, inlier, np.linalg.inv(result))
     overlap = min(fitness, float(back.fitness))
-    info = np.asarray(reg.get_information_matrix_from_point_clouds(src, tgt, inlier, result))
-    info = info / max(rmse, 0.02) ** 2 if np.isfinite(rmse) else np.eye(6) * 1e-6
-    info = 0.5 * (info + info.T) + np.eye(6) * 1e-6
+
+    def information() -> np.ndarray:
+        info = np.asarray(reg.get_information_matrix_from_point_clouds(src, tgt, inlier, result))
+        info = info / max(rmse, 0.02) ** 2 if np.isfinite(rmse) else np.eye(6) * 1e-6
+        return 0.5 * (info + info.T) + np.eye(6) * 1e-6
+
     ok, reason = _gate(fitness, rmse, overlap, ambiguity, **gates)
-    return CorrespondenceResult(ok, result, info, fitness, rmse, overlap, reason, ambiguity)
+    return CorrespondenceResult(ok, result, information, fitness, rmse, overlap, reason, ambiguity)
