@@ -38,9 +38,9 @@ class Odometry:
         kiss.data.min_range = config.min_range
         kiss.data.deskew = config.deskew
         kiss.mapping.voxel_size = config.voxel_size or (0.2 if planar else config.max_range / 100.0)
-        kiss.mapping.max_points_per_voxel = config.max_points_per_voxel
+        kiss.mapping.max_points_per_voxel = config.max_points_per_voxel or (20 if planar else 3)
         kiss.registration.max_num_iterations = config.max_iterations
-        kiss.registration.convergence_criterion = config.convergence_criterion
+        kiss.registration.convergence_criterion = config.convergence_criterion or (1e-4 if planar else 1e-3)
         kiss.registration.max_num_threads = 1
         kiss.adaptive_threshold.initial_threshold = config.initial_threshold
         kiss.adaptive_threshold.min_motion_th = config.min_motion_threshold
