@@ -27,9 +27,10 @@ def register(app: typer.Typer) -> None:
         format: Annotated[str | None, typer.Option("--format", "-f", help="Force the log format.")] = None,
         start: Annotated[int, typer.Option("--start", min=0, help="Skip the first N scans of the log.")] = 0,
         max_scans: Annotated[int | None, typer.Option("--max-scans", min=1, help="Stop after N scans.")] = None,
-        min_fitness: Annotated[float, typer.Option(help="Tracking gate: inlier fraction below which a "
-                                                   "scan counts as not localised.")] = 0.5,
-        lost_after: Annotated[int, typer.Option(min=1, help="Scans below the gate before the robot is lost "
+        min_fitness: Annotated[float, typer.Option(help="Consistency gate: inlier fraction among the scan points "
+                                                   "inside the mapped area below which a scan's fit is not "
+                                                   "believed (points in unmapped space do not count).")] = 0.75,
+        lost_after: Annotated[int, typer.Option(min=1, help="Inconsistent scans in a row before the robot is lost "
                                                 "and the global search runs again.")] = 5,
     ) -> None:
         """Localise every scan of LOG in a fixed map; write poses, per-scan fitness and a summary into OUT."""

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,12 +62,24 @@ class LocalizationConfig:
     max_range: float = 80.0             # [m] drop farther scan points
     voxel_size: float | None = None     # [m] scan (and 3D map) downsampling
     inlier_distance: float | None = None  # [m] a scan point is an inlier if a map point is this close
-    min_fitness: float = 0.5            # tracking gate: inlier fraction of a well-localised scan
-    lost_after: int = 5                 # consecutive scans below the gate before "lost"
+    mapped_distance: float | None = None  # [m] 3D: scan points farther than this from any map point are
+    #                                       unmapped space, left out of fitness_mapped (default 5 x inlier)
+    see_through: float = 0.5            # [m] planar: a beam reaching this far past a mapped wall contradicts the map
+    beam_width: float = 0.0087          # [rad] planar: bearing bins of the map rendered from the pose (0.5 deg)
+    min_fitness: float = 0.75           # consistency gate on fitness_mapped (inliers among the mapped points)
+    min_mapped_fraction: float = 0.25   # below this fraction of scan points in the mapped area the gate
+    #                                     cannot judge: the local fit is kept (looking at unmapped space)
+    max_correction: float = 0.5         # [m] a local fit moving the prediction farther is inconsistent
+    max_correction_yaw: float = 0.35    # [rad] same for the heading
+    lost_after: int = 5                 # consecutive inconsistent scans before "lost"
+    local_window: int = 20              # recent tracked scans kept as a local target for unmapped space
+    local_rebuild_every: int = 5        # rebuild that local target every this many tracked scans
     relocalize_min_fitness: float = 0.7  # a global-search fix must reach this fitness
     max_ambiguity: float = 0.9          # planar global search: second place / best place at most this
     global_scans: int = 10              # scans fused (dead reckoning) into the global-search cloud
-    relocalize_every: int = 5           # while lost, retry the global search every this many scans
+    relocalize_every: int = 5           # while lost, retry the global search at most every this many scans
+    global_time_budget: float = 0.25    # ... and only while global searches took at most this fraction of
+    #                                     the wall time so far (they never run while tracking)
     use_wheel_odometry: bool = True     # predict from Scan.odometry when the log has it
 
 
@@ -81,7 +94,8 @@ class LocalizationResult:
 
     timestamps: np.ndarray          # (N,) [s], the log's own
     poses: np.ndarray               # (N, 4, 4) T_world_base
-    fitness: np.ndarray             # (N,) inlier fraction against the map, [0, 1]
+    fitness: np.ndarray             # (N,) inlier fraction against the map, [0, 1], over all scan points
+    fitness_mapped: np.ndarray      # (N,) the same over the scan points inside the mapped area only
     inlier_rmse: np.ndarray         # (N,) [m], inf without inliers
     lost: np.ndarray                # (N,) bool
     relocalisations: int = 0        # fixes by the global search after the robot was lost
@@ -119,11 +133,24 @@ class LocalizationResult:
             "global_searches": self.global_searches,
             "initialised_at_scan": self.initialised_at,
             "mean_fitness": float(np.mean(self.fitness)) if self.n_scans else 0.0,
+            "mean_fitness_mapped": float(np.mean(self.fitness_mapped)) if self.n_scans else 0.0,
             "wall_time_s": round(total, 3),
             "scans_per_s": round(self.n_scans / total, 1) if total > 0 else None,
             "time_s": {k: round(v, 3) for k, v in self.timings.items()},
             "planar": self.planar,
         }
+
+
+@dataclass
+class Registration:
+    """One scan registered against the map: the pose and how well the map explains the scan."""
+
+    T: np.ndarray                  # (4, 4) T_world_base
+    fitness: float                 # scan points with a map point within the inlier distance / all scan points
+    fitness_mapped: float          # the same inliers / scan points inside the mapped area (a map point
+    #                                within ``mapped_distance``); 1.0 when none is
+    rmse: float                    # [m] over the inliers, inf without inliers
+    mapped_fraction: float         # scan points inside the mapped area / all scan points
 
 
 def load_map(path: str | Path) -> np.ndarray:
@@ -172,6 +199,8 @@ class Localizer:
         c = self.config
         self.voxel = c.voxel_size or (0.05 if self.planar else 0.4)
         self.inlier = c.inlier_distance or (0.2 if self.planar else 2.0 * self.voxel)
+        self.mapped = c.mapped_distance or 5.0 * self.inlier
+        self._n_bins = max(8, int(round(2 * np.pi / c.beam_width)))
         self.map_points = pts
         if self.planar:
             xy = pts[first_point_per_cell(pts[:, :2], self.voxel), :2]
@@ -188,6 +217,7 @@ class Localizer:
             from .topology.correspondence import SpatialCloud
 
             self._cloud = SpatialCloud(pts, self.voxel)
+            self._tree = cKDTree(np.asarray(self._cloud.pcd.points))
 
     # --- scans ---------------------------------------------------------------------------------
     def preprocess(self, points: np.ndarray) -> np.ndarray:
@@ -209,31 +239,91 @@ class Localizer:
 
         Returns ``(T_world_base (4, 4), fitness, inlier_rmse)``: fitness is the fraction of scan
         points with a map point within the inlier distance, RMSE is over those inliers [m].
+        :meth:`register` gives the fitness over the mapped area too.
         """
+        reg = self.register(scan, odometry_prior)
+        return reg.T, reg.fitness, reg.rmse
+
+    def register(self, scan: np.ndarray, odometry_prior: np.ndarray,
+                 local: _LocalTarget | None = None) -> Registration:
+        """Like :meth:`localize`, returning a :class:`Registration`. ``local`` (planar): recent
+        scans as a fallback target for the scan points with no map wall near them (unmapped
+        space), so they steady the fit instead of being matched to a wrong wall."""
         prior = np.asarray(odometry_prior, dtype=np.float64)
         if len(scan) < 20:
-            return prior, 0.0, float("inf")
+            return Registration(prior, 0.0, 0.0, float("inf"), 0.0)
         if self.planar:
-            xy = scan[:, :2]
             xyt0 = matrix_to_se2(prior)
             xyt = xyt0
+            tree, target, normals = ((self._line_tree, self._line_pts, self._line_normals) if local is None
+                                     else (local, local.points, local.normals))
             for max_corr, kernel in ((3.0 * self.inlier, 2.0 * self.inlier / 4), (self.inlier, self.inlier / 4)):
-                xyt, _ = point_to_line(xy, xyt, self._line_tree, self._line_pts, self._line_normals,
+                xyt, _ = point_to_line(scan[:, :2], xyt, tree, target, normals,
                                        max_correspondence=max_corr, kernel=kernel, prior_xyt=xyt0, iterations=8)
             T = se2_to_matrix(*xyt)
-            fitness, rmse = self._score_planar(xy, xyt)
-            return T, fitness, rmse
-        return self._gicp(scan, prior)
+        else:
+            T = self._gicp_pose(scan, prior)
+        return self.score(scan, T)
 
-    def _score_planar(self, xy: np.ndarray, xyt: np.ndarray) -> tuple[float, float]:
-        c, s = np.cos(xyt[2]), np.sin(xyt[2])
-        d, _ = self._tree.query(xy @ np.array([[c, s], [-s, c]]) + xyt[:2], distance_upper_bound=self.inlier)
-        inl = np.isfinite(d)
-        if not inl.any():
-            return 0.0, float("inf")
-        return float(inl.mean()), float(np.sqrt(np.mean(d[inl] ** 2)))
+    def score(self, scan: np.ndarray, T: np.ndarray) -> Registration:
+        """How well the map explains scan points ``(N, 3)`` (base frame) at ``T_world_base``.
 
-    def _gicp(self, scan: np.ndarray, guess: np.ndarray) -> tuple[np.ndarray, float, float]:
+        Planar: the map is rendered from the pose as a range per bearing (``beam_width``); a scan
+        point is *in the mapped area* when it is an inlier or its beam passes a mapped wall by
+        more than ``see_through`` (the map says that space is blocked); a beam that ends in front
+        of every mapped wall, or has none along it, looks into space the map does not explain
+        (an unmapped room, furniture, people) and is no evidence either way. 3D: in the mapped
+        area when a map point is within ``mapped_distance``.
+        """
+        n = len(scan)
+        if n == 0:
+            return Registration(T, 0.0, 0.0, float("inf"), 0.0)
+        if self.planar:
+            moved = scan[:, :2] @ T[:2, :2].T + T[:2, 3]
+            d, _ = self._tree.query(moved, distance_upper_bound=self.inlier)
+            inl = np.isfinite(d)
+            expected = self._render(T)
+            r = np.hypot(scan[:, 0], scan[:, 1])
+            b = self._bearing_bins(scan[:, 0], scan[:, 1])
+            through = ~inl & (r > expected[b] + self.config.see_through)
+            n_map = int(inl.sum() + through.sum())
+        else:
+            moved = scan @ T[:3, :3].T + T[:3, 3]
+            d, _ = self._tree.query(moved, distance_upper_bound=self.mapped)
+            inl = d <= self.inlier
+            n_map = int(np.isfinite(d).sum())
+        n_inl = int(inl.sum())
+        rmse = float(np.sqrt(np.mean(d[inl] ** 2))) if n_inl else float("inf")
+        return Registration(T, n_inl / n, n_inl / n_map if n_map else 1.0, rmse, n_map / n)
+
+    def _bearing_bins(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        nb = self._n_bins
+        return ((np.arctan2(y, x) + np.pi) * (nb / (2 * np.pi))).astype(np.int64) % nb
+
+    def _render(self, T: np.ndarray) -> np.ndarray:
+        """Planar: range to the nearest map point per bearing bin seen from ``T`` ``(n_bins,)``
+        (inf where none within ``max_range``), widened by one bin to close gaps between points."""
+        m = (self._xy - T[:2, 3]) @ T[:2, :2]
+        r = np.hypot(m[:, 0], m[:, 1])
+        near = r <= self.config.max_range
+        m, r = m[near], r[near]
+        b = self._bearing_bins(m[:, 0], m[:, 1])
+        order = np.argsort(-r)
+        z = np.full(self._n_bins, np.inf)
+        z[b[order]] = r[order]  # the last write per bin is the nearest point
+        return np.minimum(z, np.minimum(np.roll(z, 1), np.roll(z, -1)))
+
+    def local_target(self, recent_world_xy: list[np.ndarray]) -> _LocalTarget | None:
+        """Planar: the map's walls plus recent scans ``(K_i, 2)`` (world frame) as one target."""
+        pts = np.concatenate(recent_world_xy)
+        pts = pts[first_point_per_cell(pts, self.voxel)]
+        if len(pts) < 10:
+            return None
+        normals = line_normals(pts, cKDTree(pts))
+        line = np.isfinite(normals[:, 0])
+        return _LocalTarget(self, pts[line], normals[line]) if line.sum() >= 10 else None
+
+    def _gicp_pose(self, scan: np.ndarray, guess: np.ndarray) -> np.ndarray:
         from ._deps import open3d
         from .topology.correspondence import SpatialCloud
 
@@ -245,14 +335,13 @@ class Localizer:
                                                    reg.TransformationEstimationForGeneralizedICP(),
                                                    reg.ICPConvergenceCriteria(max_iteration=30))
             T = np.asarray(icp.transformation)
-        ev = reg.evaluate_registration(src, self._cloud.pcd, self.inlier, T)
-        fitness = float(ev.fitness)
-        return T, fitness, (float(ev.inlier_rmse) if fitness > 0 else float("inf"))
+        return T
 
     def global_search(self, cloud: np.ndarray) -> tuple[np.ndarray, float, float, float]:
         """Find ``cloud`` ``(N, 3)`` (base frame) anywhere in the map, without a guess.
 
-        Returns ``(T_world_base, fitness, inlier_rmse, ambiguity)``; ambiguity is the score of
+        Returns ``(T_world_base, fitness, inlier_rmse, ambiguity)`` (fitness over the cloud's
+        points inside the mapped area); ambiguity is the score of
         the best clearly different place over the best (planar; 0 for 3D). Can fail where the
         map repeats itself: check fitness and ambiguity before trusting the pose.
         """
@@ -262,14 +351,35 @@ class Localizer:
             from .topology.planar_match import match_planar
 
             m = match_planar(cloud, self._map3d, resolution=0.1, inlier_distance=self.inlier)
-            T, fitness, rmse = self.localize(cloud, m.T)
-            return T, fitness, rmse, float(m.ambiguity)
+            reg = self.register(cloud, m.T)
+            return reg.T, reg.fitness_mapped, reg.rmse, float(m.ambiguity)
         from .topology.correspondence import SpatialCloud, check_correspondence
 
         res = check_correspondence(SpatialCloud(cloud, self.voxel), self._cloud, planar=False,
                                    voxel_size=self.voxel)
-        T, fitness, rmse = self._gicp(cloud, res.T_target_source)
-        return T, fitness, rmse, 0.0
+        reg = self.register(cloud, res.T_target_source)
+        return reg.T, reg.fitness_mapped, reg.rmse, 0.0
+
+
+class _LocalTarget:
+    """Point-to-line target (duck-types the ``cKDTree.query`` used by :func:`point_to_line`): a scan
+    point takes the nearest map wall point; only a point with none within the bound takes the
+    nearest point of the recent scans. Indices address ``points``/``normals`` (map first)."""
+
+    def __init__(self, loc: Localizer, pts: np.ndarray, normals: np.ndarray) -> None:
+        self._map_tree, self._n_map = loc._line_tree, len(loc._line_pts)
+        self._tree = cKDTree(pts)
+        self.points = np.vstack([loc._line_pts, pts])
+        self.normals = np.vstack([loc._line_normals, normals])
+
+    def query(self, x: np.ndarray, distance_upper_bound: float) -> tuple[np.ndarray, np.ndarray]:
+        d, i = self._map_tree.query(x, distance_upper_bound=distance_upper_bound)
+        miss = ~np.isfinite(d)
+        if miss.any():
+            d2, i2 = self._tree.query(x[miss], distance_upper_bound=distance_upper_bound)
+            d[miss] = d2
+            i[miss] = i2 + self._n_map
+        return d, i
 
 
 def parse_initial_pose(initial_pose: np.ndarray | tuple | str | None) -> np.ndarray | None:
@@ -315,7 +425,7 @@ def localize_log(
     points = map_dir_or_points if isinstance(map_dir_or_points, np.ndarray) else load_map(map_dir_or_points)
     loc = Localizer(points, cfg)
     T0 = parse_initial_pose(initial_pose)
-    stamps, poses, fits, rmses, lost = [], [], [], [], []
+    stamps, poses, regs, lost = [], [], [], []
     t_track = t_global = 0.0
     tracking = T0 is not None   # False: searching (initialisation or lost)
     ever_fixed = tracking
@@ -325,6 +435,9 @@ def localize_log(
     pending: list[int] = []     # indices since tracking became doubtful (dead-reckoned, re-anchored on a fix)
     dr: list[np.ndarray] = []   # dead-reckoning chain T_dr_base of every scan (prediction increments only)
     clouds: list[np.ndarray] = []  # preprocessed points of the pending scans
+    recent: deque[np.ndarray] = deque(maxlen=cfg.local_window)  # planar: recent tracked scans, world frame
+    local: _LocalTarget | None = None
+    since_local = 0
     last_wheel: np.ndarray | None = None
     last_delta = np.eye(4)
     since_search = 0
@@ -351,54 +464,58 @@ def localize_log(
         prior = prev if k == 0 else prev @ delta
         if tracking:
             t = time.perf_counter()
-            T, fit, rmse = loc.localize(pts, prior)
-            t_track += time.perf_counter() - t
-            if fit >= cfg.min_fitness:
+            reg = loc.register(pts, prior, local)
+            why = _inconsistency(reg, pts, prior, loc, cfg)
+            if why is None:
                 bad_streak = 0
                 pending.clear()
                 clouds.clear()
-                poses.append(T)
-                fits.append(fit)
-                rmses.append(rmse)
-                lost.append(False)
+                poses.append(reg.T)
+                if loc.planar and len(pts):
+                    recent.append(pts[:, :2] @ reg.T[:2, :2].T + reg.T[:2, 3])
+                    since_local += 1
+                    if local is None or since_local >= cfg.local_rebuild_every:
+                        local, since_local = loc.local_target(list(recent)), 0
             else:
                 bad_streak += 1
                 pending.append(k)
                 clouds.append(pts)
-                poses.append(T if fit > 0 else prior)
-                fits.append(fit)
-                rmses.append(rmse)
-                lost.append(False)
-                if bad_streak >= cfg.lost_after:
-                    log.info("lost at scan %d (fitness %.2f for %d scans)", k, fit, bad_streak)
-                    tracking = False
-                    since_search = cfg.relocalize_every  # search right away
-                    for j in pending:
-                        lost[j] = True
+                poses.append(prior)  # the fit is not believed: dead reckoning until it is consistent again
+            regs.append(reg)
+            lost.append(False)
+            t_track += time.perf_counter() - t
+            if why is not None and bad_streak >= cfg.lost_after:
+                log.info("lost at scan %d (%s for %d scans)", k, why, bad_streak)
+                tracking = False
+                since_search = cfg.relocalize_every  # search right away (within the time budget)
+                recent.clear()
+                local = None
+                for j in pending:
+                    lost[j] = True
         else:
             poses.append(prior)
-            fits.append(0.0)
-            rmses.append(float("inf"))
+            regs.append(loc.score(pts, prior))
             lost.append(True)
             pending.append(k)
             clouds.append(pts)
             since_search += 1
-            if since_search >= cfg.relocalize_every or not ever_fixed:
+            elapsed = time.perf_counter() - t_total
+            if not ever_fixed or (since_search >= cfg.relocalize_every
+                                  and t_global <= cfg.global_time_budget * elapsed):
                 since_search = 0
                 del clouds[:-cfg.global_scans]
                 t = time.perf_counter()
-                recent = pending[-len(clouds):]
-                fused = _fuse(clouds, [inverse(dr[k]) @ dr[j] for j in recent], loc)
-                T, fit, rmse, amb = loc.global_search(fused)
-                t_global += time.perf_counter() - t
+                recent_idx = pending[-len(clouds):]
+                fused = _fuse(clouds, [inverse(dr[k]) @ dr[j] for j in recent_idx], loc)
+                T, fit, _, amb = loc.global_search(fused)
                 n_searches += 1
                 if fit >= cfg.relocalize_min_fitness and amb <= cfg.max_ambiguity:
-                    T_cur, fit_c, rmse_c = loc.localize(pts, T)
-                    if fit_c >= fit - 0.05:
-                        T, fit, rmse = T_cur, fit_c, rmse_c
+                    cur = loc.register(pts, T)
+                    if cur.fitness_mapped >= fit - 0.05:
+                        T = cur.T
                     log.info("fix at scan %d: fitness %.2f, ambiguity %.2f", k, fit, amb)
                     _reanchor(poses, dr, pending, k, T)
-                    poses[k], fits[k], rmses[k], lost[k] = T, fit, rmse, False
+                    poses[k], regs[k], lost[k] = T, loc.score(pts, T), False
                     if ever_fixed:
                         n_relocs += 1
                     else:
@@ -409,6 +526,7 @@ def localize_log(
                     bad_streak = 0
                     pending.clear()
                     clouds.clear()
+                t_global += time.perf_counter() - t
         if k >= 1:
             last_delta = inverse(poses[-2]) @ poses[-1] if not lost[-1] else delta
         if on_scan is not None:
@@ -421,9 +539,31 @@ def localize_log(
             "give an initial pose (--initial-pose \"x y yaw\")")
     timings = {"total": time.perf_counter() - t_total, "tracking": t_track, "global_search": t_global}
     return LocalizationResult(
-        timestamps=np.asarray(stamps, dtype=np.float64), poses=np.stack(poses), fitness=np.asarray(fits),
-        inlier_rmse=np.asarray(rmses), lost=np.asarray(lost, dtype=bool), relocalisations=n_relocs,
+        timestamps=np.asarray(stamps, dtype=np.float64), poses=np.stack(poses),
+        fitness=np.asarray([r.fitness for r in regs]), fitness_mapped=np.asarray([r.fitness_mapped for r in regs]),
+        inlier_rmse=np.asarray([r.rmse for r in regs]), lost=np.asarray(lost, dtype=bool), relocalisations=n_relocs,
         global_searches=n_searches, initialised_at=initialised_at, timings=timings, planar=loc.planar)
+
+
+def _inconsistency(reg: Registration, scan: np.ndarray, prior: np.ndarray, loc: Localizer,
+                   cfg: LocalizationConfig) -> str | None:
+    """Why the local fit ``reg`` of ``scan`` (started from ``prior``) cannot be believed, or None.
+
+    Few scan points near the map (looking into space the map never saw) is no reason: the
+    fit of the points that are near it, held to the prediction elsewhere, is still the best
+    estimate. A correction far larger than a prediction error, or most of the *mapped* points
+    missing the map's walls, is.
+    """
+    if reg.mapped_fraction >= cfg.min_mapped_fraction and reg.fitness_mapped < cfg.min_fitness:
+        return f"fitness over the mapped area {reg.fitness_mapped:.2f}"
+    corr = inverse(prior) @ reg.T
+    if (np.linalg.norm(corr[:3, 3]) > cfg.max_correction
+            or abs(np.arctan2(corr[1, 0], corr[0, 0])) > cfg.max_correction_yaw):
+        # a large correction is believed only when it explains the scan clearly better than the
+        # prediction (snapping back after drift); otherwise the fit ran off along some wall
+        if reg.fitness < loc.score(scan, prior).fitness + 0.1:
+            return "correction jump without a better fit"
+    return None
 
 
 def _fuse(clouds: list[np.ndarray], T_cur_j: list[np.ndarray], loc: Localizer) -> np.ndarray:

@@ -111,8 +111,9 @@ def test_kidnapped_robot_is_reported_lost_and_relocalised(world):
     assert err[a:].max() < 0.1                  # the lost span re-anchored on the fix by dead reckoning
     s = res.summary()
     assert s["lost_scans"] == spans[0][1] - a + 1 and s["lost_spans"][0]["first_scan"] == a
-    # without a gate the tracker would keep a pose metres away: the gate is what caught it
-    assert res.fitness[a:a + cfg.lost_after].max() < cfg.min_fitness
+    # without a gate the tracker would keep a pose metres away: the gate on the fitness over the
+    # mapped area (beams passing through the map's walls) is what caught it
+    assert res.fitness_mapped[a:a + cfg.lost_after].max() < cfg.min_fitness
 
 
 def test_outdoor_3d_localization_and_global_search(tmp_path):
@@ -150,8 +151,9 @@ def test_cli_localize_writes_every_output(world, tmp_path):
     assert position_errors(tum.poses, world["truth"][:100]).max() < 0.06
     assert len(read_kitti(out / "poses_kitti.txt")) == 100
     rows = (out / "localization.csv").read_text().splitlines()
-    assert rows[0] == "timestamp,fitness,rmse,lost" and len(rows) == 101
-    assert all(float(row.split(",")[1]) > 0.9 and row.endswith(",0") for row in rows[1:])
+    assert rows[0] == "timestamp,fitness,fitness_mapped,rmse,lost" and len(rows) == 101
+    assert all(float(row.split(",")[1]) > 0.9 and float(row.split(",")[2]) > 0.9 and row.endswith(",0")
+               for row in rows[1:])
     summary = json.loads((out / "summary.json").read_text())
     assert summary["scans"] == 100 and summary["lost_scans"] == 0 and summary["relocalisations"] == 0
     assert summary["scans_per_s"] > 0 and summary["wall_time_s"] > 0
@@ -192,3 +194,27 @@ def test_a_2d_log_in_a_3d_map_is_an_input_error(world, tmp_path):
     cloud = rng.uniform(-5, 5, size=(500, 3))
     with pytest.raises(InputError, match="2D scan cannot be localised in a 3D map"):
         localize_log(world["scans"][:3], cloud, initial_pose=np.eye(4))
+
+
+def test_unmapped_part_of_the_world_is_not_a_loss(world):
+    """A map of only part of the world (the map's points left of the middle cut away: a third of
+    the hallways never mapped), then a lap that drives through the unmapped part and back. Seeing
+    unmapped space is not being lost: the fitness over all scan points collapses there, the
+    fitness over the mapped area (beams that reach a mapped wall) stays high, the scans are
+    registered against the map plus the recent scans, nobody searches globally, and the pose is
+    still within centimetres when the robot is back in the mapped part. (The old gate, fitness
+    over all points below 0.5 for 5 scans, declared this lost and dead-reckoned.)"""
+    points = load_map(world["map_run"])
+    truth = world["truth"]
+    x0, x1 = truth[:, 0, 3].min(), truth[:, 0, 3].max()
+    cut = x0 + 0.35 * (x1 - x0)
+    kept = points[points[:, 0] > cut]
+    unmapped = truth[:, 0, 3] < cut - 1.0  # scans driven well inside the part the map lacks
+    assert unmapped.sum() > 100 and not unmapped[0] and not unmapped[-1]
+    res = localize_log(world["scans"], kept, initial_pose=truth[0])
+    assert res.fitness[unmapped].min() < 0.3  # most scan points have no map point near them
+    assert res.fitness_mapped[~unmapped].min() > 0.75
+    assert not res.lost.any() and res.global_searches == 0
+    err = position_errors(res.poses, truth)
+    back = np.arange(len(err)) > np.flatnonzero(unmapped).max()
+    assert err[unmapped].max() < 0.3 and err[back].max() < 0.06, (err[unmapped].max(), err[back].max())

@@ -12,7 +12,8 @@ from .trajectory import Trajectory, write_kitti, write_tum
 
 def write_localization(result: LocalizationResult, out_dir: str | Path, extra: dict | None = None) -> dict[str, Path]:
     """Write ``poses_tum.txt`` (one line per scan, the log's timestamps), ``poses_kitti.txt``,
-    ``localization.csv`` (timestamp, fitness, rmse, lost per scan) and ``summary.json``
+    ``localization.csv`` (timestamp, fitness over all scan points, fitness over the scan points inside
+    the mapped area, inlier rmse, lost; one row per scan) and ``summary.json``
     (:meth:`LocalizationResult.summary` plus ``extra``); return ``{name: path}``."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -21,8 +22,9 @@ def write_localization(result: LocalizationResult, out_dir: str | Path, extra: d
     write_kitti(paths["poses_kitti.txt"], result.poses)
     with open(paths["localization.csv"], "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["timestamp", "fitness", "rmse", "lost"])
-        for t, f, r, lost in zip(result.timestamps, result.fitness, result.inlier_rmse, result.lost):
-            w.writerow([f"{t:.6f}", f"{f:.4f}", f"{r:.4f}", int(lost)])
+        w.writerow(["timestamp", "fitness", "fitness_mapped", "rmse", "lost"])
+        for t, f, fm, r, lost in zip(result.timestamps, result.fitness, result.fitness_mapped, result.inlier_rmse,
+                                     result.lost):
+            w.writerow([f"{t:.6f}", f"{f:.4f}", f"{fm:.4f}", f"{r:.4f}", int(lost)])
     paths["summary.json"].write_text(json.dumps({**result.summary(), **(extra or {})}, indent=2) + "\n")
     return paths
