@@ -2,7 +2,7 @@
 
 Usage:
     python tools/bench_localization.py synthetic [--world rectangle] [--out DIR]
-    python tools/bench_localization.py carmen LOG REF [--map-scans N] [--out DIR]
+    python tools/bench_localization.py carmen LOG REF [--map-scans N] [--out DIR] [--map-run DIR] [--max-scans N]
 
 ``synthetic``: a map from one run of the world (``submapslam run``, two laps), then a
 *different* run in the same world (other speed, twice the odometry noise, so other scan places
@@ -12,7 +12,9 @@ map frame (the mapping run's first ground-truth pose), without any alignment.
 ``carmen``: a map from the first N scans of a real CARMEN log (``submapslam run --max-scans N``),
 then the remaining scans localised in it starting from a global search (no initial pose); ATE
 against the corrected reference REF (one SE(3) alignment for the whole localised part, as
-``submapslam eval --raw-log`` does). Prints one markdown table row per measure.
+``submapslam eval --raw-log`` does). Prints one markdown table row per measure. For iterating:
+``--map-run DIR`` reuses the map of an earlier run (e.g. ``OUT/map_run``) instead of building it,
+``--max-scans N`` localises only the first N scans after the map's.
 """
 
 from __future__ import annotations
@@ -63,35 +65,45 @@ def synthetic(world: str, out: Path) -> list[tuple[str, object]]:
     return rows
 
 
-def carmen(log: Path, ref_path: Path, map_scans: int, out: Path) -> list[tuple[str, object]]:
+def carmen(log: Path, ref_path: Path, map_scans: int, out: Path, map_run: Path | None = None,
+           max_scans: int | None = None) -> list[tuple[str, object]]:
     from submapslam.api import run_log
     from submapslam.evaluation.metrics import ate
     from submapslam.io.registry import open_log
-    from submapslam.io.trajectory import Trajectory, carmen_reference_trajectory
+    from submapslam.io.trajectory import Trajectory, carmen_reference_trajectory, read_tum
     from submapslam.localization import localize_log
 
-    t0 = time.perf_counter()
-    slam, _ = run_log(log, out / "map_run", max_scans=map_scans)
-    t_map = time.perf_counter() - t0
     ref = carmen_reference_trajectory(ref_path, log)
-    slam_ate = ate(Trajectory(slam.timestamps, slam.poses), ref)
-    res = localize_log(open_log(log), out / "map_run", start=map_scans)
+    if map_run is None:
+        map_run = out / "map_run"
+        t0 = time.perf_counter()
+        slam, _ = run_log(log, map_run, max_scans=map_scans)
+        t_map = f"{time.perf_counter() - t0:.1f}"
+        slam_traj = Trajectory(slam.timestamps, slam.poses)
+    else:
+        t_map, slam_traj = "(reused)", read_tum(map_run / "poses_tum.txt")
+    slam_ate = ate(slam_traj, ref)
+    res = localize_log(open_log(log), map_run, start=map_scans, max_scans=max_scans)
     s = res.summary()
     (out / "localization_summary.json").write_text(json.dumps(s, indent=2) + "\n")
     est = Trajectory(res.timestamps, res.poses)
     a_all = ate(est, ref)
     tracked = Trajectory(res.timestamps[~res.lost], res.poses[~res.lost])
     a_trk = ate(tracked, ref)
+    spans = res.lost_spans()
+    longest = max((b - a + 1 for a, b in spans), default=0)
     return [("map: first N scans (submapslam run --max-scans N)", map_scans),
-            ("map run: wall time [s], ATE RMSE [m]", f"{t_map:.1f}, {slam_ate['rmse']:.3f}"),
+            ("map run: wall time [s], ATE RMSE [m]", f"{t_map}, {slam_ate['rmse']:.3f}"),
             ("localised scans (the rest of the log)", s["scans"]),
             ("initialised at scan (global search)", s["initialised_at_scan"]),
-            ("lost scans / spans / relocalisations", f"{s['lost_scans']} / {len(s['lost_spans'])} / {s['relocalisations']}"),
+            ("lost scans / spans (longest) / relocalisations",
+             f"{s['lost_scans']} / {len(spans)} ({longest}) / {s['relocalisations']}"),
+            ("global searches", s["global_searches"]),
             ("wall time [s], scans/s", f"{s['wall_time_s']:.1f}, {s['scans_per_s']}"),
             ("  of which tracking / global search [s]", f"{s['time_s']['tracking']:.1f} / {s['time_s']['global_search']:.1f}"),
             (f"ATE RMSE / max, all scans [m] ({a_all['n']} poses)", f"{a_all['rmse']:.3f} / {a_all['max']:.3f}"),
             (f"ATE RMSE, tracked scans [m] ({a_trk['n']} poses)", f"{a_trk['rmse']:.3f}"),
-            ("mean fitness", f"{s['mean_fitness']:.3f}")]
+            ("mean fitness: all scan points / mapped area", f"{s['mean_fitness']:.3f} / {s['mean_fitness_mapped']:.3f}")]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -105,6 +117,8 @@ def main(argv: list[str] | None = None) -> int:
     b.add_argument("reference", type=Path, help="corrected CARMEN log of the same run")
     b.add_argument("--map-scans", type=int, help="scans in the map (default: half the log)")
     b.add_argument("--out", type=Path)
+    b.add_argument("--map-run", type=Path, help="reuse this map folder (an earlier OUT/map_run) instead of building it")
+    b.add_argument("--max-scans", type=int, help="localise only this many scans after the map's")
     args = ap.parse_args(argv)
     out = args.out or Path(tempfile.mkdtemp(prefix="bench_loc_"))
     out.mkdir(parents=True, exist_ok=True)
@@ -115,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
         from submapslam.io.registry import open_log
 
         n = args.map_scans or sum(1 for _ in open_log(args.log)) // 2
-        rows = carmen(args.log, args.reference, n, out)
+        rows = carmen(args.log, args.reference, n, out, args.map_run, args.max_scans)
         title = args.log.name
     print(_rows_table(title, rows))
     (out / "bench.json").write_text(json.dumps(dict(rows), indent=2, default=str) + "\n")
