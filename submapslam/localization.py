@@ -21,11 +21,23 @@ run's first scan). Every pose is ``T_world_base``, a ``(4, 4)`` float64 array; s
 Without an initial pose the first scan is searched for in the whole map. That global search
 can pick the wrong place where the map repeats itself (identical rooms, plain corridors); it
 is only accepted when its fitness clears :attr:`LocalizationConfig.relocalize_min_fitness`
-and (planar) the second-best place scores clearly lower (``max_ambiguity``). When the fitness
-of tracking stays below ``min_fitness`` for ``lost_after`` scans the robot is declared lost,
-poses are dead-reckoned and the global search is retried (relocalisation) on the scans
-gathered since the loss, fused by dead reckoning into one cloud; the lost span's poses are then
-re-anchored on the fix.
+and (planar) the second-best place scores clearly lower (``max_ambiguity``).
+
+Tracking never stops because the map does not explain a scan: a robot looking into rooms the
+map never saw keeps registering locally (scan points with no map wall near them match the
+last ``local_window`` tracked scans, as Cartographer's local SLAM would) and resumes full
+map tracking as the map comes back into view. Two fitnesses are reported per scan: over all
+scan points, and over the points *inside the mapped area* (2D: the map rendered from the pose
+per bearing; a beam that ends in front of every mapped wall, or has none along it, is unmapped
+space and does not count; one that passes a mapped wall contradicts the map). The robot is
+declared lost only when the local fit is inconsistent for ``lost_after`` scans in a row: the
+fitness over the mapped area below ``min_fitness``, or a correction larger than
+``max_correction`` that does not explain the scan better than the prediction. Then poses are
+dead-reckoned and the global search is retried (relocalisation) on the scans gathered since
+the loss, fused by dead reckoning into one cloud; the lost span's poses are re-anchored on the
+fix. Global searches never run while tracking, and while lost at most every
+``relocalize_every`` scans and only while they took at most ``global_time_budget`` of the wall
+time so far.
 """
 
 from __future__ import annotations
@@ -205,6 +217,7 @@ class Localizer:
         if self.planar:
             xy = pts[first_point_per_cell(pts[:, :2], self.voxel), :2]
             self._xy = xy
+            self._render_xy = xy[first_point_per_cell(xy, 2 * self.voxel)]  # enough for 0.5 deg bearings
             self._tree = cKDTree(xy)
             normals = line_normals(xy, self._tree)
             line = np.isfinite(normals[:, 0])
@@ -303,14 +316,13 @@ class Localizer:
     def _render(self, T: np.ndarray) -> np.ndarray:
         """Planar: range to the nearest map point per bearing bin seen from ``T`` ``(n_bins,)``
         (inf where none within ``max_range``), widened by one bin to close gaps between points."""
-        m = (self._xy - T[:2, 3]) @ T[:2, :2]
+        m = (self._render_xy - T[:2, 3]) @ T[:2, :2]
         r = np.hypot(m[:, 0], m[:, 1])
         near = r <= self.config.max_range
         m, r = m[near], r[near]
         b = self._bearing_bins(m[:, 0], m[:, 1])
-        order = np.argsort(-r)
         z = np.full(self._n_bins, np.inf)
-        z[b[order]] = r[order]  # the last write per bin is the nearest point
+        np.minimum.at(z, b, r)
         return np.minimum(z, np.minimum(np.roll(z, 1), np.roll(z, -1)))
 
     def local_target(self, recent_world_xy: list[np.ndarray]) -> _LocalTarget | None:

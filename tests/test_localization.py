@@ -213,7 +213,7 @@ def test_unmapped_part_of_the_world_is_not_a_loss(world):
     assert unmapped.sum() > 100 and not unmapped[0] and not unmapped[-1]
     res = localize_log(world["scans"], kept, initial_pose=truth[0])
     assert res.fitness[unmapped].min() < 0.3  # most scan points have no map point near them
-    assert res.fitness_mapped[~unmapped].min() > 0.75
+    assert res.fitness_mapped[~unmapped].min() > LocalizationConfig().min_fitness
     assert not res.lost.any() and res.global_searches == 0
     err = position_errors(res.poses, truth)
     back = np.arange(len(err)) > np.flatnonzero(unmapped).max()
