@@ -70,3 +70,15 @@ def test_victoria_park_converts_landmarks_to_range_bearing(tmp_path):
     assert len(log.steps) == 1 and log.steps[0].ids == [7]
     np.testing.assert_allclose(log.steps[0].ranges_bearings, [[5.0, np.arctan2(4.0, 3.0)]])
     np.testing.assert_allclose(np.diag(log.measurement_cov), [0.4, 0.04])
+
+
+def test_mrclam_camera_model_covers_the_measurements():
+    """The sensor model for unobserved predictions (60 deg, 6.5 m) holds nearly every real
+    measurement, so a landmark only counts as missed where the camera could have seen it."""
+    from .conftest import shared_data
+
+    log = read_mrclam(shared_data("landmarks", "utias_mrclam7"), 1)
+    assert log.fov == pytest.approx(np.deg2rad(60.0)) and log.max_range == pytest.approx(6.5)
+    rb = np.vstack([s.ranges_bearings for s in log.steps if len(s.ranges_bearings)])
+    inside = (rb[:, 0] <= log.max_range) & (np.abs(rb[:, 1]) <= log.fov / 2)
+    assert len(rb) > 2000 and inside.mean() > 0.95
