@@ -11,7 +11,19 @@ Messages read:
     ``nav_msgs/msg/Odometry``        optional wheel odometry ``T_odom_base``, interpolated at
         each scan's header stamp (position linearly, rotation by slerp; clamped to the first /
         last odometry message outside their time span).
-The scan timestamp is the message's header stamp [s]. Points stay in the message's frame.
+    ``tf2_msgs/msg/TFMessage``       the sensor's mounting (below).
+The scan timestamp is the message's header stamp [s].
+
+Sensor mounting: points are given in the robot's base frame, as the wheel odometry is, by
+applying ``T_base_sensor`` (``p_base = T_base_sensor @ p_sensor``; the transform a cloud folder's
+``meta.yaml`` documents). It is the chain of transforms from the base frame to the scan's
+``header.frame_id`` (of the first scan) in ``/tf_static``, composed through intermediate frames
+(``base_link -> mount -> lidar``); for bags recorded without ``/tf_static``, transforms on
+``/tf`` that never change over its first messages are used. The base frame is ``base_frame=``,
+else the odometry's ``child_frame_id``, else ``base_link``; ``T_base_sensor=`` (4x4) overrides
+the lookup. Without a chain the points stay in the scan's frame (identity) with one warning.
+Planar scans (LaserScan, or clouds with all z = 0) keep z = 0 in the base frame: the mounting
+height is dropped (a scan plane tilted by the mounting is projected, with a warning).
 
 Topic choice: a bag with one PointCloud2/LaserScan topic uses it; with several, the reader
 raises an :class:`InputError` listing them: pick one with ``RosbagReader(path, topic=...)``.
@@ -28,6 +40,7 @@ ends with an error that says to run ``rosbag reindex`` on a copy.
 from __future__ import annotations
 
 import logging
+import math
 import struct
 from collections.abc import Iterator
 from pathlib import Path
@@ -35,7 +48,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..geometry import pose_from_xyz_quat
+from ..geometry import inverse, pose_from_xyz_quat
 from .registry import register_reader
 from .scan import Scan
 
@@ -44,6 +57,11 @@ log = logging.getLogger(__name__)
 CLOUD_TYPE = "sensor_msgs/msg/PointCloud2"
 LASER_TYPE = "sensor_msgs/msg/LaserScan"
 ODOM_TYPE = "nav_msgs/msg/Odometry"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+TF_STATIC_TOPICS = ("/tf_static", "tf_static")
+TF_TOPICS = ("/tf", "tf")
+TF_SCAN_LIMIT = 2000  # /tf messages looked at for transforms that never change
+DEFAULT_BASE_FRAME = "base_link"
 SCAN_TYPES = (CLOUD_TYPE, LASER_TYPE)
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
 TIME_FIELDS = ("t", "time", "timestamp")
@@ -202,6 +220,75 @@ def slerp(q0: np.ndarray, q1: np.ndarray, alpha: float) -> np.ndarray:
     return (np.sin((1 - alpha) * theta) * q0 + np.sin(alpha * theta) * q1) / np.sin(theta)
 
 
+# ---------------------------------------------------------------------------- frames (tf)
+def frame_name(frame: str) -> str:
+    """tf frame id without the leading ``/`` of old ROS 1 bags."""
+    return str(frame).strip().lstrip("/")
+
+
+def transform_to_matrix(transform) -> np.ndarray:
+    """``geometry_msgs/Transform`` -> ``(4, 4)`` float64 ``T_parent_child``."""
+    t, q = transform.translation, transform.rotation
+    return pose_from_xyz_quat((t.x, t.y, t.z), (q.x, q.y, q.z, q.w))
+
+
+class FrameTree:
+    """tf frames: each child frame has one parent and ``T_parent_child``; looks up chains."""
+
+    def __init__(self) -> None:
+        self.edges: dict[str, tuple[str, np.ndarray]] = {}  # child -> (parent, T_parent_child)
+
+    def add(self, parent: str, child: str, T_parent_child: np.ndarray) -> None:
+        parent, child = frame_name(parent), frame_name(child)
+        if parent and child and parent != child:
+            self.edges[child] = (parent, np.asarray(T_parent_child, dtype=np.float64))
+
+    def _to_root(self, frame: str) -> tuple[str, np.ndarray]:
+        """``(root, T_root_frame)`` following parents up from ``frame``."""
+        T = np.eye(4)
+        seen = {frame}
+        while frame in self.edges:
+            parent, T_pc = self.edges[frame]
+            if parent in seen:  # a loop in the tree: stop there
+                break
+            T = T_pc @ T
+            frame = parent
+            seen.add(frame)
+        return frame, T
+
+    def lookup(self, target: str, source: str) -> np.ndarray | None:
+        """``T_target_source`` (maps ``source`` coordinates into ``target``), or None without a chain."""
+        target, source = frame_name(target), frame_name(source)
+        root_t, T_rt = self._to_root(target)
+        root_s, T_rs = self._to_root(source)
+        if root_t != root_s:
+            return None
+        return inverse(T_rt) @ T_rs
+
+
+def check_transform(T, where: Path, what: str = "T_base_sensor") -> np.ndarray:
+    """A rigid ``(4, 4)`` transform as float64, else an :class:`InputError`."""
+    try:
+        T = np.asarray(T, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(where, f"{what} is not a 4x4 matrix of numbers") from None
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise InputError(where, f"{what} must be a finite 4x4 matrix, got shape {T.shape}")
+    R = T[:3, :3]
+    if (not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or abs(np.linalg.det(R) - 1.0) > 1e-6
+            or not np.allclose(T[3], [0, 0, 0, 1])):
+        raise InputError(where, f"{what} is not a rigid transform (rotation and translation)")
+    return T
+
+
+def apply_mounting(points: np.ndarray, T_base_sensor: np.ndarray, planar: bool) -> np.ndarray:
+    """Sensor-frame points -> base frame (``T_base_sensor @ p``); planar scans keep z = 0."""
+    out = points @ T_base_sensor[:3, :3].T + T_base_sensor[:3, 3]
+    if planar:
+        out[:, 2] = 0.0
+    return out
+
+
 # ---------------------------------------------------------------------------- bag access
 class _AnyBag:
     """A bag opened with ``rosbags.highlevel.AnyReader``."""
@@ -320,12 +407,21 @@ class RosbagReader:
         topic: the PointCloud2/LaserScan topic to read (needed when the bag has several).
         odometry_topic: the nav_msgs/Odometry topic; ``None`` uses the only one if there is
             exactly one, ``""`` ignores odometry.
+        base_frame: the robot frame the points are given in; default the odometry's
+            ``child_frame_id``, else ``base_link``.
+        T_base_sensor: ``(4, 4)`` sensor mounting, overriding the bag's ``/tf_static``.
+
+    After construction ``frame_id`` (the scans' frame), ``base_frame``, ``T_base_sensor`` and
+    ``mounting_source`` (``"option"``, ``"/tf_static"``, ``"/tf"``, ``"same frame"`` or ``"none"``)
+    say how the points were placed.
     """
 
     name = "rosbag"
 
-    def __init__(self, path: Path, topic: str | None = None, odometry_topic: str | None = None) -> None:
+    def __init__(self, path: Path, topic: str | None = None, odometry_topic: str | None = None,
+                 base_frame: str | None = None, T_base_sensor=None) -> None:
         self.path = Path(path)
+        self.odometry_frame: str | None = None
         bag = _open_bag(self.path)
         try:
             topics = bag.topics()
@@ -337,12 +433,86 @@ class RosbagReader:
             self.msgtype = topics[self.topic][0]
             self.count = topics[self.topic][1]
             self.odometry_topic = self._choose_odometry_topic(topics, odometry_topic)
+            self.tf_static_topics = sorted(t for t in TF_STATIC_TOPICS if topics.get(t, ("",))[0] == TF_TYPE)
+            self.tf_topics = sorted(t for t in TF_TOPICS if topics.get(t, ("",))[0] == TF_TYPE)
         finally:
             bag.close()
         if self.partial:
             log.warning("%s: MCAP file without summary/footer (cut off while recording?): "
                         "reading its data linearly up to the damage", self.path)
         self.odometry = self._read_odometry() if self.odometry_topic else None
+        self.frame_id = self._first_scan_frame()
+        self.base_frame = frame_name(base_frame or self.odometry_frame or DEFAULT_BASE_FRAME)
+        if T_base_sensor is not None:
+            self.T_base_sensor, self.mounting_source = check_transform(T_base_sensor, self.path), "option"
+        else:
+            self.T_base_sensor, self.mounting_source = self._find_mounting(explicit_base=base_frame is not None)
+        self._identity = bool(np.array_equal(self.T_base_sensor, np.eye(4)))
+        R = self.T_base_sensor[:3, :3]
+        if not self._identity and abs(R[2, 2]) < 1.0 - 1e-6 and self.msgtype == LASER_TYPE:
+            log.warning("%s: the mounting tilts the laser's scan plane by %.1f deg against %s; its points are "
+                        "projected onto the base's xy plane", self.path,
+                        math.degrees(math.acos(min(1.0, abs(R[2, 2])))), self.base_frame)
+
+    def _first_scan_frame(self) -> str:
+        """``header.frame_id`` of the first scan message ('' when it cannot be read here)."""
+        bag = _open_bag(self.path)
+        try:
+            for _topic, _typ, msg in bag.messages({self.topic}):
+                return frame_name(msg.header.frame_id)
+        except _rosbags_errors():
+            pass  # reported with its scan index when the scans are read
+        finally:
+            bag.close()
+        return ""
+
+    def _read_tf(self, tree: FrameTree, topics: list[str], static: bool) -> None:
+        """Add the transforms on ``topics`` to ``tree``: every one from ``/tf_static``, and from
+        ``/tf`` those that never change over its first :data:`TF_SCAN_LIMIT` messages."""
+        first: dict[tuple[str, str], np.ndarray] = {}
+        moving: set[tuple[str, str]] = set()
+        bag = _open_bag(self.path)
+        try:
+            for n, (_topic, _typ, msg) in enumerate(bag.messages(set(topics))):
+                if not static and n >= TF_SCAN_LIMIT:
+                    break
+                for tr in msg.transforms:
+                    key = (frame_name(tr.header.frame_id), frame_name(tr.child_frame_id))
+                    T = transform_to_matrix(tr.transform)
+                    if static:
+                        tree.add(*key, T)
+                    elif key not in first:
+                        first[key] = T
+                    elif not np.allclose(T, first[key], atol=1e-9):
+                        moving.add(key)
+        except _rosbags_errors() as exc:
+            log.debug("%s: reading %s stopped: %s", self.path, "/".join(topics), _first_line(exc))
+        finally:
+            bag.close()
+        for (parent, child), T in first.items():
+            if (parent, child) not in moving and frame_name(child) not in tree.edges:
+                tree.add(parent, child, T)
+
+    def _find_mounting(self, explicit_base: bool) -> tuple[np.ndarray, str]:
+        """``(T_base_sensor, source)`` from the bag's tf, identity (with a warning) without a chain."""
+        base, sensor = self.base_frame, self.frame_id
+        if sensor == base:
+            return np.eye(4), "same frame"
+        tree = FrameTree()
+        for topics, static, source in ((self.tf_static_topics, True, "/tf_static"), (self.tf_topics, False, "/tf")):
+            if not topics or not sensor:
+                continue
+            self._read_tf(tree, topics, static)
+            T = tree.lookup(base, sensor)
+            if T is not None:
+                log.debug("%s: T_base_sensor from %s (%s -> %s)", self.path, source, base, sensor)
+                return T, source
+        # a bag with nothing but scans has no base to disagree with: no warning then
+        noisy = explicit_base or self.odometry is not None or self.tf_static_topics or self.tf_topics
+        (log.warning if noisy else log.debug)(
+            "%s: no transform from base frame %r to scan frame %r in /tf_static or /tf; points stay in "
+            "the scan frame (T_base_sensor = identity)", self.path, base, sensor)
+        return np.eye(4), "none"
 
     def __len__(self) -> int:
         if self.count is None:
@@ -385,6 +555,8 @@ class RosbagReader:
         bag = _open_bag(self.path)
         try:
             for _topic, _typ, msg in bag.messages({self.odometry_topic}):
+                if self.odometry_frame is None:
+                    self.odometry_frame = frame_name(msg.child_frame_id) or None
                 p, q = msg.pose.pose.position, msg.pose.pose.orientation
                 stamps.append(stamp_ns(msg.header))
                 xyz.append((p.x, p.y, p.z))
@@ -416,6 +588,8 @@ class RosbagReader:
                 else:
                     points, times = pointcloud2_to_points(msg, self.path, what)
                     planar = len(points) > 0 and not np.any(points[:, 2])  # a projected 2D laser
+                if not self._identity:
+                    points = apply_mounting(points, self.T_base_sensor, planar)
                 t_ns = stamp_ns(msg.header)
                 yield Scan(
                     index=index,
