@@ -8,7 +8,10 @@ bag folder (``metadata.yaml`` + ``.db3``, or ``.mcap`` with ``--storage mcap``).
 a ``sensor_msgs/LaserScan`` (planar logs, the default for them: beams laid out as in the log's
 ``meta.yaml`` sensor, missing beams +inf) or a ``sensor_msgs/PointCloud2`` (float32 x y z and a
 float32 ``time`` field in seconds from the sweep start) stamped with the scan's timestamp; the
-log's ``odometry_tum.txt`` becomes ``nav_msgs/Odometry`` on ``--odom-topic`` at the same stamps.
+log's ``odometry_tum.txt`` becomes ``nav_msgs/Odometry`` on ``--odom-topic`` at the same stamps
+(``child_frame_id`` ``base_link``). The sensor mounting, ``meta.yaml``'s ``T_base_sensor``
+(identity when absent), becomes one ``tf2_msgs/TFMessage`` on ``/tf_static`` from ``base_link`` to
+the scans' frame (``laser`` or ``lidar``), so reading the bag gives the points in the base frame.
 Written with the ``rosbags`` writers.
 """
 
@@ -59,11 +62,19 @@ def points_to_ranges(points: np.ndarray, angle_min: float, inc: float, beams: in
 class _Messages:
     """Builds ROS messages with one rosbags typestore (ROS 1 Noetic or ROS 2 Humble)."""
 
+    LASER_FRAME = "laser"
+    CLOUD_FRAME = "lidar"
+
     def __init__(self, ros1: bool) -> None:
         from rosbags.typesys import Stores, get_typestore
 
         self.ros1 = ros1
         self.store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+        if "tf2_msgs/msg/TFMessage" not in self.store.types:  # not in rosbags' Noetic store
+            from rosbags.typesys import get_types_from_msg
+
+            self.store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms",
+                                                   "tf2_msgs/msg/TFMessage"))
         self.T = self.store.types
         self.seq = 0
 
@@ -88,7 +99,7 @@ class _Messages:
         finite = ranges[np.isfinite(ranges)]
         rmax = np.float32(max(max_range, float(finite.max()) if len(finite) else 0.0))
         return self.T["sensor_msgs/msg/LaserScan"](
-            header=self.header(t, "laser"), angle_min=angle_min, angle_max=angle_min + inc * (len(ranges) - 1),
+            header=self.header(t, self.LASER_FRAME), angle_min=angle_min, angle_max=angle_min + inc * (len(ranges) - 1),
             angle_increment=inc, time_increment=0.0, scan_time=0.0, range_min=0.0, range_max=float(rmax),
             ranges=ranges, intensities=np.zeros(0, dtype=np.float32))
 
@@ -99,9 +110,23 @@ class _Messages:
         rec["time"] = 0.0 if times is None else times * sweep_s
         fields = [PointField(name=n, offset=4 * k, datatype=7, count=1) for k, n in enumerate(("x", "y", "z", "time"))]
         return self.T["sensor_msgs/msg/PointCloud2"](
-            header=self.header(t, "lidar"), height=1, width=len(rec), fields=fields, is_bigendian=False,
+            header=self.header(t, self.CLOUD_FRAME), height=1, width=len(rec), fields=fields, is_bigendian=False,
             point_step=16, row_step=16 * len(rec), data=np.frombuffer(rec.tobytes(), dtype=np.uint8),
             is_dense=True)
+
+    def tf(self, t: float, parent: str, child: str, T_parent_child: np.ndarray):
+        """``tf2_msgs/TFMessage`` with one transform ``T_parent_child``."""
+        from submapslam.geometry import matrix_to_quat
+
+        T = self.T
+        q = matrix_to_quat(T_parent_child[:3, :3])
+        x, y, z = (float(v) for v in T_parent_child[:3, 3])
+        transform = T["geometry_msgs/msg/Transform"](
+            translation=T["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
+            rotation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
+        stamped = T["geometry_msgs/msg/TransformStamped"](
+            header=self.header(t, parent), child_frame_id=child, transform=transform)
+        return T["tf2_msgs/msg/TFMessage"](transforms=[stamped])
 
     def odometry(self, t: float, T_odom_base: np.ndarray):
         from submapslam.geometry import matrix_to_quat
@@ -118,6 +143,14 @@ class _Messages:
             pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
             twist=T["geometry_msgs/msg/TwistWithCovariance"](
                 twist=T["geometry_msgs/msg/Twist"](linear=zero3, angular=zero3), covariance=np.zeros(36)))
+
+
+def mounting(meta: dict, where: Path) -> np.ndarray:
+    """``meta.yaml``'s ``T_base_sensor`` as a rigid ``(4, 4)`` array (identity when absent)."""
+    from submapslam.io.rosbag import check_transform
+
+    T = meta.get("T_base_sensor")
+    return np.eye(4) if T is None else check_transform(T, where / "meta.yaml")
 
 
 def convert(src: str | Path, out: str | Path, *, msg: str | None = None, topic: str | None = None,
@@ -148,6 +181,8 @@ def convert(src: str | Path, out: str | Path, *, msg: str | None = None, topic: 
     odom_type = "nav_msgs/msg/Odometry"
     layout = beam_layout(reader.meta) if msg == "laser" else None
     rate = float(reader.meta.get("rate_hz", 10.0) or 10.0)
+    T_base_sensor = mounting(reader.meta, reader.path)
+    tf_type = "tf2_msgs/msg/TFMessage"
 
     tmp = None
     if ros1:
@@ -164,8 +199,14 @@ def convert(src: str | Path, out: str | Path, *, msg: str | None = None, topic: 
             scan_conn = writer.add_connection(topic, scan_type, typestore=m.store)
             odom_conn = (writer.add_connection(odom_topic, odom_type, typestore=m.store)
                          if reader.odometry is not None and odom_topic else None)
+            tf_conn = writer.add_connection("/tf_static", tf_type, typestore=m.store)
             for scan in itertools.islice(reader, max_scans):
                 t_ns = int(round(scan.timestamp * 1e9))
+                if tf_conn is not None:  # once, before the first scan
+                    frame = m.LASER_FRAME if msg == "laser" else m.CLOUD_FRAME
+                    tf = m.tf(scan.timestamp, "base_link", frame, T_base_sensor)
+                    writer.write(tf_conn, t_ns, m.serialize(tf, tf_type))
+                    tf_conn = None
                 if odom_conn is not None:
                     writer.write(odom_conn, t_ns, m.serialize(m.odometry(scan.timestamp, scan.odometry), odom_type))
                 if layout is not None:
