@@ -23,7 +23,7 @@ applying ``T_base_sensor`` (``p_base = T_base_sensor @ p_sensor``; the transform
 else the odometry's ``child_frame_id``, else ``base_link``; ``T_base_sensor=`` (4x4) overrides
 the lookup. Without a chain the points stay in the scan's frame (identity) with one warning.
 Planar scans (LaserScan, or clouds with all z = 0) keep z = 0 in the base frame: the mounting
-height is dropped (a scan plane tilted by the mounting is projected, with a warning).
+height is dropped (a scan plane tilted by the mounting is projected; warned once for LaserScan).
 
 Topic choice: a bag with one PointCloud2/LaserScan topic uses it; with several, the reader
 raises an :class:`InputError` listing them: pick one with ``RosbagReader(path, topic=...)``.
