@@ -101,57 +101,95 @@ class RecentScanMap:
                              iterations=iterations)
 
 
+def _sym3_eigvals(a: float, b: float, c: float, d: float, e: float, f: float) -> tuple[float, float, float]:
+    """Eigenvalues, ascending, of the symmetric ``[[a, d, e], [d, b, f], [e, f, c]]`` (closed form)."""
+    p1 = d * d + e * e + f * f
+    q = (a + b + c) / 3.0
+    if p1 == 0.0:
+        lo, mid, hi = sorted((a, b, c))
+        return lo, mid, hi
+    aq, bq, cq = a - q, b - q, c - q
+    p = math.sqrt((aq * aq + bq * bq + cq * cq + 2.0 * p1) / 6.0)
+    if p == 0.0:
+        return q, q, q
+    r = (aq * (bq * cq - f * f) - d * (d * cq - f * e) + e * (d * f - bq * e)) / (2.0 * p * p * p)
+    phi = math.acos(min(1.0, max(-1.0, r))) / 3.0
+    hi = q + 2.0 * p * math.cos(phi)
+    lo = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
+    return lo, 3.0 * q - lo - hi, hi
+
+
 def point_to_line(points_xy: np.ndarray, xyt: np.ndarray, tree: cKDTree, target: np.ndarray, normals: np.ndarray, *,
                   max_correspondence: float = 0.3, kernel: float = 0.05, min_eigen_fraction: float = 0.02,
-                  prior_xyt: np.ndarray | None = None, iterations: int = 6) -> tuple[np.ndarray, int]:
+                  prior_xyt: np.ndarray | None = None, iterations: int = 6,
+                  converged: tuple[float, float] = (5e-5, 3e-6)) -> tuple[np.ndarray, int]:
     """Gauss-Newton on point-to-line residuals (Cauchy kernel) of ``points_xy (N, 2)`` moved by ``xyt``
     against line points ``target (M, 2)`` (k-d ``tree`` over them) with unit ``normals (M, 2)``.
 
     The update is solved only along well-constrained directions; degenerate ones move to
-    ``prior_xyt`` when given, else keep ``xyt``. Returns the pose and the correspondences used
-    (``xyt`` and 0 when fewer than 20 correspond).
+    ``prior_xyt`` when given, else keep ``xyt``. Iterations stop early once a step moves less
+    than ``converged`` = ``(|dx| + |dy| [m], |dyaw| [rad])``. Returns the pose and the
+    correspondences used (``xyt`` and 0 when fewer than 20 correspond).
     """
     if len(points_xy) < 20 or len(target) < 10:
         return np.asarray(xyt, dtype=np.float64), 0
-    x = np.asarray(xyt, dtype=np.float64).copy()
+    step_m, step_rad = converged
+    x0, x1, x2 = (float(v) for v in xyt)
     prior = None if prior_xyt is None else np.asarray(prior_xyt, dtype=np.float64)
+    # per target point: its normal and the line's offset n . q, gathered with one index per step
+    lines = np.empty((len(target), 3))
+    lines[:, :2] = normals
+    lines[:, 2] = np.einsum("ij,ij->i", target, normals)
     n_used = 0
     points_xy = np.ascontiguousarray(points_xy, dtype=np.float64)
+    inv_kernel2 = 1.0 / (kernel * kernel)
     threshold = min_eigen_fraction
     for _ in range(iterations):
-        c, s = math.cos(x[2]), math.sin(x[2])
+        c, s = math.cos(x2), math.sin(x2)
         rotated = points_xy @ np.array([[c, s], [-s, c]])
-        d, nn = tree.query(rotated + x[:2], distance_upper_bound=max_correspondence)
+        d, nn = tree.query(rotated + (x0, x1), distance_upper_bound=max_correspondence)
         ok = d < np.inf
-        n_used = int(np.count_nonzero(ok))
+        idx = nn[ok]
+        n_used = len(idx)
         if n_used < 20:
             return np.asarray(xyt, dtype=np.float64), 0
-        idx = nn[ok]
-        p, n = rotated[ok], normals[idx]
-        r = np.einsum("ij,ij->i", p + x[:2] - target[idx], n)
-        J = np.empty((n_used, 3))
-        J[:, :2] = n
-        J[:, 2] = n[:, 1] * p[:, 0] - n[:, 0] * p[:, 1]
-        Jw = J * (1.0 / (1.0 + (r / kernel) ** 2))[:, None]  # Cauchy weights
-        H = Jw.T @ J
-        g = Jw.T @ r
+        p, nq = rotated[ok], lines[idx]
+        # rows (J, r): J = n^T [I, dR p], r = n . (p + t) - n . q
+        A = np.empty((n_used, 4))
+        A[:, :2] = nq[:, :2]
+        A[:, 2] = nq[:, 1] * p[:, 0] - nq[:, 0] * p[:, 1]
+        A[:, 3] = nq[:, 0] * (p[:, 0] + x0) + nq[:, 1] * (p[:, 1] + x1) - nq[:, 2]
+        weights = 1.0 / (1.0 + np.square(A[:, 3]) * inv_kernel2)  # Cauchy
+        (h00, h01, h02, g0), (_, h11, h12, g1), (_, _, h22, g2), _ = ((A * weights[:, None]).T @ A).tolist()
         # solve only in directions the scene constrains; yaw is scaled by the rms lever arm of
         # the matched points so the three directions compare in metres
-        lever = max(math.sqrt(float(np.einsum("ij,ij->", p, p)) / n_used), 1e-3)
-        S = np.array([1.0, 1.0, 1.0 / lever])
-        Hs = H * np.outer(S, S)
-        evals, evecs = np.linalg.eigh(Hs)
-        keep = evals > threshold * (evals[0] + evals[1] + evals[2])
-        Vk = evecs[:, keep]
-        step_s = -(Vk @ ((Vk.T @ (S * g)) / evals[keep]))
-        if prior is not None and not keep.all():
-            # degenerate directions: move to the prior (wheel odometry) instead of keeping the guess
-            to_prior = prior - x
-            to_prior[2] = math.remainder(to_prior[2], 2 * math.pi)
-            Vd = evecs[:, ~keep]
-            step_s = step_s + Vd @ (Vd.T @ (to_prior / S))
-        step = S * step_s
-        x += step
-        if abs(step[0]) + abs(step[1]) < 5e-5 and abs(step[2]) < 3e-6:
+        lever = max(math.sqrt(float(np.vdot(p, p)) / n_used), 1e-3)
+        si = 1.0 / lever
+        a, b, cc, dd, e, f = h00, h11, h22 * si * si, h01, h02 * si, h12 * si
+        smallest = _sym3_eigvals(a, b, cc, dd, e, f)[0]
+        if smallest > threshold * (a + b + cc):
+            # every direction constrained: the plain Gauss-Newton step -H^-1 g (cofactors)
+            m00, m01, m02 = h11 * h22 - h12 * h12, h02 * h12 - h01 * h22, h01 * h12 - h02 * h11
+            m11, m12, m22 = h00 * h22 - h02 * h02, h01 * h02 - h00 * h12, h00 * h11 - h01 * h01
+            det = h00 * m00 + h01 * m01 + h02 * m02
+            s0 = -(m00 * g0 + m01 * g1 + m02 * g2) / det
+            s1 = -(m01 * g0 + m11 * g1 + m12 * g2) / det
+            s2 = -(m02 * g0 + m12 * g1 + m22 * g2) / det
+        else:
+            S = np.array([1.0, 1.0, si])
+            H = np.array([[h00, h01, h02], [h01, h11, h12], [h02, h12, h22]])
+            evals, evecs = np.linalg.eigh(H * np.outer(S, S))
+            keep = evals > threshold * (evals[0] + evals[1] + evals[2])
+            Vk = evecs[:, keep]
+            step_s = -(Vk @ ((Vk.T @ (S * np.array([g0, g1, g2]))) / evals[keep]))
+            if prior is not None:
+                # degenerate directions: move to the prior (wheel odometry) instead of keeping the guess
+                to_prior = prior - (x0, x1, x2)
+                to_prior[2] = math.remainder(to_prior[2], 2 * math.pi)
+                Vd = evecs[:, ~keep]
+                step_s = step_s + Vd @ (Vd.T @ (to_prior / S))
+            s0, s1, s2 = (S * step_s).tolist()
+        x0, x1, x2 = x0 + s0, x1 + s1, x2 + s2
+        if abs(s0) + abs(s1) < step_m and abs(s2) < step_rad:
             break
-    return x, n_used
+    return np.array([x0, x1, x2]), n_used
