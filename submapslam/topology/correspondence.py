@@ -22,7 +22,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..geometry import matrix_to_se2
-from .planar_match import match_planar
+from .planar_match import match_planar, planar_cloud
 
 _PLANAR_PIN = 1e6  # information on z, roll, pitch of a planar result (not observable, pinned)
 
@@ -193,19 +193,19 @@ def _planar(source, target, initial_guess, yaw_hint, inlier, search_radius, yaw_
                      window=search_radius or 10.0, yaw_window=yaw_window, resolution=max(voxel_size, 0.1),
                      inlier_distance=inlier, refine_only=refine_only)
     T = m.T
-    reverse = _directed_fitness(target[:, :2], source[:, :2], np.linalg.inv(T), inlier)
+    reverse = _directed_fitness(target[:, :2], planar_cloud(source).tree, np.linalg.inv(T), inlier)
     overlap = min(m.fitness, reverse)
     ok, reason = _gate(m.fitness, m.inlier_rmse, overlap, m.ambiguity, **gates)
     return CorrespondenceResult(ok, T, _planar_information(m.information), m.fitness, m.inlier_rmse,
                                 overlap, reason, m.ambiguity)
 
 
-def _directed_fitness(points_xy: np.ndarray, other_xy: np.ndarray, T: np.ndarray, inlier: float) -> float:
-    """Fraction of ``points`` (moved by planar ``T``) with an ``other`` point within ``inlier``."""
+def _directed_fitness(points_xy: np.ndarray, other: cKDTree, T: np.ndarray, inlier: float) -> float:
+    """Fraction of ``points`` (moved by planar ``T``) with a point of the ``other`` tree within ``inlier``."""
     x, y, yaw = matrix_to_se2(T)
     c, s = np.cos(yaw), np.sin(yaw)
     moved = points_xy @ np.array([[c, s], [-s, c]]) + [x, y]
-    d, _ = cKDTree(other_xy).query(moved, distance_upper_bound=inlier)
+    d, _ = other.query(moved, distance_upper_bound=inlier)
     return float(np.isfinite(d).mean())
 
 

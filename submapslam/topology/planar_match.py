@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 from scipy import fft as sfft
 from scipy.fft import next_fast_len
 from scipy.ndimage import distance_transform_edt
@@ -111,14 +112,20 @@ def coarse_search(
     if cells <= 8:
         like, lo = _likelihood_grid(target, resolution, sigma, window + r_src + 2 * resolution)
         offs = np.arange(-cells, cells + 1)
+        # every (2 cells + 1)^2 block of the grid as a view: one gather per source point
+        blocks = sliding_window_view(like, (len(offs), len(offs)))
         for yaw in yaws:
             R = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
             centroid = R @ c_src + center  # expected centroid in the target frame
             base = np.floor((src @ R.T + centroid - lo) / resolution).astype(int)
-            # indices beyond the padded grid clip to its border, where the likelihood is ~0
-            ia = np.clip(base[:, 0][:, None] + offs[None, :], 0, like.shape[0] - 1)
-            ib = np.clip(base[:, 1][:, None] + offs[None, :], 0, like.shape[1] - 1)
-            scores = like[ia[:, :, None], ib[:, None, :]].sum(axis=0)
+            corner = base - cells
+            if corner.min() >= 0 and (corner[:, 0].max() < blocks.shape[0]) and (corner[:, 1].max() < blocks.shape[1]):
+                scores = blocks[corner[:, 0], corner[:, 1]].sum(axis=0)
+            else:
+                # indices beyond the padded grid clip to its border, where the likelihood is ~0
+                ia = np.clip(base[:, 0][:, None] + offs[None, :], 0, like.shape[0] - 1)
+                ib = np.clip(base[:, 1][:, None] + offs[None, :], 0, like.shape[1] - 1)
+                scores = like[ia[:, :, None], ib[:, None, :]].sum(axis=0)
             a, b = np.unravel_index(int(np.argmax(scores)), scores.shape)
             t = centroid + np.array([offs[a], offs[b]]) * resolution - R @ c_src
             peaks.append((float(scores[a, b]) / len(src), t[0], t[1], float(yaw)))
@@ -221,6 +228,66 @@ def registration_information(source: np.ndarray, target: np.ndarray, xyt: np.nda
     return scale * (J.T @ J) / sigma2, fitness, rmse
 
 
+class PlanarCloud:
+    """A planar cloud's k-d tree, normals and line-like points, built once when first needed.
+
+    :func:`planar_cloud` keeps these for the last few clouds passed in, so a submap tested
+    against several others (loop hypotheses, adjacent-submap checks, the reverse fitness) is
+    indexed once.
+    """
+
+    def __init__(self, points: np.ndarray) -> None:
+        self.source = points
+        self.xy = np.ascontiguousarray(points[:, :2], dtype=np.float64)
+        self._tree: cKDTree | None = None
+        self._normals: np.ndarray | None = None
+        self._lines: tuple[cKDTree, np.ndarray, np.ndarray] | None = None
+
+    @property
+    def tree(self) -> cKDTree:
+        if self._tree is None:
+            self._tree = cKDTree(self.xy)
+        return self._tree
+
+    @property
+    def normals(self) -> np.ndarray:
+        """Normals of every point (:func:`target_normals`)."""
+        if self._normals is None:
+            self._normals = target_normals(self.xy, self.tree)
+        return self._normals
+
+    @property
+    def lines(self) -> tuple[cKDTree, np.ndarray, np.ndarray] | None:
+        """``(tree, points, normals)`` of the line-like points, or None when fewer than 10."""
+        if self._lines is None:
+            normals = line_normals(self.xy, self.tree)
+            line = np.isfinite(normals[:, 0])
+            pts = self.xy[line]
+            self._lines = (cKDTree(pts), pts, normals[line]) if line.sum() >= 10 else (None, pts, normals[line])
+        return None if self._lines[0] is None else self._lines
+
+
+_CLOUDS: dict[int, PlanarCloud] = {}
+_CLOUDS_KEPT = 16
+
+
+def planar_cloud(points: np.ndarray) -> PlanarCloud:
+    """The :class:`PlanarCloud` of ``points`` ``(N, >=2)``, reused while the same array is passed.
+
+    Arrays are recognised by identity (the cache holds them, so an id cannot be reused); they
+    must not be modified in place afterwards (submap clouds are fixed once the submap closes).
+    """
+    entry = _CLOUDS.get(id(points))
+    if entry is not None and entry.source is points and entry.xy.shape[0] == len(points):
+        _CLOUDS[id(points)] = _CLOUDS.pop(id(points))  # most recently used last
+        return entry
+    entry = PlanarCloud(points)
+    _CLOUDS[id(points)] = entry
+    while len(_CLOUDS) > _CLOUDS_KEPT:
+        del _CLOUDS[next(iter(_CLOUDS))]
+    return entry
+
+
 def match_planar(source: np.ndarray, target: np.ndarray, *, initial_guess: np.ndarray | None = None,
                  yaw_hint: float | None = None, window: float = 15.0, yaw_window: float = np.pi,
                  resolution: float = 0.1, inlier_distance: float = 0.2, refine_only: bool = False) -> PlanarMatch:
@@ -233,9 +300,10 @@ def match_planar(source: np.ndarray, target: np.ndarray, *, initial_guess: np.nd
     +-0.6 m and +-3 degrees around the best cell, then ICP. ``refine_only`` skips the search
     (ICP from ``initial_guess``).
     """
-    src, tgt = source[:, :2], target[:, :2]
-    tree = cKDTree(tgt)
-    normals = target_normals(tgt, tree)  # shared by every information evaluation below
+    src = source[:, :2]
+    cloud = planar_cloud(target)
+    tgt, tree = cloud.xy, cloud.tree
+    normals = cloud.normals  # shared by every information evaluation below
     if refine_only:
         if initial_guess is None:
             raise ValueError("refine_only needs an initial_guess")
@@ -274,7 +342,7 @@ def match_planar(source: np.ndarray, target: np.ndarray, *, initial_guess: np.nd
             xyt, info, fitness, rmse = xyt_g, info_g, fitness_g, rmse_g
     # point-to-point ICP follows where walls end and samples differ between submaps; a
     # point-to-line pass removes that bias (degenerate directions keep the ICP result)
-    refined = _point_to_line_pass(src, tgt, tree, xyt, inlier_distance)
+    refined = _point_to_line_pass(src, cloud, xyt, inlier_distance)
     if refined is not None:
         info_r, fitness_r, rmse_r = registration_information(src, tgt, refined, inlier_distance, tree, normals=normals)
         if fitness_r >= fitness - 0.02:
@@ -282,15 +350,13 @@ def match_planar(source: np.ndarray, target: np.ndarray, *, initial_guess: np.nd
     return PlanarMatch(xyt=xyt, score=score, ambiguity=amb, fitness=fitness, inlier_rmse=rmse, information=info)
 
 
-def _point_to_line_pass(src: np.ndarray, tgt: np.ndarray, tree: cKDTree, xyt: np.ndarray,
+def _point_to_line_pass(src: np.ndarray, cloud: PlanarCloud, xyt: np.ndarray,
                         inlier_distance: float) -> np.ndarray | None:
     """Point-to-line Gauss-Newton from ``xyt`` against the target's line-like points, or None."""
-    normals = line_normals(tgt, tree)
-    line = np.isfinite(normals[:, 0])
-    if line.sum() < 10:
+    lines = cloud.lines
+    if lines is None:
         return None
-    xyt_r, used = point_to_line(src, xyt, cKDTree(tgt[line]), tgt[line], normals[line],
-                                max_correspondence=inlier_distance, iterations=10)
+    xyt_r, used = point_to_line(src, xyt, *lines, max_correspondence=inlier_distance, iterations=10)
     return xyt_r if used else None
 
 
