@@ -49,6 +49,9 @@ def run(
     topic: Annotated[str | None, typer.Option("--topic", help="ROS bag: the PointCloud2/LaserScan topic to read.")] = None,
     odometry_topic: Annotated[str | None, typer.Option(
         "--odometry-topic", help="ROS bag: the nav_msgs/Odometry topic ('' for none).")] = None,
+    base_frame: Annotated[str | None, typer.Option(
+        "--base-frame", help="ROS bag: robot frame the points are moved into through /tf_static "
+        "(default: the odometry's child_frame_id, else base_link).")] = None,
 ) -> None:
     """Build a map and trajectory from LOG; write poses, graph, map and summary into OUT."""
     from .api import run_log
@@ -56,7 +59,8 @@ def run(
     try:
         result, paths = run_log(log, out, config=config, format=format, hints=hints,
                                 max_scans=max_scans, loops=not no_loops, progress=True,
-                                reader_options={"topic": topic, "odometry_topic": odometry_topic})
+                                reader_options={"topic": topic, "odometry_topic": odometry_topic,
+                                                "base_frame": base_frame})
     except SubmapSlamError as exc:
         raise fail(exc) from None
     s = result.summary()

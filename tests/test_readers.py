@@ -117,6 +117,20 @@ def test_kitti_bin_folder_with_times_and_odometry(tmp_path):
     assert not scans[0].planar
 
 
+def test_cloud_folder_mounting_moves_points_into_the_base_frame(tmp_path):
+    (tmp_path / "velodyne").mkdir()
+    cloud = np.random.default_rng(1).normal(size=(50, 3))
+    write_bin(tmp_path / "velodyne" / "000000.bin", cloud)
+    c, s = float(np.cos(0.5)), float(np.sin(0.5))
+    T = [[c, -s, 0, 0.4], [s, c, 0, 0.0], [0, 0, 1, 1.2], [0, 0, 0, 1]]
+    (tmp_path / "meta.yaml").write_text(f"T_base_sensor: {T}\n")
+    scan = next(iter(open_log(tmp_path)))
+    np.testing.assert_allclose(scan.points, cloud @ np.array(T)[:3, :3].T + [0.4, 0.0, 1.2], atol=1e-6)
+    (tmp_path / "meta.yaml").write_text("T_base_sensor: [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]\n")
+    with pytest.raises(InputError, match=r"meta\.yaml: T_base_sensor is not a rigid transform"):
+        open_log(tmp_path)
+
+
 def test_bad_bin_size_and_short_times(tmp_path):
     (tmp_path / "000000.bin").write_bytes(b"\x00" * 10)
     with pytest.raises(InputError, match="not a whole number"):

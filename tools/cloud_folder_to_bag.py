@@ -145,14 +145,6 @@ class _Messages:
                 twist=T["geometry_msgs/msg/Twist"](linear=zero3, angular=zero3), covariance=np.zeros(36)))
 
 
-def mounting(meta: dict, where: Path) -> np.ndarray:
-    """``meta.yaml``'s ``T_base_sensor`` as a rigid ``(4, 4)`` array (identity when absent)."""
-    from submapslam.io.rosbag import check_transform
-
-    T = meta.get("T_base_sensor")
-    return np.eye(4) if T is None else check_transform(T, where / "meta.yaml")
-
-
 def convert(src: str | Path, out: str | Path, *, msg: str | None = None, topic: str | None = None,
             odom_topic: str = "/odom", storage: str = "sqlite3", max_scans: int | None = None) -> Path:
     """Write the cloud-folder log ``src`` as a bag at ``out`` (see module docstring); returns ``out``."""
@@ -164,7 +156,7 @@ def convert(src: str | Path, out: str | Path, *, msg: str | None = None, topic: 
 
     from submapslam.io.cloud_folder import CloudFolderReader
 
-    reader = CloudFolderReader(Path(src))
+    reader = CloudFolderReader(Path(src), sensor_frame=True)  # the bag carries the mounting in /tf_static
     out = Path(out)
     if out.exists():
         raise FileExistsError(f"{out} exists already")
@@ -181,7 +173,7 @@ def convert(src: str | Path, out: str | Path, *, msg: str | None = None, topic: 
     odom_type = "nav_msgs/msg/Odometry"
     layout = beam_layout(reader.meta) if msg == "laser" else None
     rate = float(reader.meta.get("rate_hz", 10.0) or 10.0)
-    T_base_sensor = mounting(reader.meta, reader.path)
+    T_base_sensor = reader.T_base_sensor
     tf_type = "tf2_msgs/msg/TFMessage"
 
     tmp = None

@@ -6,7 +6,9 @@ Accepted layouts (``LOG`` is the path given):
 Optional beside the scans (in LOG or the scans folder):
     times.txt           one timestamp [s] per scan (plain or ``.xz``); else the index is used
     odometry_tum.txt    wheel odometry ``T_odom_base`` per scan, TUM format
-    meta.yaml           ``planar: true`` marks 2D laser logs; ``T_base_sensor`` (4x4 list)
+    meta.yaml           ``planar: true`` marks 2D laser logs; ``T_base_sensor`` (4x4 list): the
+                        sensor's mounting on the robot base; points are moved into the base
+                        frame, the frame the odometry describes
 Scans are sorted by file name. Per-point times come from a PLY/PCD ``time``/``t`` field.
 """
 
@@ -21,7 +23,7 @@ import yaml
 from ..errors import InputError
 from .compression import open_text
 from .registry import register_reader
-from .scan import Scan
+from .scan import Scan, apply_mounting, check_transform
 
 SCAN_SUFFIXES = (".bin", ".ply", ".pcd")
 _SUBFOLDERS = ("scans", "Scans", "velodyne", "points", "clouds")
@@ -84,12 +86,17 @@ class CloudFolderReader:
 
     name = "cloud_folder"
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, sensor_frame: bool = False) -> None:
+        """``sensor_frame=True`` leaves the points in the sensor frame (``T_base_sensor`` is
+        still read, e.g. for a converter that stores the mounting separately)."""
         self.path = Path(path)
         self.scan_dir, self.files = _find_scans(self.path)
         folders = (self.path, self.scan_dir)
         self.meta = self._read_meta(_find_file(("meta.yaml",), folders))
         self.planar = bool(self.meta.get("planar", False))
+        mounting = self.meta.get("T_base_sensor")
+        self.T_base_sensor = np.eye(4) if mounting is None else check_transform(mounting, self.path / "meta.yaml")
+        self._mounted = not sensor_frame and not np.array_equal(self.T_base_sensor, np.eye(4))
         self.timestamps = self._read_times(_find_file(("times.txt", "times.txt.xz"), folders))
         self.odometry = self._read_odometry(_find_file(("odometry_tum.txt",), folders))
 
@@ -146,6 +153,8 @@ class CloudFolderReader:
                 times = (times - times.min()) / span if span > 0 else np.zeros_like(times)
             else:
                 times = None
+            if self._mounted:
+                points = apply_mounting(points, self.T_base_sensor, self.planar)
             yield Scan(
                 index=index,
                 timestamp=float(self.timestamps[index]),

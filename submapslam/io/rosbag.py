@@ -50,7 +50,7 @@ import numpy as np
 from ..errors import InputError
 from ..geometry import inverse, pose_from_xyz_quat
 from .registry import register_reader
-from .scan import Scan
+from .scan import Scan, apply_mounting, check_transform
 
 log = logging.getLogger(__name__)
 
@@ -264,29 +264,6 @@ class FrameTree:
         if root_t != root_s:
             return None
         return inverse(T_rt) @ T_rs
-
-
-def check_transform(T, where: Path, what: str = "T_base_sensor") -> np.ndarray:
-    """A rigid ``(4, 4)`` transform as float64, else an :class:`InputError`."""
-    try:
-        T = np.asarray(T, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(where, f"{what} is not a 4x4 matrix of numbers") from None
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise InputError(where, f"{what} must be a finite 4x4 matrix, got shape {T.shape}")
-    R = T[:3, :3]
-    if (not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or abs(np.linalg.det(R) - 1.0) > 1e-6
-            or not np.allclose(T[3], [0, 0, 0, 1])):
-        raise InputError(where, f"{what} is not a rigid transform (rotation and translation)")
-    return T
-
-
-def apply_mounting(points: np.ndarray, T_base_sensor: np.ndarray, planar: bool) -> np.ndarray:
-    """Sensor-frame points -> base frame (``T_base_sensor @ p``); planar scans keep z = 0."""
-    out = points @ T_base_sensor[:3, :3].T + T_base_sensor[:3, 3]
-    if planar:
-        out[:, 2] = 0.0
-    return out
 
 
 # ---------------------------------------------------------------------------- bag access
