@@ -52,8 +52,10 @@ class RecentScanMap:
     """The last ``window`` scans as a 2D point-to-line target in the odometry frame."""
 
     def __init__(self, window: int = 20, rebuild_every: int = 8, voxel: float = 0.05,
-                 max_correspondence: float = 0.3, kernel: float = 0.05, min_eigen_fraction: float = 0.02) -> None:
+                 max_correspondence: float = 0.3, kernel: float = 0.05, min_eigen_fraction: float = 0.02,
+                 converged: tuple[float, float] = (5e-4, 5e-5)) -> None:
         self.window = window
+        self.converged = converged  # stop once a step is below 0.5 mm / 0.003 deg
         self.rebuild_every = rebuild_every
         self.voxel = voxel
         self.max_correspondence = max_correspondence
@@ -98,7 +100,7 @@ class RecentScanMap:
         return point_to_line(points_xy, xyt, self._tree, self._points, self._normals,
                              max_correspondence=self.max_correspondence, kernel=self.kernel,
                              min_eigen_fraction=self.min_eigen_fraction, prior_xyt=prior_xyt,
-                             iterations=iterations)
+                             iterations=iterations, converged=self.converged)
 
 
 def _sym3_eigvals(a: float, b: float, c: float, d: float, e: float, f: float) -> tuple[float, float, float]:
