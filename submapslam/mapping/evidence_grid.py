@@ -78,10 +78,18 @@ class EvidenceGrid:
             steps = np.maximum(0, np.floor(free_len / p.resolution).astype(int))
             ray = np.repeat(np.arange(len(hits)), steps)
             offsets = np.arange(int(steps.sum())) - np.repeat(np.cumsum(steps) - steps, steps)
-            dist = offsets * p.resolution
-            free_xy = origin + vec[ray] * (dist / lengths[ray])[:, None]
-            r, c, inside = self.cells(free_xy)
-            free_idx = r[inside] * width + c[inside]
+            scale = offsets * p.resolution / lengths[ray]
+            # column by column: the same arithmetic as cells(origin + vec * scale), fewer temporaries
+            col = np.floor((origin[0] + vec[ray, 0] * scale - self.origin[0]) / p.resolution).astype(np.int64)
+            row = np.floor((origin[1] + vec[ray, 1] * scale - self.origin[1]) / p.resolution).astype(np.int64)
+            o_r, o_c, o_in = self.cells(origin[None, :])
+            if o_in[0] and inside.all() and min(r.min(), o_r[0]) >= 1 and min(c.min(), o_c[0]) >= 1 \
+                    and max(r.max(), o_r[0]) < self.logodds.shape[0] - 1 and max(c.max(), o_c[0]) < width - 1:
+                # sensor and hits a cell inside the border: every point between them is inside
+                free_idx = row * width + col
+            else:
+                ok = (col >= 0) & (row >= 0) & (col < width) & (row < self.logodds.shape[0])
+                free_idx = row[ok] * width + col[ok]
             if self._is_hit is None:
                 self._is_hit = np.zeros(flat.shape, dtype=bool)
             self._is_hit[hit_idx] = True
