@@ -47,6 +47,12 @@ def wrap_angle(a: ArrayLike) -> Array:
 def inverse(T: ArrayLike) -> Array:
     """Inverse of one ``(4, 4)`` rigid transform or a stack ``(N, 4, 4)``."""
     T = np.asarray(T, dtype=np.float64)
+    if T.shape == (4, 4):  # the common single pose, without the stack machinery
+        Ti = np.eye(4)
+        Rt = T[:3, :3].T
+        Ti[:3, :3] = Rt
+        Ti[:3, 3] = -(Rt @ T[:3, 3])
+        return Ti
     R = T[..., :3, :3]
     t = T[..., :3, 3]
     Ti = np.zeros_like(T)

@@ -35,7 +35,8 @@ def line_normals(points: np.ndarray, tree: cKDTree, k: int = 7, max_flatness: fl
     """Unit normals ``(M, 2)`` of 2D points from their ``k`` nearest neighbours; NaN where not line-like."""
     k = min(k, len(points))
     _, idx = tree.query(points, k=k)
-    nb = points[idx] - points[idx].mean(axis=1, keepdims=True)
+    nb = points[idx]
+    nb = nb - nb.mean(axis=1, keepdims=True)
     # closed-form eigen decomposition of each 2x2 scatter matrix [[a, b], [b, c]]
     a = np.einsum("nk,nk->n", nb[:, :, 0], nb[:, :, 0])
     b = np.einsum("nk,nk->n", nb[:, :, 0], nb[:, :, 1])
