@@ -22,7 +22,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry import se2_to_matrix
-from .compression import base_suffix, open_text
+from .compression import base_suffix, open_text, open_text_prefetched
 from .registry import register_reader
 from .scan import Scan
 
@@ -96,7 +96,7 @@ class CarmenReader:
         index = 0
         angles_cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         try:
-            with open_text(self.path) as fh:
+            with open_text_prefetched(self.path) as fh:
                 for lineno, line in enumerate(fh, start=1):
                     tokens = line.split()
                     if not tokens or tokens[0].startswith("#"):
