@@ -180,6 +180,25 @@ def blend_poses(T_a: ArrayLike, T_b: ArrayLike, alpha: float) -> Array:
     return out
 
 
+def blend_poses_many(T_a: ArrayLike, T_b: ArrayLike, alphas: ArrayLike) -> Array:
+    """:func:`blend_poses` for many ``alphas`` ``(N,)`` at once: ``(N, 4, 4)``."""
+    T_a, T_b = np.asarray(T_a, dtype=np.float64), np.asarray(T_b, dtype=np.float64)
+    alphas = np.asarray(alphas, dtype=np.float64).reshape(-1)
+    w = so3_log(T_a[:3, :3].T @ T_b[:3, :3])
+    th = float(np.linalg.norm(w))
+    K = skew(w)
+    a = alphas[:, None, None]
+    if th < 1e-12:
+        R_rel = np.eye(3) + a * K
+    else:  # Rodrigues of alpha * w: sin and (1 - cos) of alpha * th on the unit axis
+        Ku = K / th
+        R_rel = np.eye(3) + np.sin(a * th) * Ku + (1 - np.cos(a * th)) * (Ku @ Ku)
+    out = np.tile(np.eye(4), (len(alphas), 1, 1))
+    out[:, :3, :3] = T_a[:3, :3] @ R_rel
+    out[:, :3, 3] = (1.0 - alphas)[:, None] * T_a[:3, 3] + alphas[:, None] * T_b[:3, 3]
+    return out
+
+
 def is_planar(T: ArrayLike, tol: float = 1e-6) -> bool:
     """True when a pose (or stack) has z = 0 and rotates about z only."""
     T = np.asarray(T, dtype=np.float64)

@@ -17,7 +17,7 @@ import numpy as np
 from .backend.pose_graph import PoseGraph, cap_covariance
 from .config import PipelineConfig
 from .errors import InputError, SubmapSlamError
-from .geometry import blend_poses, inverse, rotation_angle
+from .geometry import blend_poses_many, inverse, rotation_angle
 from .io.hints import LoopHint
 from .io.scan import Scan
 from .odometry import Odometry
@@ -233,16 +233,22 @@ class SubmapSLAM:
         travelled = np.concatenate([[0.0], np.cumsum(steps)])  # odometry path length at each scan
         start = {s.id: travelled[s.scan_indices[0]] for s in self.submaps}
         out = np.empty_like(poses)
-        for n, sid in enumerate(ids):
+        # scans grouped by submap, each group's corrections at once (scan order kept within)
+        order = np.argsort(ids, kind="stable")
+        bounds = np.flatnonzero(np.diff(ids[order])) + 1
+        for group in np.split(order, bounds) if len(order) else []:
+            sid = int(ids[group[0]])
             if sid < 0:
-                out[n] = last @ poses[n]
+                out[group] = last @ poses[group]
                 continue
             C = corr[sid]
             if sid + 1 in corr:
                 span = start[sid + 1] - start[sid]
-                alpha = float(np.clip((travelled[n] - start[sid]) / span, 0.0, 1.0)) if span > 1e-9 else 0.0
-                C = blend_poses(C, corr[sid + 1], alpha)
-            out[n] = C @ poses[n]
+                if span > 1e-9:
+                    alpha = np.clip((travelled[group] - start[sid]) / span, 0.0, 1.0)
+                    out[group] = blend_poses_many(C, corr[sid + 1], alpha) @ poses[group]
+                    continue
+            out[group] = C @ poses[group]
         return np.asarray(self.timestamps), out
 
     def map_points(self, voxel: float | None = None) -> np.ndarray:
