@@ -54,9 +54,9 @@ class RecentScanMap:
 
     def __init__(self, window: int = 20, rebuild_every: int = 8, voxel: float = 0.05,
                  max_correspondence: float = 0.3, kernel: float = 0.05, min_eigen_fraction: float = 0.02,
-                 converged: tuple[float, float] = (5e-4, 5e-5)) -> None:
+                 converged: tuple[float, float] = (5e-5, 3e-6)) -> None:
         self.window = window
-        self.converged = converged  # stop once a step is below 0.5 mm / 0.003 deg
+        self.converged = converged  # Gauss-Newton stops once a step is below (|dx| + |dy|, |dyaw|)
         self.rebuild_every = rebuild_every
         self.voxel = voxel
         self.max_correspondence = max_correspondence
