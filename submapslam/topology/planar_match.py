@@ -15,6 +15,7 @@ matched entirely in SE(2):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -174,32 +175,39 @@ def icp_2d(source: np.ndarray, target: np.ndarray, xyt: np.ndarray, *, max_dista
            min_distance: float = 0.2, iterations: int = 30, tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Point-to-point ICP in SE(2). Returns ``xyt``, source inlier indices and their targets."""
     tree = tree or cKDTree(target)
-    xyt = np.asarray(xyt, dtype=np.float64).copy()
+    x, y, yaw = (float(v) for v in xyt)
+    source = np.ascontiguousarray(source, dtype=np.float64)
     dmax = max_distance
     inl = np.zeros(0, dtype=int)
     nn = np.zeros(0, dtype=int)
     for _ in range(iterations):
-        c, s = np.cos(xyt[2]), np.sin(xyt[2])
-        moved = source @ np.array([[c, s], [-s, c]]) + xyt[:2]
+        c, s = math.cos(yaw), math.sin(yaw)
+        moved = source @ np.array([[c, s], [-s, c]]) + np.array([x, y])
         d, nn_all = tree.query(moved, distance_upper_bound=dmax)
-        inl = np.nonzero(np.isfinite(d))[0]
-        if len(inl) < 10:
+        inl = np.flatnonzero(d < np.inf)
+        k = len(inl)
+        if k < 10:
             break
         nn = nn_all[inl]
         P, Q = moved[inl], target[nn]
-        mp, mq = P.mean(0), Q.mean(0)
-        Hm = (P - mp).T @ (Q - mq)
-        dyaw = np.arctan2(Hm[0, 1] - Hm[1, 0], Hm[0, 0] + Hm[1, 1])
-        cd, sd = np.cos(dyaw), np.sin(dyaw)
-        Rd = np.array([[cd, -sd], [sd, cd]])
-        dt = mq - Rd @ mp
-        Rc = np.array([[c, -s], [s, c]])
-        Rn = Rd @ Rc
-        xyt = np.array([*(Rd @ xyt[:2] + dt), np.arctan2(Rn[1, 0], Rn[0, 0])])
+        # cross-covariance of the centred pairs: sum(P^T Q) - k mp mq^T
+        (sp0, sp1), (sq0, sq1) = P.sum(axis=0).tolist(), Q.sum(axis=0).tolist()
+        (h00, h01), (h10, h11) = (P.T @ Q).tolist()
+        mp0, mp1, mq0, mq1 = sp0 / k, sp1 / k, sq0 / k, sq1 / k
+        h00 -= sp0 * mq0
+        h01 -= sp0 * mq1
+        h10 -= sp1 * mq0
+        h11 -= sp1 * mq1
+        dyaw = math.atan2(h01 - h10, h00 + h11)
+        cd, sd = math.cos(dyaw), math.sin(dyaw)
+        dt0 = mq0 - (cd * mp0 - sd * mp1)
+        dt1 = mq1 - (sd * mp0 + cd * mp1)
+        x, y = cd * x - sd * y + dt0, sd * x + cd * y + dt1
+        yaw = math.atan2(sd * c + cd * s, cd * c - sd * s)
         dmax = max(min_distance, dmax * 0.7)
-        if abs(dyaw) < 1e-5 and np.linalg.norm(dt) < 1e-4 and dmax == min_distance:
+        if abs(dyaw) < 1e-5 and math.hypot(dt0, dt1) < 1e-4 and dmax == min_distance:
             break
-    return xyt, inl, nn
+    return np.array([x, y, yaw]), inl, nn
 
 
 def target_normals(target: np.ndarray, tree: cKDTree) -> np.ndarray:
