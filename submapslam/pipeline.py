@@ -90,6 +90,11 @@ class SubmapSLAM:
         self.loops: list[LoopRecord] = []
         self.dropped_nan_points = 0
         self.empty_scans = 0
+        # graph work of the last closed submap (odometry edge, loop tests, iSAM2), running in a
+        # worker thread while the next scans are registered; waited for before anything reads
+        # or extends the graph, so every graph operation happens in the same order as inline
+        self._worker = None
+        self._pending = None
 
     # ------------------------------------------------------------------ streaming
     def process_scan(self, scan: Scan) -> None:
@@ -141,10 +146,30 @@ class SubmapSLAM:
         return partial(obstacle_points, cell=mapping.grid_resolution_3d, min_above_ground=mapping.grid_min_height,
                        max_above_ground=mapping.grid_max_height, ground_z=mapping.grid_ground_z)
 
-    def _close_submap(self, submap: Submap) -> None:
+    def _settle(self) -> None:
+        """Wait for the last submap's graph work (re-raising its error, if any)."""
+        pending, self._pending = self._pending, None
+        if pending is not None:
+            pending.result()
+
+    def _close_submap(self, submap: Submap, background: bool = True) -> None:
+        self._settle()
         self.submaps.append(submap)
         for idx in submap.scan_indices:
             self._scan_submap[idx] = submap.id
+        hint_pairs = self._hint_pairs()
+        if not background:
+            self._add_submap_to_graph(submap, hint_pairs)
+            return
+        if self._worker is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="submap-graph")
+        # scan registration (main thread) does not read the graph: its KISS-ICP, k-d tree, FFT
+        # and numpy kernels overlap with the loop tests on a second core
+        self._pending = self._worker.submit(self._add_submap_to_graph, submap, hint_pairs)
+
+    def _add_submap_to_graph(self, submap: Submap, hint_pairs: list[tuple[int, int]]) -> None:
         k = submap.id
         info = T_prev_k = None
         if k > 0:
@@ -161,7 +186,7 @@ class SubmapSLAM:
                 self._graph.add_between(k - 1, k, T_prev_k, info, "odometry")
             self._graph.update()
         if self._loop_closer is not None:
-            records = self._loop_closer.process(submap, self.submaps, self._graph, self._hint_pairs())
+            records = self._loop_closer.process(submap, self.submaps, self._graph, hint_pairs)
             self.loops.extend(records)
             if any(r.accepted for r in records):
                 with self.timer("optimisation"):
@@ -225,6 +250,7 @@ class SubmapSLAM:
         next submap's by the share of the odometry path between the two anchors it has covered:
         the odometry's drift inside a submap is spread over it instead of jumping at the next anchor.
         """
+        self._settle()
         corr = self._corrections()
         last = corr[max(corr)] if corr else np.eye(4)
         poses = np.array(self._odom_poses).reshape(-1, 4, 4)
@@ -254,6 +280,7 @@ class SubmapSLAM:
     def map_points(self, voxel: float | None = None) -> np.ndarray:
         """Fused map ``(M, 3)`` in the world frame from the optimised submap anchors."""
         voxel = voxel or self.config.mapping.map_voxel_size
+        self._settle()
         chunks = [
             s.points @ self._graph.pose(s.id)[:3, :3].T + self._graph.pose(s.id)[:3, 3]
             for s in self.submaps
@@ -273,7 +300,11 @@ class SubmapSLAM:
             raise SubmapSlamError(f"{source or 'log'}: no scans were processed")
         last = self._builder.flush()
         if last is not None:
-            self._close_submap(last)
+            self._close_submap(last, background=False)
+        self._settle()
+        if self._worker is not None:
+            self._worker.shutdown()
+            self._worker = None
         with self.timer("optimisation"):
             weights = {}
             if self.config.backend.final_batch and self.submaps:
