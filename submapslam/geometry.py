@@ -173,11 +173,7 @@ def se3_log_approx(T: ArrayLike) -> Array:
 def blend_poses(T_a: ArrayLike, T_b: ArrayLike, alpha: float) -> Array:
     """Pose ``alpha`` of the way from ``T_a`` to ``T_b`` (``(4, 4)``): rotation along the geodesic,
     translation linear. ``alpha`` 0 gives ``T_a``, 1 gives ``T_b``."""
-    T_a, T_b = np.asarray(T_a, dtype=np.float64), np.asarray(T_b, dtype=np.float64)
-    out = np.eye(4)
-    out[:3, :3] = T_a[:3, :3] @ so3_exp(alpha * so3_log(T_a[:3, :3].T @ T_b[:3, :3]))
-    out[:3, 3] = (1.0 - alpha) * T_a[:3, 3] + alpha * T_b[:3, 3]
-    return out
+    return blend_poses_many(T_a, T_b, [alpha])[0]
 
 
 def blend_poses_many(T_a: ArrayLike, T_b: ArrayLike, alphas: ArrayLike) -> Array:

@@ -114,29 +114,29 @@ class _Messages:
             point_step=16, row_step=16 * len(rec), data=np.frombuffer(rec.tobytes(), dtype=np.uint8),
             is_dense=True)
 
-    def tf(self, t: float, parent: str, child: str, T_parent_child: np.ndarray):
-        """``tf2_msgs/TFMessage`` with one transform ``T_parent_child``."""
+    def _xyz_quat(self, pose: np.ndarray) -> tuple[tuple[float, float, float], object]:
+        """Translation ``(x, y, z)`` and a ``geometry_msgs/Quaternion`` of a ``(4, 4)`` pose."""
         from submapslam.geometry import matrix_to_quat
 
+        q = matrix_to_quat(pose[:3, :3])
+        xyz = tuple(float(v) for v in pose[:3, 3])
+        return xyz, self.T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3])
+
+    def tf(self, t: float, parent: str, child: str, T_parent_child: np.ndarray):
+        """``tf2_msgs/TFMessage`` with one transform ``T_parent_child``."""
         T = self.T
-        q = matrix_to_quat(T_parent_child[:3, :3])
-        x, y, z = (float(v) for v in T_parent_child[:3, 3])
+        (x, y, z), rotation = self._xyz_quat(T_parent_child)
         transform = T["geometry_msgs/msg/Transform"](
-            translation=T["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
-            rotation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
+            translation=T["geometry_msgs/msg/Vector3"](x=x, y=y, z=z), rotation=rotation)
         stamped = T["geometry_msgs/msg/TransformStamped"](
             header=self.header(t, parent), child_frame_id=child, transform=transform)
         return T["tf2_msgs/msg/TFMessage"](transforms=[stamped])
 
     def odometry(self, t: float, T_odom_base: np.ndarray):
-        from submapslam.geometry import matrix_to_quat
-
         T = self.T
-        q = matrix_to_quat(T_odom_base[:3, :3])
-        x, y, z = (float(v) for v in T_odom_base[:3, 3])
-        pose = T["geometry_msgs/msg/Pose"](
-            position=T["geometry_msgs/msg/Point"](x=x, y=y, z=z),
-            orientation=T["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
+        (x, y, z), orientation = self._xyz_quat(T_odom_base)
+        pose = T["geometry_msgs/msg/Pose"](position=T["geometry_msgs/msg/Point"](x=x, y=y, z=z),
+                                           orientation=orientation)
         zero3 = T["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
         return T["nav_msgs/msg/Odometry"](
             header=self.header(t, "odom"), child_frame_id="base_link",
