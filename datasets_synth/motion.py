@@ -1,4 +1,4 @@
-"""Smooth closed-loop motion along a world's waypoints, and wheel odometry that drifts."""
+"""Smooth motion along a world's waypoints (closed loops or open paths), and wheel odometry that drifts."""
 
 from __future__ import annotations
 
@@ -9,21 +9,26 @@ import numpy as np
 from submapslam.geometry import se2_array_to_matrices
 
 
-def _chaikin_closed(points: np.ndarray, iterations: int = 4) -> np.ndarray:
-    """Corner-cutting smoothing of a closed polygon ``(W, 2)``."""
+def _chaikin(points: np.ndarray, iterations: int = 4, closed: bool = True) -> np.ndarray:
+    """Corner-cutting smoothing of a polygon ``(W, 2)``; an open one keeps its two end points."""
     p = np.asarray(points, dtype=np.float64)
     for _ in range(iterations):
         q = np.roll(p, -1, axis=0)
-        p = np.stack([0.75 * p + 0.25 * q, 0.25 * p + 0.75 * q], axis=1).reshape(-1, 2)
+        cut = np.stack([0.75 * p + 0.25 * q, 0.25 * p + 0.75 * q], axis=1).reshape(-1, 2)
+        p = cut if closed else np.vstack([p[:1], cut[:-2], p[-1:]])
     return p
 
 
-def _corner_points(w: np.ndarray, radius: float) -> np.ndarray:
-    """Closed polygon with extra points ``radius`` before and after every corner (limits rounding)."""
+def _corner_points(w: np.ndarray, radius: float, closed: bool = True) -> np.ndarray:
+    """Polygon with extra points ``radius`` before and after every corner (limits rounding)."""
     out = []
     n = len(w)
     for k in range(n):
-        prev, cur, nxt = w[k - 1], w[k], w[(k + 1) % n]
+        cur = w[k]
+        if not closed and k in (0, n - 1):
+            out.append(cur)
+            continue
+        prev, nxt = w[k - 1], w[(k + 1) % n]
         a = prev - cur
         b = nxt - cur
         la, lb = np.linalg.norm(a), np.linalg.norm(b)
@@ -35,6 +40,20 @@ def _corner_points(w: np.ndarray, radius: float) -> np.ndarray:
     return np.array(out)
 
 
+def _sample_curve(curve: np.ndarray, samples: np.ndarray, step: float, period: float | None) -> np.ndarray:
+    """Poses ``(N, 3)`` at arc lengths ``samples`` of the polyline ``curve``; heading by a centred
+    difference (periodic when ``period`` is the length of a closed curve, clamped at open ends)."""
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(curve, axis=0), axis=1))])
+
+    def at(u):
+        u = u % period if period is not None else np.clip(u, 0.0, s[-1])
+        return np.interp(u, s, curve[:, 0]), np.interp(u, s, curve[:, 1])
+
+    x, y = at(samples)
+    (xa, ya), (xb, yb) = at(samples + step), at(samples - step)
+    return np.stack([x, y, np.unwrap(np.arctan2(ya - yb, xa - xb))], axis=1)
+
+
 def loop_path(waypoints: np.ndarray, laps: int, step: float, corner_radius: float = 1.2) -> np.ndarray:
     """Planar poses ``(N, 3)`` ``(x, y, yaw)`` every ``step`` metres along ``laps`` smoothed laps.
 
@@ -43,23 +62,22 @@ def loop_path(waypoints: np.ndarray, laps: int, step: float, corner_radius: floa
     w = np.asarray(waypoints, dtype=np.float64)
     start = 0.5 * (w[0] + w[1])
     w = np.vstack([start, w[1:], w[:1]])
-    smooth = _chaikin_closed(_corner_points(w, corner_radius), iterations=3)
+    smooth = _chaikin(_corner_points(w, corner_radius), iterations=3)
     # rotate so the path starts near the start point
     k = int(np.argmin(np.linalg.norm(smooth - start, axis=1)))
     smooth = np.roll(smooth, -k, axis=0)
     closed = np.vstack([smooth, smooth[:1]])
-    seg = np.linalg.norm(np.diff(closed, axis=0), axis=1)
-    s = np.concatenate([[0.0], np.cumsum(seg)])
-    total = s[-1] * laps
-    samples = np.arange(0.0, total + 1e-9, step) % s[-1]
-    x = np.interp(samples, s, closed[:, 0])
-    y = np.interp(samples, s, closed[:, 1])
-    # heading from a centred difference along the (periodic) curve
-    ahead = (samples + step) % s[-1]
-    behind = (samples - step) % s[-1]
-    dx = np.interp(ahead, s, closed[:, 0]) - np.interp(behind, s, closed[:, 0])
-    dy = np.interp(ahead, s, closed[:, 1]) - np.interp(behind, s, closed[:, 1])
-    return np.stack([x, y, np.unwrap(np.arctan2(dy, dx))], axis=1)
+    length = float(np.linalg.norm(np.diff(closed, axis=0), axis=1).sum())
+    return _sample_curve(closed, np.arange(0.0, length * laps + 1e-9, step) % length, step, length)
+
+
+def open_path(waypoints: np.ndarray, step: float, corner_radius: float = 1.2) -> np.ndarray:
+    """Planar poses ``(N, 3)`` every ``step`` metres from the first waypoint to the last, corners
+    rounded over about ``corner_radius`` metres; driven once (a path that never returns)."""
+    w = np.asarray(waypoints, dtype=np.float64)
+    smooth = _chaikin(_corner_points(w, corner_radius, closed=False), iterations=3, closed=False)
+    length = float(np.linalg.norm(np.diff(smooth, axis=0), axis=1).sum())
+    return _sample_curve(smooth, np.arange(0.0, length + 1e-9, step), step, None)
 
 
 @dataclass

@@ -55,6 +55,26 @@ class Lidar3D:
         times = ((A + np.pi) / (2 * np.pi)).reshape(-1)
         return d, times
 
+    @classmethod
+    def preset(cls, rings: int, **overrides) -> Lidar3D:
+        """A Velodyne-like sensor: ``rings`` 16 (VLP-16) or 64 (HDL-64E), at KITTI's 1.73 m mount height.
+
+        VLP-16: -15..+15 deg, 1800 columns, 4 cm range noise, 100 m. HDL-64E: -24.8..+2 deg,
+        1800 columns, 2 cm noise, 120 m. Rings are evenly spaced in elevation (the real HDL-64E's
+        are not quite). ``overrides`` replace any field.
+        """
+        if rings not in LIDAR_PRESETS:
+            raise ValueError(f"no LiDAR preset with {rings} rings; use {' or '.join(map(str, LIDAR_PRESETS))}")
+        return cls(**{**LIDAR_PRESETS[rings], **overrides})
+
+
+LIDAR_PRESETS: dict[int, dict] = {
+    16: {"rings": 16, "fov_up_deg": 15.0, "fov_down_deg": -15.0, "columns": 1800, "max_range": 100.0,
+         "range_noise": 0.04, "dropout": 0.01, "mount_height": 1.73},
+    64: {"rings": 64, "fov_up_deg": 2.0, "fov_down_deg": -24.8, "columns": 1800, "max_range": 120.0,
+         "range_noise": 0.02, "dropout": 0.01, "mount_height": 1.73},
+}
+
 
 class RayCaster:
     """Wraps a ``RaycastingScene`` built from a legacy ``TriangleMesh``."""

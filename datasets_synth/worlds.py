@@ -1,7 +1,8 @@
 """Synthetic worlds: triangle meshes plus a path that revisits places.
 
-Planar worlds are built from 2D wall segments extruded to a height; the 3D world from boxes
-(buildings), cylinders (poles) and a ground plane. Everything is deterministic from a seed.
+Planar worlds are built from 2D wall segments extruded to a height; the 3D worlds from boxes
+(buildings, parked cars; axis-aligned or oriented), cylinders (poles, tree trunks) and rough
+ground. Everything is deterministic from a seed.
 """
 
 from __future__ import annotations
@@ -22,8 +23,15 @@ class World:
         boxes: ``(K, 6)`` axis-aligned boxes ``(xmin, ymin, zmin, xmax, ymax, zmax)`` [m].
         segments: ``(S, 4)`` wall segments ``(x0, y0, x1, y1)`` extruded to ``wall_height``.
         cylinders: ``(C, 4)`` vertical cylinders ``(x, y, radius, height)``.
-        ground: add a ground plane (z = 0) covering the world.
-        waypoints: ``(W, 2)`` closed loop the robot follows (last point connects to the first).
+        oriented_boxes: ``(B, 7)`` boxes ``(cx, cy, yaw, length, width, zmin, zmax)`` turned by
+            ``yaw`` [rad] about their vertical centre line; ``length`` runs along the yaw direction.
+        box_labels: ``(B,)`` what each oriented box is (``"building"``, ``"car"``, ``"canopy"``).
+        ground: add rough ground (z ~ 0) covering the world.
+        terrain_radius: keep the ground only within this distance [m] of the waypoints polyline
+            (bounds the mesh of long drives); None: everywhere.
+        waypoints: ``(W, 2)`` path the robot follows: a loop (``closed``, the last point connects
+            to the first) or, with ``closed=False``, an open path driven once from first to last.
+        corner_radius: [m] how far before and after a waypoint the path starts rounding it.
         extent: ``(xmin, ymin, xmax, ymax)``.
     """
 
@@ -37,9 +45,15 @@ class World:
     ground: bool = False
     wall_height: float = 2.5
     description: str = ""
+    oriented_boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 7)))
+    box_labels: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=str))
+    closed: bool = True
+    corner_radius: float = 1.2
+    terrain_radius: float | None = None
 
     def loop_length(self) -> float:
-        w = np.vstack([self.waypoints, self.waypoints[:1]])
+        """Length [m] of the waypoint polygon (closed: with the edge back to the start)."""
+        w = np.vstack([self.waypoints, self.waypoints[:1]]) if self.closed else self.waypoints
         return float(np.linalg.norm(np.diff(w, axis=0), axis=1).sum())
 
     def mesh(self):
@@ -58,14 +72,80 @@ class World:
             c = o3d.geometry.TriangleMesh.create_cylinder(radius=r, height=h, resolution=16)
             c.translate((x, y, h / 2))
             mesh += c
+        if len(self.oriented_boxes):
+            mesh += _triangle_mesh(o3d, *_oriented_box_arrays(self.oriented_boxes))
         if self.ground:
-            mesh += _terrain(o3d, self.extent)
+            keep = None
+            if self.terrain_radius is not None:
+                keep = _near_polyline(self.waypoints, self.terrain_radius, self.closed)
+            mesh += _terrain(o3d, self.extent, keep=keep)
         return mesh
 
 
-def _terrain(o3d, extent, spacing: float = 0.5, amplitude: float = 0.08, roughness: float = 0.04):
+def _triangle_mesh(o3d, verts: np.ndarray, tris: np.ndarray):
+    g = o3d.geometry.TriangleMesh()
+    g.vertices = o3d.utility.Vector3dVector(np.ascontiguousarray(verts, dtype=np.float64))
+    g.triangles = o3d.utility.Vector3iVector(np.ascontiguousarray(tris, dtype=np.int32))
+    return g
+
+
+_BOX_CORNERS = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0],
+                         [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], dtype=np.float64)
+_BOX_TRIANGLES = np.array([[0, 2, 1], [0, 3, 2], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4],
+                           [1, 2, 6], [1, 6, 5], [2, 3, 7], [2, 7, 6], [3, 0, 4], [3, 4, 7]])
+
+
+def _oriented_box_arrays(boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices ``(8B, 3)`` and triangles ``(12B, 3)`` of oriented boxes ``(B, 7)`` (one array op)."""
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+    cx, cy, yaw, length, width, z0, z1 = b.T
+    lx = _BOX_CORNERS[None, :, 0] * (length / 2)[:, None]
+    ly = _BOX_CORNERS[None, :, 1] * (width / 2)[:, None]
+    c, s = np.cos(yaw)[:, None], np.sin(yaw)[:, None]
+    x = cx[:, None] + c * lx - s * ly
+    y = cy[:, None] + s * lx + c * ly
+    z = np.where(_BOX_CORNERS[None, :, 2] > 0, z1[:, None], z0[:, None])
+    verts = np.stack([x, y, z], axis=-1).reshape(-1, 3)
+    tris = (_BOX_TRIANGLES[None] + 8 * np.arange(len(b))[:, None, None]).reshape(-1, 3)
+    return verts, tris
+
+
+def box_footprint(box: np.ndarray) -> np.ndarray:
+    """The 4 ground corners ``(4, 2)`` of an oriented box ``(cx, cy, yaw, length, width, ...)``."""
+    return _oriented_box_arrays(np.asarray(box, dtype=np.float64)[None, :7])[0][:4, :2]
+
+
+def _near_polyline(points: np.ndarray, radius: float, closed: bool) -> Callable[[np.ndarray], np.ndarray]:
+    """Mask function: which ``(N, 2)`` points lie within ``radius`` of the polyline ``points``."""
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points, dtype=np.float64)
+    if closed:
+        p = np.vstack([p, p[:1]])
+    dense = densify(p, 0.5 * min(radius, 2.0))
+    tree = cKDTree(dense)
+    slack = 0.5 * min(radius, 2.0)
+    return lambda xy: np.isfinite(tree.query(xy, distance_upper_bound=radius + slack)[0])
+
+
+def densify(polyline: np.ndarray, spacing: float) -> np.ndarray:
+    """Points ``(M, 2)`` along ``polyline`` ``(K, 2)`` no more than ``spacing`` apart (its vertices included)."""
+    p = np.asarray(polyline, dtype=np.float64).reshape(-1, 2)
+    if len(p) < 2:
+        return p.copy()
+    seg = np.diff(p, axis=0)
+    n = np.maximum(1, np.ceil(np.linalg.norm(seg, axis=1) / spacing).astype(int))
+    t = np.concatenate([np.arange(k) / k for k in n])
+    start = np.repeat(np.arange(len(seg)), n)
+    return np.vstack([p[start] + seg[start] * t[:, None], p[-1:]])
+
+
+def _terrain(o3d, extent, spacing: float = 0.5, amplitude: float = 0.08, roughness: float = 0.04,
+             keep: Callable[[np.ndarray], np.ndarray] | None = None):
     """Undulating, rough ground (a height field). A flat plane gives every scan identical ground
-    rings, which pin point-to-point ICP at zero motion; real ground has kerbs, grass and bumps."""
+    rings, which pin point-to-point ICP at zero motion; real ground has kerbs, grass and bumps.
+
+    ``keep`` (a mask function of ``(N, 2)`` points) drops the cells whose centre it rejects."""
     xmin, ymin, xmax, ymax = extent
     xs = np.arange(xmin - 40, xmax + 40 + spacing, spacing)
     ys = np.arange(ymin - 40, ymax + 40 + spacing, spacing)
@@ -75,12 +155,19 @@ def _terrain(o3d, extent, spacing: float = 0.5, amplitude: float = 0.08, roughne
     verts = np.stack([X, Y, Z], axis=-1).reshape(-1, 3)
     nx, ny = len(xs), len(ys)
     idx = np.arange(nx * ny).reshape(nx, ny)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    if keep is not None:
+        centres = np.stack([X[:-1, :-1] + spacing / 2, Y[:-1, :-1] + spacing / 2], axis=-1).reshape(-1, 2)
+        cells = keep(centres).reshape(nx - 1, ny - 1)
+    else:
+        cells = np.ones((nx - 1, ny - 1), dtype=bool)
+    a, b, c, d = idx[:-1, :-1][cells], idx[1:, :-1][cells], idx[1:, 1:][cells], idx[:-1, 1:][cells]
     tris = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
-    g = o3d.geometry.TriangleMesh()
-    g.vertices = o3d.utility.Vector3dVector(verts)
-    g.triangles = o3d.utility.Vector3iVector(tris.astype(np.int32))
-    return g
+    if keep is not None:  # drop the vertices no kept cell uses
+        used = np.zeros(len(verts), dtype=bool)
+        used[tris.ravel()] = True
+        remap = np.cumsum(used) - 1
+        verts, tris = verts[used], remap[tris]
+    return _triangle_mesh(o3d, verts, tris)
 
 
 def _wall_quad(o3d, x0, y0, x1, y1, height):

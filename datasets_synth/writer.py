@@ -7,7 +7,7 @@ Layout written by :func:`generate`::
     OUT/odometry_tum.txt     wheel odometry T_odom_base per scan (TUM)
     OUT/groundtruth_tum.txt  ground truth T_world_base per scan (TUM)
     OUT/groundtruth_kitti.txt  the same, KITTI 3x4
-    OUT/meta.yaml            world, seed, sensor, planar flag, loop length, noise, T_base_sensor
+    OUT/meta.yaml            world, seed, sensor, planar flag, loop and driven path length, noise, T_base_sensor
     OUT/landmarks_groundtruth.csv  worlds with poles: ``id,x,y`` of each pole centre (world frame)
     OUT/log.clf              2D lasers with a 180-degree field of view: the same data as CARMEN
 
@@ -18,6 +18,7 @@ at the sensor's mount height.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
@@ -28,7 +29,7 @@ from submapslam.errors import SubmapSlamError
 from submapslam.geometry import matrix_to_se2, se2_array_to_matrices
 from submapslam.io.trajectory import Trajectory, write_kitti, write_tum
 
-from .motion import OdometryNoise, loop_path, wheel_odometry
+from .motion import OdometryNoise, loop_path, open_path, wheel_odometry
 from .sensors import Laser2D, Lidar3D, RayCaster, measure
 from .worlds import WORLDS, World
 
@@ -65,6 +66,63 @@ def _carmen_lines(stamps, ranges_list, odom, max_range) -> list[str]:
     return lines
 
 
+def cast_scans(out: Path, caster: RayCaster, dev: Laser2D | Lidar3D, T_world_sensor: np.ndarray,
+               rng: np.random.Generator, *, keep_ranges: bool = False,
+               progress: Callable[[int], None] | None = None) -> list[np.ndarray]:
+    """Ray-cast ``dev`` from every pose ``(N, 4, 4)`` and write ``out/scans/NNNNNN.ply``.
+
+    Points are in the sensor frame with a per-point sweep time in [0, 1] (a 2D laser: 0); the
+    scans are not motion distorted. ``keep_ranges``: also return each scan's noisy ranges, with
+    :data:`NO_RETURN` where a beam has no return (for the CARMEN copy). ``progress(k)`` is called
+    after every 100th scan and the last.
+    """
+    (out / "scans").mkdir(parents=True, exist_ok=True)
+    if isinstance(dev, Laser2D):
+        dirs = dev.directions()
+        times = np.zeros(len(dirs))
+    else:
+        dirs, times = dev.directions()
+    kept = []
+    for k, T in enumerate(T_world_sensor):
+        r, valid = measure(caster.ranges(T, dirs), dev.max_range, dev.range_noise, dev.dropout, rng)
+        write_ply_xyzt(out / "scans" / f"{k:06d}.ply", dirs[valid] * r[valid, None], times[valid])
+        if keep_ranges:
+            kept.append(np.where(valid, r, NO_RETURN))
+        if progress is not None and ((k + 1) % 100 == 0 or k + 1 == len(T_world_sensor)):
+            progress(k + 1)
+    return kept
+
+
+def write_trajectories(out: Path, truth: np.ndarray, odom: np.ndarray, rate: float) -> np.ndarray:
+    """``times.txt``, ``odometry_tum.txt``, ``groundtruth_tum.txt`` and ``groundtruth_kitti.txt``
+    for ``truth`` ``T_world_base`` and ``odom`` ``T_odom_base`` ``(N, 4, 4)`` at ``rate`` Hz;
+    returns the timestamps ``(N,)``."""
+    stamps = START_TIME + np.arange(len(truth)) / rate
+    (out / "times.txt").write_text("".join(f"{t:.6f}\n" for t in stamps))
+    write_tum(out / "odometry_tum.txt", Trajectory(stamps, odom))
+    write_tum(out / "groundtruth_tum.txt", Trajectory(stamps, truth))
+    write_kitti(out / "groundtruth_kitti.txt", truth)
+    return stamps
+
+
+def odometry_summary(truth: np.ndarray, odom: np.ndarray) -> dict:
+    """Driven path length and wheel odometry's end drift [m], rounded for ``meta.yaml``."""
+    end_drift = float(np.linalg.norm(odom[-1][:2, 3] - (np.linalg.inv(truth[0]) @ truth[-1])[:2, 3]))
+    length = float(np.linalg.norm(np.diff(truth[:, :2, 3], axis=0), axis=1).sum())
+    return {"path_length_m": round(length, 3), "odometry_end_drift_m": round(end_drift, 3)}
+
+
+def write_meta(out: Path, meta: dict) -> None:
+    (out / "meta.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
+
+
+def write_landmarks(out: Path, cylinders: np.ndarray | None) -> None:
+    """``landmarks_groundtruth.csv`` (``id,x,y`` of each pole centre, world frame), when there are poles."""
+    if cylinders is not None and len(cylinders):
+        rows = "".join(f"{k},{x:.4f},{y:.4f}\n" for k, (x, y) in enumerate(np.asarray(cylinders)[:, :2]))
+        (out / "landmarks_groundtruth.csv").write_text("id,x,y\n" + rows)
+
+
 def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, sensor: str | None = None,
              speed: float | None = None, rate: float = 10.0, odometry_noise: float = 1.0,
              max_scans: int | None = None, sensor_options: dict | None = None, **world_options) -> Path:
@@ -73,7 +131,7 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
     Args:
         world: a name in :data:`WORLDS`.
         seed: seeds the world layout, sensor noise and odometry noise (same seed, same files).
-        laps: laps around the loop.
+        laps: laps around the loop (a world with an open path, e.g. ``aliased``, is driven once).
         sensor: ``"laser2d"`` or ``"lidar3d"`` (default: the world's own).
         speed: [m/s] (default 1.0 indoors, 8.0 outdoors); ``rate``: scans per second.
         odometry_noise: multiplies the default :class:`OdometryNoise` (0 = perfect odometry).
@@ -93,7 +151,11 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
         raise SubmapSlamError(f"world {world!r} does not take these options: {exc}") from None
     rng = np.random.default_rng(seed + 7919)
     speed = speed or (1.0 if w.planar else 8.0)
-    truth_xyt = loop_path(w.waypoints, laps, speed / rate)
+    if w.closed:
+        truth_xyt = loop_path(w.waypoints, laps, speed / rate, w.corner_radius)
+    else:
+        truth_xyt = open_path(w.waypoints, speed / rate, w.corner_radius)
+        laps = 1
     if max_scans is not None:
         truth_xyt = truth_xyt[:max_scans]
     noise = OdometryNoise().scaled(odometry_noise)
@@ -104,42 +166,22 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
         raise SubmapSlamError(f"bad sensor option: {exc}") from None
     truth = se2_array_to_matrices(truth_xyt)
     truth[:, 2, 3] = dev.mount_height if not w.planar else 0.0
-    caster = RayCaster(w.mesh())
+    T_cast = truth.copy()
+    if sensor == "laser2d" or w.planar:
+        T_cast[:, 2, 3] = dev.mount_height
     out = Path(out_dir)
-    (out / "scans").mkdir(parents=True, exist_ok=True)
-    stamps = START_TIME + np.arange(len(truth)) / rate
-    carmen_ranges = []
-    for k, T in enumerate(truth):
-        T_cast = T.copy()
-        if sensor == "laser2d":
-            T_cast[2, 3] = dev.mount_height
-            dirs = dev.directions()
-            times = np.zeros(len(dirs))
-        else:
-            if w.planar:
-                T_cast[2, 3] = dev.mount_height
-            dirs, times = dev.directions()
-        r, valid = measure(caster.ranges(T_cast, dirs), dev.max_range, dev.range_noise, dev.dropout, rng)
-        pts = dirs[valid] * r[valid, None]
-        write_ply_xyzt(out / "scans" / f"{k:06d}.ply", pts, times[valid])
-        if sensor == "laser2d":
-            carmen_ranges.append(np.where(valid, r, NO_RETURN))
-    (out / "times.txt").write_text("".join(f"{t:.6f}\n" for t in stamps))
-    write_tum(out / "odometry_tum.txt", Trajectory(stamps, odom))
-    write_tum(out / "groundtruth_tum.txt", Trajectory(stamps, truth))
-    write_kitti(out / "groundtruth_kitti.txt", truth)
-    end_drift = float(np.linalg.norm(odom[-1][:2, 3] - (np.linalg.inv(truth[0]) @ truth[-1])[:2, 3]))
-    meta = {
+    carmen_ranges = cast_scans(out, RayCaster(w.mesh()), dev, T_cast, rng, keep_ranges=sensor == "laser2d")
+    stamps = write_trajectories(out, truth, odom, rate)
+    summary = odometry_summary(truth, odom)
+    write_meta(out, {
         "world": world, "description": w.description, "seed": seed, "laps": laps,
         "sensor": {"type": sensor, **asdict(dev)}, "planar": sensor == "laser2d",
         "n_scans": int(len(truth)), "rate_hz": rate, "speed_mps": speed,
         "loop_length_m": round(w.loop_length(), 3), "odometry_noise": asdict(noise),
-        "odometry_end_drift_m": round(end_drift, 3), "T_base_sensor": np.eye(4).tolist(),
-    }
-    (out / "meta.yaml").write_text(yaml.safe_dump(meta, sort_keys=False))
-    if w.cylinders is not None and len(w.cylinders):
-        rows = "".join(f"{k},{x:.4f},{y:.4f}\n" for k, (x, y) in enumerate(np.asarray(w.cylinders)[:, :2]))
-        (out / "landmarks_groundtruth.csv").write_text("id,x,y\n" + rows)
+        "odometry_end_drift_m": summary["odometry_end_drift_m"], "T_base_sensor": np.eye(4).tolist(),
+        "path_length_m": summary["path_length_m"],
+    })
+    write_landmarks(out, w.cylinders)
     if sensor == "laser2d" and abs(dev.fov_deg - 180.0) < 1e-9:
         (out / "log.clf").write_text("\n".join(_carmen_lines(stamps, carmen_ranges, odom, dev.max_range)) + "\n")
     log.info("wrote %d scans of %s to %s", len(truth), world, out)
