@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import csv
 import json
+import time
 from pathlib import Path
 
 import numpy as np
 
 from ..config import dump_config
 from ..geometry import matrix_to_se2
+from ..process_stats import peak_memory_mb
 from ..result import SlamResult
 from .g2o import write_g2o
 from .ply import write_ply
@@ -25,6 +27,7 @@ def write_results(result: SlamResult, out_dir: str | Path) -> dict[str, Path]:
     grid in the ROS map_server format, moving objects cleared; for 3D LiDAR from the
     obstacle slice of each scan).
     """
+    t_start = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {name: out / name for name in (
@@ -36,7 +39,6 @@ def write_results(result: SlamResult, out_dir: str | Path) -> dict[str, Path]:
     write_g2o(paths["graph.g2o"], result.submap_poses, result.edges)
     write_ply(paths["map.ply"], fused_map(result))
     paths["config.yaml"].write_text(dump_config(result.config))
-    paths["summary.json"].write_text(json.dumps(result.summary(), indent=2) + "\n")
     _write_loops(paths["loops.csv"], result)
     _write_submaps(paths["submaps.csv"], result)
     if result.config.mapping.write_grid and any(len(p) for scans in result.submap_scan_points for p in scans):
@@ -46,18 +48,39 @@ def write_results(result: SlamResult, out_dir: str | Path) -> dict[str, Path]:
         grid, _cleared = build_global_grid(result)
         paths["map.pgm"], paths["map.yaml"] = write_pgm_yaml(
             out / "map", grid.probabilities(), grid.origin, grid.params.resolution)
+    # written last: the run's real wall time and the process's true peak include the writing
+    summary = result.summary()
+    writing = time.perf_counter() - t_start
+    summary["wall_time_s"]["writing"] = round(writing, 3)
+    summary["wall_time_total_s"] = round(result.wall_time_s + writing, 3)
+    summary["scans_per_second"] = round(result.n_scans / max(result.wall_time_s + writing, 1e-9), 2)
+    summary["peak_memory_mb"] = round(peak_memory_mb(), 1)
+    paths["summary.json"].write_text(json.dumps(summary, indent=2) + "\n")
     return paths
 
 
-def fused_map(result: SlamResult, voxel: float | None = None) -> np.ndarray:
-    """All submap clouds in the world frame, voxel-downsampled: ``(M, 3)``."""
+def fused_map(result: SlamResult, voxel: float | None = None, chunk_points: int = 2_000_000) -> np.ndarray:
+    """All submap clouds in the world frame, voxel-downsampled: ``(M, 3)``.
+
+    Streaming: submaps are moved into the world frame and merged into the map a chunk of about
+    ``chunk_points`` points at a time, so memory holds the map plus one chunk, never every
+    submap's cloud in the world frame at once.
+    """
     from ..submaps import voxel_downsample
 
     voxel = voxel or result.config.mapping.map_voxel_size
-    chunks = [pts @ T[:3, :3].T + T[:3, 3] for T, pts in zip(result.submap_poses, result.submap_points)]
-    if not chunks:
-        return np.zeros((0, 3))
-    return voxel_downsample(np.vstack(chunks), voxel)
+    merged = np.zeros((0, 3))
+    chunk: list[np.ndarray] = []
+    size = 0
+    for T, pts in zip(result.submap_poses, result.submap_points):
+        chunk.append(np.asarray(pts, dtype=np.float64) @ T[:3, :3].T + T[:3, 3])
+        size += len(pts)
+        if size >= chunk_points:
+            merged = voxel_downsample(np.vstack([merged, *chunk]), voxel)
+            chunk, size = [], 0
+    if chunk:
+        merged = voxel_downsample(np.vstack([merged, *chunk]), voxel)
+    return merged
 
 
 def _write_loops(path: Path, result: SlamResult) -> None:

@@ -30,22 +30,42 @@ def grid_params(result: SlamResult) -> GridParams:
     return GridParams(resolution=mapping.grid_resolution_3d, max_free_range=30.0)
 
 
+def _local_extent(T_anchor_scans: np.ndarray, scan_points: list[np.ndarray]) -> np.ndarray | None:
+    """``(2, 2)`` min/max corners (anchor frame, x y) of a submap's scans and their poses."""
+    lo, hi = T_anchor_scans[:, :2, 3].min(axis=0), T_anchor_scans[:, :2, 3].max(axis=0)
+    seen = False
+    for T, pts in zip(T_anchor_scans, scan_points):
+        if len(pts):
+            xy = transform_points(T, pts)[:, :2]
+            lo, hi = np.minimum(lo, xy.min(axis=0)), np.maximum(hi, xy.max(axis=0))
+            seen = True
+    return np.stack([lo, hi]) if seen else None
+
+
 def build_global_grid(result: SlamResult, params: GridParams | None = None) -> tuple[EvidenceGrid, int]:
-    """Fuse every submap's local grid in time order; return the grid and cells cleared as dynamic."""
+    """Fuse every submap's local grid in time order; return the grid and cells cleared as dynamic.
+
+    Two passes over the submaps: the first finds the extent, the second builds each local grid
+    and fuses it at once, so memory holds the global grid and one local grid, not all of them
+    (on a 3.7 km drive every local grid at once was gigabytes).
+    """
     params = params or grid_params(result)
     corners = []
-    locals_: list[tuple[EvidenceGrid, np.ndarray]] = []
-    for k, T_world_anchor in enumerate(result.submap_poses):
-        grid = local_grid(result.submap_scan_poses[k], result.submap_scan_points[k], params)
-        if grid is None:
+    for T_world_anchor, poses, points in zip(result.submap_poses, result.submap_scan_poses,
+                                             result.submap_scan_points):
+        extent = _local_extent(poses, points)
+        if extent is None:
             continue
-        h, w = grid.logodds.shape
-        box = grid.origin + np.array([[0, 0], [w, 0], [0, h], [w, h]]) * params.resolution
-        box3 = np.c_[box, np.zeros(4)]
-        corners.append(transform_points(T_world_anchor, box3)[:, :2])
-        locals_.append((grid, T_world_anchor))
-    if not locals_:
+        (x0, y0), (x1, y1) = extent - [[params.resolution] * 2, [-params.resolution] * 2]
+        box = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x0, y1, 0.0], [x1, y1, 0.0]])
+        corners.append(transform_points(T_world_anchor, box)[:, :2])
+    if not corners:
         raise ValueError("no scans to build a grid from")
-    global_grid = EvidenceGrid.covering(np.vstack(corners), params, margin=0.5)
-    cleared = sum(fuse_submap_grids(global_grid, g, T) for g, T in locals_)
+    global_grid = EvidenceGrid.covering(np.vstack(corners), params, margin=1.5)
+    cleared = 0
+    for T_world_anchor, poses, points in zip(result.submap_poses, result.submap_scan_poses,
+                                             result.submap_scan_points):
+        grid = local_grid(poses, points, params)
+        if grid is not None:
+            cleared += fuse_submap_grids(global_grid, grid, T_world_anchor)
     return global_grid, cleared
