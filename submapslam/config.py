@@ -61,7 +61,9 @@ class LoopConfig(_Strict):
 
     enabled: bool = True
     spatial_sigma: float = Field(3.0, gt=0, description="Mahalanobis gate on anchor distance")
-    spatial_min_radius: float = Field(5.0, gt=0, description="[m] search radius floor")
+    spatial_min_radius: float | None = Field(
+        None, gt=0, description="[m] search radius floor; None: 5 for planar logs, 20 for 3D (3D submaps "
+        "see 80 m around: anchors 20 m apart still share most of their view)")
     spatial_max_radius: float = Field(60.0, gt=0, description="[m] search radius ceiling")
     use_descriptor: bool = True
     descriptor_max_distance: float = Field(0.45, gt=0, le=1.0)
@@ -69,6 +71,14 @@ class LoopConfig(_Strict):
     descriptor_top_k: int = Field(3, ge=0)
     yaw_window_deg: float = Field(20.0, gt=0, le=180, description="yaw search half-width around a guess")
     min_submap_gap: int = Field(2, ge=1, description="skip neighbours closer than this in the chain")
+    min_loop_path_m: float | None = Field(
+        None, ge=0, description="[m] a cycle needs at least this much odometry path between the two submaps; "
+        "closer pairs are odometry, not cycles. None: 0 for planar logs, 4 submap lengths for 3D")
+    min_structure_overlap: float = Field(
+        0.35, ge=0, le=1, description="3D: overlap of the non-ground points (walls, poles, cars) both ways; the "
+        "ground of any street matches any other, so overlap over all points does not tell wrong from right")
+    max_plane_rmse: float = Field(
+        0.25, gt=0, description="[m] 3D: point-to-plane RMSE of the structure inliers after fine registration")
     min_fitness: float = Field(0.45, ge=0, le=1)
     max_inlier_rmse: float = Field(0.15, gt=0)
     min_overlap: float = Field(0.35, ge=0, le=1)
@@ -101,11 +111,26 @@ class BackendConfig(_Strict):
         "odometry follows the wheels (degenerate directions), the registration-shaped covariance stops here"
     )
     odometry_drift: float = Field(0.005, gt=0, description="odometry translation sigma per metre")
-    odometry_drift_deg_per_m: float = Field(0.1, gt=0, description="odometry heading sigma per metre [deg]")
+    odometry_drift_deg_per_m: float | None = Field(
+        None, gt=0, description="odometry rotation sigma per metre [deg]; None: 0.1 for planar logs, 0.01 for 3D "
+        "(KISS-ICP's published KITTI rotation error is 0.0017 deg/m; a loose model lets a wrong loop bend the "
+        "odometry chain at little cost, so the optimiser cannot tell it from a right one)")
+    odometry_turn_fraction: float | None = Field(
+        None, ge=0, description="odometry rotation sigma as a fraction of the turned angle; None: 0.03 for "
+        "planar logs, 0.01 for 3D")
     odometry_sigma_floor_m: float = Field(0.02, gt=0)
     odometry_sigma_floor_deg: float = Field(0.2, gt=0)
     loop_sigma_floor_m: float = Field(0.05, gt=0)
     loop_sigma_floor_deg: float = Field(0.5, gt=0)
+    final_check: bool = Field(
+        True, description="after the batch pass, drop loop closures the solution cannot reconcile with the "
+        "odometry (whitened residual above the chi-square 99.9 % bound), one at a time, and re-solve")
+
+    def rotation_drift(self, planar: bool) -> tuple[float, float]:
+        """``(deg per metre, fraction of the turned angle)`` of the odometry rotation sigma."""
+        per_m = self.odometry_drift_deg_per_m or (0.1 if planar else 0.01)
+        turn = self.odometry_turn_fraction if self.odometry_turn_fraction is not None else (0.03 if planar else 0.01)
+        return per_m, turn
 
 
 class MappingConfig(_Strict):

@@ -7,7 +7,6 @@ any moment) or in one call (``run(log)``). Data flows one way; nothing here writ
 from __future__ import annotations
 
 import logging
-import resource
 import time
 from collections.abc import Callable, Iterable
 from contextlib import contextmanager
@@ -21,6 +20,7 @@ from .geometry import blend_poses_many, inverse, rotation_angle
 from .io.hints import LoopHint
 from .io.scan import Scan
 from .odometry import Odometry
+from .process_stats import current_memory_mb, peak_memory_mb
 from .result import LoopRecord, SlamResult
 from .submaps import Submap, SubmapBuilder, voxel_downsample
 
@@ -44,23 +44,18 @@ class StageTimer:
             self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - t0
 
 
-def peak_memory_mb() -> float:
-    """Peak resident memory of this process [MiB] (Linux ru_maxrss is in KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
 def odometry_information(T_i_j: np.ndarray, distance: float, planar: bool, config) -> np.ndarray:
     """Information ``(6, 6)`` (GTSAM order) of an odometry edge between consecutive anchors.
 
     Drift model of scan-to-map odometry: translation sigma ``odometry_drift`` of the distance
-    travelled plus a floor; rotation sigma ``odometry_drift_deg_per_m`` per metre plus 3% of
-    the turned angle plus a floor. For planar logs z, roll and pitch are pinned (they are not
-    observable and must not drift).
+    travelled plus a floor; rotation sigma ``odometry_drift_deg_per_m`` per metre plus a
+    fraction of the turned angle plus a floor (:meth:`BackendConfig.rotation_drift`). For planar
+    logs z, roll and pitch are pinned (they are not observable and must not drift).
     """
     angle = rotation_angle(T_i_j)
+    per_m, turn = config.rotation_drift(planar)
     s_t = config.odometry_sigma_floor_m + config.odometry_drift * distance
-    s_r = (np.deg2rad(config.odometry_sigma_floor_deg) + np.deg2rad(config.odometry_drift_deg_per_m) * distance
-           + 0.03 * angle)
+    s_r = np.deg2rad(config.odometry_sigma_floor_deg) + np.deg2rad(per_m) * distance + turn * angle
     sig = np.array([s_r, s_r, s_r, s_t, s_t, s_t])
     if planar:
         sig[[0, 1, 5]] = 1e-4
@@ -76,6 +71,9 @@ class SubmapSLAM:
     def __init__(self, config: PipelineConfig | None = None, hints: list[LoopHint] | None = None) -> None:
         self.config = config or PipelineConfig()
         self.timer = StageTimer()
+        self._t_start = time.perf_counter()
+        self._travelled = 0.0  # odometry path length so far [m]
+        self.memory_by_km: list[tuple[float, float]] = []  # (km travelled, resident MiB) per closed submap
         self.planar: bool | None = None
         self._odometry: Odometry | None = None
         self._wheel_scans = 0  # scans that came with wheel odometry
@@ -114,6 +112,8 @@ class SubmapSLAM:
         with self.timer("odometry"):
             T_odom_base, frame = self._odometry.register(scan)
         self._wheel_scans += scan.odometry is not None
+        if self._odom_poses:
+            self._travelled += float(np.linalg.norm(T_odom_base[:3, 3] - self._odom_poses[-1][:3, 3]))
         self.timestamps.append(scan.timestamp)
         self._odom_poses.append(T_odom_base)
         self._scan_submap.append(-1)
@@ -132,7 +132,8 @@ class SubmapSLAM:
             from .topology.loop_closure import LoopCloser
 
             self._loop_closer = LoopCloser(cfg.loops, planar=self.planar, voxel_size=voxel,
-                                           max_range=cfg.odometry.max_range, timer=self.timer)
+                                           max_range=cfg.odometry.max_range,
+                                           submap_length=self._builder.max_distance, timer=self.timer)
 
     def _grid_slice(self):
         """For 3D runs with grids on: scan -> its obstacle slice (what the occupancy grid traces)."""
@@ -154,6 +155,7 @@ class SubmapSLAM:
 
     def _close_submap(self, submap: Submap, background: bool = True) -> None:
         self._settle()
+        self.memory_by_km.append((self._travelled / 1000.0, current_memory_mb()))
         self.submaps.append(submap)
         for idx in submap.scan_indices:
             self._scan_submap[idx] = submap.id
@@ -306,15 +308,20 @@ class SubmapSLAM:
             self._worker.shutdown()
             self._worker = None
         with self.timer("optimisation"):
-            weights = {}
+            weights, dropped = {}, []
             if self.config.backend.final_batch and self.submaps:
                 weights = self._graph.optimize_batch()
+                if self.config.backend.final_check:
+                    dropped = self._graph.final_check()
             covs = self._graph.all_marginal_covariances()
-        rejected = {key for key, w in weights.items() if w < 0.5}
+        reasons = {key: f"rejected by the optimiser (GNC weight {w:.2f})" for key, w in weights.items() if w < 0.5}
+        reasons.update({(i, j): why for i, j, why in dropped})
         for rec in self.loops:
-            if rec.accepted and (rec.i, rec.j) in rejected:
+            if rec.accepted and (rec.i, rec.j) in reasons:
                 rec.accepted = False
-                rec.reason = f"rejected by the optimiser (GNC weight {weights[(rec.i, rec.j)]:.2f})"
+                rec.reason = reasons[(rec.i, rec.j)]
+        if dropped:
+            log.warning("final check dropped %d loop closure(s) the odometry cannot reconcile", len(dropped))
         timestamps, poses = self.trajectory()
         n = len(self.submaps)
         return SlamResult(
@@ -327,12 +334,14 @@ class SubmapSLAM:
             submap_scan_indices=[s.scan_indices for s in self.submaps],
             submap_scan_poses=[s.T_anchor_scans for s in self.submaps],
             submap_scan_points=[s.scan_points for s in self.submaps],
-            edges=[(e.i, e.j, e.T_i_j, e.information, e.kind) for e in self._graph.edges
-                   if (e.i, e.j) not in rejected or e.kind != "loop"],
+            edges=[(e.i, e.j, e.T_i_j, e.information, e.kind) for e in self._graph.active_edges()],
             loops=self.loops,
             planar=bool(self.planar),
             config=self.config,
             stage_seconds=dict(self.timer.seconds),
+            wall_time_s=time.perf_counter() - self._t_start,
+            path_length_m=self._travelled,
+            memory_mb_by_km=list(self.memory_by_km),
             peak_memory_mb=peak_memory_mb(),
             input_error=input_error,
             source=source,

@@ -22,6 +22,8 @@ class LoopRecord:
     inlier_rmse: float
     reason: str
     T_i_j: np.ndarray | None = None
+    structure_overlap: float = float("nan")
+    plane_rmse: float = float("nan")
 
 
 @dataclass
@@ -43,7 +45,12 @@ class SlamResult:
             (empty lists when grids are off).
         edges: ``(i, j, T_i_j (4,4), information (6,6), kind)`` tuples of the submap graph.
         loops: every tested hypothesis.
-        stage_seconds: wall time per stage.
+        stage_seconds: wall time per stage; stages overlap (a closed submap's graph work runs
+            beside the next scans' registration), so they add up to more than ``wall_time_s``.
+        wall_time_s: wall-clock seconds from the engine's start to the result.
+        path_length_m: odometry path length [m].
+        memory_mb_by_km: ``(km travelled, resident MiB)`` when each submap closed.
+        peak_memory_mb: the process's peak resident set [MiB] (``ru_maxrss``) when the result was made.
         input_error: message of an input error that stopped reading early (results cover
             the scans read before it), else None.
     """
@@ -62,6 +69,9 @@ class SlamResult:
     planar: bool
     config: PipelineConfig
     stage_seconds: dict[str, float] = field(default_factory=dict)
+    wall_time_s: float = 0.0
+    path_length_m: float = 0.0
+    memory_mb_by_km: list[tuple[float, float]] = field(default_factory=list)
     peak_memory_mb: float = 0.0
     input_error: str | None = None
     source: str = ""
@@ -88,8 +98,11 @@ class SlamResult:
             "loop_candidates_tested": len(self.loops),
             "loop_closures_accepted": self.loops_accepted,
             "loop_closures_rejected": len(self.loops) - self.loops_accepted,
+            "path_length_m": round(self.path_length_m, 3),
             "wall_time_s": {k: round(v, 3) for k, v in self.stage_seconds.items()},
-            "wall_time_total_s": round(sum(self.stage_seconds.values()), 3),
+            "wall_time_total_s": round(self.wall_time_s, 3),
+            "scans_per_second": round(self.n_scans / self.wall_time_s, 2) if self.wall_time_s > 0 else None,
             "peak_memory_mb": round(self.peak_memory_mb, 1),
+            "memory_mb_by_km": [[round(km, 4), round(mb, 1)] for km, mb in self.memory_mb_by_km],
             "input_error": self.input_error,
         }

@@ -70,9 +70,9 @@ class PoseGraph:
         self._estimate = gtsam.Values()
         self._initial: dict[int, np.ndarray] = {}
         self.edges: list[GraphEdge] = []
-        self._factor_edges: dict[int, int] = {}
-        self._marginal_graph = None
-        self.odometry_steps: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # i -> (T_i_i+1, Sigma)  # factor index in _graph -> index in edges
+        self._factor_edges: dict[int, int] = {}  # factor index in _graph -> index in edges
+        self._excluded: set[int] = set()  # factor indices of rejected loop edges
+        self.odometry_steps: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # i -> (T_i_i+1, Sigma)
         self.n_updates = 0
 
     # ------------------------------------------------------------------ building
@@ -124,19 +124,34 @@ class PoseGraph:
         self._estimate = self._isam.calculateEstimate()
         self.n_updates += 1
 
+    def _active_graph(self):
+        """The graph without the factors at indices in ``self._excluded`` (rejected loops)."""
+        if not self._excluded:
+            return self._graph
+        graph = self._gtsam.NonlinearFactorGraph()
+        for idx in range(self._graph.size()):
+            if idx not in self._excluded:
+                graph.add(self._graph.at(idx))
+        return graph
+
+    def _lm_params(self, max_iterations: int):
+        lm = self._gtsam.LevenbergMarquardtParams()
+        lm.setMaxIterations(max_iterations)
+        lm.setVerbosityLM("SILENT")
+        return lm
+
     def optimize_batch(self, max_iterations: int = 100) -> dict[tuple[int, int], float]:
         """Batch pass on the whole graph from the current estimate.
 
         With ``robust_kernel="gnc"``: graduated non-convexity (truncated least squares) over LM,
         odometry edges and priors known inliers; returns the final weight of each loop edge
-        ``{(i, j): w}`` (0 = rejected as an outlier). Otherwise plain LM; weights are all 1.
+        ``{(i, j): w}`` (0 = rejected as an outlier; such edges leave the graph). Otherwise plain
+        LM; weights are all 1.
         """
         gtsam = self._gtsam
         if self._pending_graph.size() or self._pending_values.size():
             self.update()
-        lm = gtsam.LevenbergMarquardtParams()
-        lm.setMaxIterations(max_iterations)
-        lm.setVerbosityLM("SILENT")
+        lm = self._lm_params(max_iterations)
         loop_factors = {idx: key for idx, key in self._factor_edges.items() if self.edges[key].kind == "loop"}
         weights = {(e.i, e.j): 1.0 for e in self.edges if e.kind == "loop"}
         if self.config.robust_kernel == "gnc" and loop_factors:
@@ -150,16 +165,60 @@ class PoseGraph:
             for idx, key in loop_factors.items():
                 e = self.edges[key]
                 weights[(e.i, e.j)] = float(w[idx])
-            outliers = {idx for idx in loop_factors if w[idx] < 0.5}
-            if outliers:  # marginals must not see the rejected edges
-                inliers = gtsam.NonlinearFactorGraph()
-                for idx in range(self._graph.size()):
-                    if idx not in outliers:
-                        inliers.add(self._graph.at(idx))
-                self._marginal_graph = inliers
+            self._excluded |= {idx for idx in loop_factors if w[idx] < 0.5}
         else:
             self._estimate = gtsam.LevenbergMarquardtOptimizer(self._graph, self._estimate, lm).optimize()
         return weights
+
+    def edge_chi2(self) -> dict[int, float]:
+        """Whitened squared residual of every active between-edge at the current estimate.
+
+        ``{index in edges: chi2}``; for Gaussian noise ``2 * factor.error`` is ``e^T I e`` (6 DOF).
+        """
+        out = {}
+        for idx, key in self._factor_edges.items():
+            if idx not in self._excluded:
+                out[key] = 2.0 * float(self._graph.at(idx).error(self._estimate))
+        return out
+
+    def final_check(self, limit: float = 22.46, max_drops: int | None = None) -> list[tuple[int, int, str]]:
+        """Drop loop edges the solution cannot reconcile with the odometry; return ``(i, j, why)``.
+
+        After the batch pass every kept edge should be explained within its noise: whitened
+        residual at most ``limit`` (chi-square, 6 DOF, 99.9 %). While an odometry edge is
+        stretched beyond it, the loop spanning that edge with the largest residual is dropped;
+        while a loop edge exceeds it, the worst loop is dropped; the graph is re-solved (LM)
+        after each drop. Odometry edges are trusted: they are never dropped.
+        """
+        gtsam = self._gtsam
+        dropped: list[tuple[int, int, str]] = []
+        index_of = {key: idx for idx, key in self._factor_edges.items()}
+        max_drops = max_drops if max_drops is not None else len(self.edges)
+        while len(dropped) < max_drops:
+            chi2 = self.edge_chi2()
+            loops = {k: v for k, v in chi2.items() if self.edges[k].kind == "loop"}
+            if not loops:
+                break
+            odo = {k: v for k, v in chi2.items() if self.edges[k].kind == "odometry"}
+            worst_odo = max(odo, key=lambda k: (odo[k], -k)) if odo else None
+            if worst_odo is not None and odo[worst_odo] > limit:
+                m = self.edges[worst_odo].i
+                spanning = {k: v for k, v in loops.items() if self.edges[k].i <= m < self.edges[k].j}
+                if not spanning:
+                    break
+                victim = max(spanning, key=lambda k: (spanning[k], -k))
+                why = (f"dropped by the final check: stretched odometry edge {m}-{m + 1} "
+                       f"(chi2 {odo[worst_odo]:.1f} > {limit:.1f}), loop residual chi2 {loops[victim]:.1f}")
+            else:
+                victim = max(loops, key=lambda k: (loops[k], -k))
+                if loops[victim] <= limit:
+                    break
+                why = f"dropped by the final check: residual chi2 {loops[victim]:.1f} > {limit:.1f} after optimisation"
+            self._excluded.add(index_of[victim])
+            dropped.append((self.edges[victim].i, self.edges[victim].j, why))
+            self._estimate = gtsam.LevenbergMarquardtOptimizer(self._active_graph(), self._estimate,
+                                                               self._lm_params(100)).optimize()
+        return dropped
 
     def odometry_chain(self, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
         """Odometry-only ``(T_i_j, Sigma_i_j)`` between nodes ``i < j`` (loop edges ignored)."""
@@ -171,8 +230,10 @@ class PoseGraph:
             return self._estimate.atPose3(key).matrix()
         return self._initial[key].copy()
 
-    def poses(self) -> dict[int, np.ndarray]:
-        return {k: self.pose(k) for k in self._initial}
+    def active_edges(self) -> list[GraphEdge]:
+        """The edges the solution keeps (loops rejected by GNC or the final check left out)."""
+        excluded = {self._factor_edges[idx] for idx in self._excluded}
+        return [e for k, e in enumerate(self.edges) if k not in excluded]
 
     def marginal_covariance(self, key: int) -> np.ndarray:
         """``(6, 6)`` marginal covariance of a node (GTSAM order), from iSAM2."""
@@ -182,7 +243,7 @@ class PoseGraph:
         """Marginal covariances of every node at the current estimate (batch Marginals)."""
         gtsam = self._gtsam
         try:
-            marg = gtsam.Marginals(self._marginal_graph or self._graph, self._estimate)
+            marg = gtsam.Marginals(self._active_graph(), self._estimate)
             return {k: np.asarray(marg.marginalCovariance(k)) for k in self._initial}
         except RuntimeError as exc:  # indeterminant system; fall back to iSAM2's
             log.warning("batch marginals failed (%s); using iSAM2 marginals", exc)

@@ -45,6 +45,8 @@ class CorrespondenceResult:
     overlap: float
     reason: str
     ambiguity: float = 0.0
+    structure_overlap: float = float("nan")  # 3D: overlap of the non-ground points (both ways)
+    plane_rmse: float = float("nan")  # 3D: point-to-plane RMSE [m] of those inliers
 
     @property
     def information(self) -> np.ndarray:
@@ -78,6 +80,7 @@ class SpatialCloud:
         self.pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=4 * self.voxel, max_nn=30))
         self._levels: dict = {}
         self._fpfh = None
+        self._structure = None
 
     def __len__(self) -> int:
         return self.n_input
@@ -104,6 +107,44 @@ class SpatialCloud:
             self._fpfh = o3d.pipelines.registration.compute_fpfh_feature(
                 self.level(4), o3d.geometry.KDTreeSearchParamHybrid(radius=5 * 4 * self.voxel, max_nn=100))
         return self.level(4), self._fpfh
+
+
+    def structure(self) -> tuple[np.ndarray, np.ndarray, cKDTree]:
+        """``(points (S, 3), normals (S, 3), tree)`` of the non-ground points: those whose normal
+        is more than 45 deg from vertical (walls, poles, cars, trees). Built once.
+
+        The ground of a street matches the ground of any other street, so fitness over all
+        points stays near 0.5 for wrong alignments; over the structure it does not.
+        """
+        if self._structure is None:
+            pts, nrm = np.asarray(self.pcd.points), np.asarray(self.pcd.normals)
+            keep = np.abs(nrm[:, 2]) < np.sqrt(0.5) if len(nrm) == len(pts) else np.ones(len(pts), bool)
+            self._structure = (pts[keep], nrm[keep], cKDTree(pts[keep]))
+        return self._structure
+
+
+def structure_agreement(source: SpatialCloud, target: SpatialCloud, T_target_source: np.ndarray,
+                        inlier: float) -> tuple[float, float]:
+    """``(overlap, point-to-plane RMSE [m])`` of the two clouds' structure under ``T_target_source``.
+
+    Overlap: the smaller of the two directed fractions of structure points with a structure
+    point of the other cloud within ``inlier`` m; RMSE over the source's inliers, along the
+    target's normals.
+    """
+    (sp, _, s_tree), (tp, tn, t_tree) = source.structure(), target.structure()
+    if len(sp) < 10 or len(tp) < 10:
+        return 0.0, float("inf")
+    R, t = T_target_source[:3, :3], T_target_source[:3, 3]
+    d, idx = t_tree.query(sp @ R.T + t, distance_upper_bound=inlier)
+    hit = np.isfinite(d)
+    forward = float(hit.mean())
+    moved_back = (tp - t) @ R  # target points in the source frame
+    d_back, _ = s_tree.query(moved_back, distance_upper_bound=inlier)
+    backward = float(np.isfinite(d_back).mean())
+    if not hit.any():
+        return 0.0, float("inf")
+    resid = np.einsum("ij,ij->i", (sp[hit] @ R.T + t) - tp[idx[hit]], tn[idx[hit]])
+    return min(forward, backward), float(np.sqrt(np.mean(resid**2)))
 
 
 def match_voxel(submap_voxel: float, planar: bool) -> float:
@@ -134,6 +175,9 @@ def _planar_information(info_xyt: np.ndarray) -> np.ndarray:
 
 def _gate(fitness: float, rmse: float, overlap: float, ambiguity: float, *, min_fitness: float,
           max_inlier_rmse: float, min_overlap: float, max_ambiguity: float) -> tuple[bool, str]:
+    """The gates on scores rounded to 4 decimals (as loops.csv shows them): floating-point noise in
+    the last digits must not flip a decision from one run to the next."""
+    fitness, rmse, overlap, ambiguity = (round(v, 4) for v in (fitness, rmse, overlap, ambiguity))
     if fitness < min_fitness:
         return False, f"fitness {fitness:.2f} < {min_fitness:.2f}"
     if rmse > max_inlier_rmse:
@@ -209,6 +253,75 @@ def _directed_fitness(points_xy: np.ndarray, other: cKDTree, T: np.ndarray, inli
     return float(np.isfinite(d).mean())
 
 
+def _kabsch_many(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Rigid ``(H, 4, 4)`` transforms mapping point triples ``P (H, k, 3)`` onto ``Q (H, k, 3)``."""
+    mp, mq = P.mean(axis=1, keepdims=True), Q.mean(axis=1, keepdims=True)
+    H = np.einsum("hki,hkj->hij", P - mp, Q - mq)
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.einsum("hij,hjk->hik", U, Vt).transpose(0, 2, 1)))
+    D = np.zeros_like(H)
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = d
+    R = np.einsum("hji,hjk,hlk->hil", Vt, D, U)  # V D U^T
+    T = np.tile(np.eye(4), (len(P), 1, 1))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = mq[:, 0] - np.einsum("hij,hj->hi", R, mp[:, 0])
+    return T
+
+
+def feature_ransac(source: np.ndarray, source_features: np.ndarray, target: np.ndarray,
+                   target_features: np.ndarray, *, inlier_distance: float, yaw_hint: float | None = None,
+                   hypotheses: int = 4000, seed: int = 0) -> np.ndarray:
+    """Deterministic RANSAC on feature correspondences: ``T_target_source`` ``(4, 4)``.
+
+    ``source (N, 3)`` / ``target (M, 3)`` with descriptors ``(N, F)`` / ``(M, F)`` (FPFH).
+    Correspondences are mutual nearest neighbours in feature space; triples are drawn by a
+    seeded generator, pruned by edge-length agreement (within 10 %), solved in closed form
+    and scored by the correspondences they bring within ``inlier_distance`` [m]; the best
+    hypothesis (ties: the first drawn) is refitted on its inliers. The same inputs give the
+    same transform on every run and every thread count (open3d's RANSAC runs threads that
+    draw from shared random state). ``yaw_hint`` [rad] (place descriptor) keeps hypotheses
+    within 30 deg of it.
+    """
+    if len(source) < 3 or len(target) < 3:
+        return np.eye(4)
+    fwd = cKDTree(target_features).query(source_features)[1]
+    back = cKDTree(source_features).query(target_features)[1]
+    mutual = back[fwd] == np.arange(len(source))
+    src_idx = np.flatnonzero(mutual)
+    if len(src_idx) < 3:
+        return np.eye(4)
+    P, Q = source[src_idx], target[fwd[src_idx]]
+    rng = np.random.default_rng(seed)
+    triples = rng.integers(0, len(P), size=(hypotheses, 3))
+    triples = triples[(triples[:, 0] != triples[:, 1]) & (triples[:, 1] != triples[:, 2])
+                      & (triples[:, 0] != triples[:, 2])]
+    a, b = P[triples], Q[triples]
+    ea = np.linalg.norm(a - np.roll(a, 1, axis=1), axis=2)
+    eb = np.linalg.norm(b - np.roll(b, 1, axis=1), axis=2)
+    ok = (np.minimum(ea, eb) >= 0.9 * np.maximum(ea, eb)).all(axis=1) & (ea.min(axis=1) > inlier_distance)
+    if not ok.any():
+        return np.eye(4)
+    T = _kabsch_many(a[ok], b[ok])
+    if yaw_hint is not None:
+        yaw = np.arctan2(T[:, 1, 0], T[:, 0, 0])
+        near = np.abs(np.angle(np.exp(1j * (yaw - yaw_hint)))) <= np.deg2rad(30.0)
+        if near.any():
+            T = T[near]
+    best, best_count = None, -1
+    for start in range(0, len(T), 256):  # bounded memory: 256 hypotheses x correspondences at a time
+        chunk = T[start:start + 256]
+        moved = np.einsum("hij,nj->hni", chunk[:, :3, :3], P) + chunk[:, None, :3, 3]
+        counts = (np.sum((moved - Q) ** 2, axis=2) <= inlier_distance**2).sum(axis=1)
+        k = int(np.argmax(counts))
+        if counts[k] > best_count:
+            best, best_count = chunk[k], int(counts[k])
+    inliers = np.sum((P @ best[:3, :3].T + best[:3, 3] - Q) ** 2, axis=1) <= inlier_distance**2
+    if inliers.sum() >= 3:
+        best = _kabsch_many(P[inliers][None], Q[inliers][None])[0]
+    return best
+
+
 def _spatial(source: SpatialCloud, target: SpatialCloud, initial_guess, yaw_hint, voxel, inlier, refine_only,
              gates) -> CorrespondenceResult:
     from .._deps import open3d
@@ -220,16 +333,9 @@ def _spatial(source: SpatialCloud, target: SpatialCloud, initial_guess, yaw_hint
     if initial_guess is not None:
         guess = np.asarray(initial_guess, dtype=np.float64)
     else:
-        coarse = 4 * voxel
         (s_d, s_f), (t_d, t_f) = source.coarse(), target.coarse()
-        o3d.utility.random.seed(0)
-        ransac = reg.registration_ransac_based_on_feature_matching(
-            s_d, t_d, s_f, t_f, True, 1.5 * coarse,
-            reg.TransformationEstimationPointToPoint(False), 3,
-            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * coarse)],
-            reg.RANSACConvergenceCriteria(100000, 0.999))
-        guess = np.asarray(ransac.transformation)
-        _ = yaw_hint
+        guess = feature_ransac(np.asarray(s_d.points), np.asarray(s_f.data).T, np.asarray(t_d.points),
+                               np.asarray(t_f.data).T, inlier_distance=1.5 * 4 * voxel, yaw_hint=yaw_hint)
     result = guess
     # Coarse to fine: the wide-basin stage (3x the inlier distance) runs on the 4x-voxel clouds,
     # the final stage on the match clouds. Stop when fitness and RMSE change by < 1e-4 (relative).
@@ -249,5 +355,7 @@ def _spatial(source: SpatialCloud, target: SpatialCloud, initial_guess, yaw_hint
         info = info / max(rmse, 0.02) ** 2 if np.isfinite(rmse) else np.eye(6) * 1e-6
         return 0.5 * (info + info.T) + np.eye(6) * 1e-6
 
+    structure_overlap, plane_rmse = structure_agreement(source, target, result, inlier)
     ok, reason = _gate(fitness, rmse, overlap, ambiguity, **gates)
-    return CorrespondenceResult(ok, result, information, fitness, rmse, overlap, reason, ambiguity)
+    return CorrespondenceResult(ok, result, information, fitness, rmse, overlap, reason, ambiguity,
+                                structure_overlap, plane_rmse)

@@ -51,8 +51,12 @@ class Hypothesis:
 class LoopCloser:
     """Proposes and verifies loop closures between submaps and adds them to a pose graph."""
 
-    def __init__(self, config: LoopConfig, *, planar: bool, voxel_size: float, max_range: float, timer=None) -> None:
+    def __init__(self, config: LoopConfig, *, planar: bool, voxel_size: float, max_range: float,
+                 submap_length: float = 12.0, timer=None) -> None:
+        """``submap_length``: the submaps' cut length [m] (scales the shortest cycle)."""
         self.config = config
+        self.submap_length = submap_length
+        self._min_radius = config.spatial_min_radius or (5.0 if planar else 20.0)
         self.planar = planar
         self.voxel = voxel_size
         self._match_voxel = match_voxel(voxel_size, planar)
@@ -74,13 +78,14 @@ class LoopCloser:
         if self.planar:
             block = block[:2, :2]
         sigma = float(np.sqrt(max(np.linalg.eigvalsh(block).max(), 0.0)))
-        return float(np.clip(c.spatial_min_radius + c.spatial_sigma * sigma, c.spatial_min_radius, c.spatial_max_radius))
+        floor = self._min_radius
+        return float(np.clip(floor + c.spatial_sigma * sigma, floor, max(floor, c.spatial_max_radius)))
 
     def propose(self, new: Submap, submaps: list[Submap], graph: PoseGraph,
                 hint_pairs: list[tuple[int, int]]) -> list[Hypothesis]:
         c = self.config
         k = new.id
-        eligible = k - c.min_submap_gap
+        eligible = min(k - c.min_submap_gap, self._last_cycle_partner(k, submaps))
         hyps: dict[int, Hypothesis] = {}
         if eligible < 0 and not hint_pairs:
             return []
@@ -96,7 +101,7 @@ class LoopCloser:
                 radius = self._radius(graph.marginal_covariance(i), cov_k)
                 if d[i] > radius or len(hyps) >= 3:
                     continue
-                window = float(np.clip(radius - c.spatial_min_radius, c.min_search_window, c.max_search_window))
+                window = float(np.clip(radius - self._min_radius, c.min_search_window, c.max_search_window))
                 hyps[i] = Hypothesis(i, k, "spatial", inverse(graph.pose(i)) @ T_k, None, window)
         # appearance
         if c.use_descriptor and new.descriptor is not None and eligible >= 0:
@@ -109,6 +114,22 @@ class LoopCloser:
             if b == k and (a, b) not in self._tested:
                 hyps[a] = Hypothesis(a, k, "hint", None, None, None)
         return [h for h in hyps.values() if (h.i, h.j) not in self._tested]
+
+    def _last_cycle_partner(self, k: int, submaps: list[Submap]) -> int:
+        """Newest submap far enough back along the odometry path to close a cycle with ``k``.
+
+        Submaps two or three apart on the path overlap through odometry alone; a "loop" between
+        them is a second odometry edge, and a misaligned one bends the chain where nothing can
+        contradict it. A cycle needs ``min_loop_path_m`` of driving between the two anchors.
+        """
+        min_path = self.config.min_loop_path_m
+        if min_path is None:
+            min_path = 0.0 if self.planar else 4.0 * self.submap_length
+        if min_path <= 0:
+            return k
+        start = np.cumsum([0.0] + [s.distance for s in submaps[:k]])  # path at each anchor [m]
+        far = np.flatnonzero(start[k] - start[:k] >= min_path)
+        return int(far[-1]) if len(far) else -1
 
     # ------------------------------------------------------------------ testing
     def _correspond(self, target: Submap, source: Submap, initial_guess, yaw_hint, search_radius,
@@ -124,6 +145,15 @@ class LoopCloser:
             max_inlier_rmse=c.max_inlier_rmse, min_overlap=c.min_overlap, search_radius=search_radius,
             yaw_window_deg=c.yaw_window_deg, refine_only=refine_only,
         )
+
+    def _structure_gate(self, res: CorrespondenceResult) -> tuple[bool, str]:
+        """3D: the walls, poles and cars must agree, not only the ground (scores to 4 decimals)."""
+        c = self.config
+        if round(res.structure_overlap, 4) < c.min_structure_overlap:
+            return False, f"structure overlap {res.structure_overlap:.2f} < {c.min_structure_overlap:.2f}"
+        if round(res.plane_rmse, 4) > c.max_plane_rmse:
+            return False, f"structure point-to-plane RMSE {res.plane_rmse:.3f} m > {c.max_plane_rmse:.3f} m"
+        return True, "ok"
 
     def _neighbour_check(self, hyp: Hypothesis, T_i_j: np.ndarray, first: CorrespondenceResult,
                          submaps: list[Submap], graph: PoseGraph) -> tuple[bool, str]:
@@ -222,12 +252,15 @@ class LoopCloser:
                     continue
                 res = self._correspond(submaps[hyp.i], submaps[hyp.j], hyp.initial_guess, hyp.yaw_hint, hyp.search_radius)
                 accepted, reason = res.accepted, res.reason
+                if accepted and not self.planar:
+                    accepted, reason = self._structure_gate(res)
                 if accepted:
                     accepted, reason = self._plausible(hyp, res.T_target_source, graph)
                 if accepted:
                     accepted, reason = self._neighbour_check(hyp, res.T_target_source, res, submaps, graph)
                 records.append(LoopRecord(hyp.i, hyp.j, hyp.source, accepted, res.fitness, res.overlap,
-                                          res.inlier_rmse, reason, res.T_target_source))
+                                          res.inlier_rmse, reason, res.T_target_source,
+                                          res.structure_overlap, res.plane_rmse))
                 if accepted:
                     info = floor_information(res.information_gtsam, floor_m, floor_rad)
                     graph.add_between(hyp.i, hyp.j, res.T_target_source, info, "loop")
