@@ -181,14 +181,17 @@ class PoseGraph:
                 out[key] = 2.0 * float(self._graph.at(idx).error(self._estimate))
         return out
 
-    def final_check(self, limit: float = 22.46, max_drops: int | None = None) -> list[tuple[int, int, str]]:
+    def final_check(self, limit: float = 22.46, max_drops: int | None = None,
+                    max_suspects: int = 12) -> list[tuple[int, int, str]]:
         """Drop loop edges the solution cannot reconcile with the odometry; return ``(i, j, why)``.
 
         After the batch pass every kept edge should be explained within its noise: whitened
         residual at most ``limit`` (chi-square, 6 DOF, 99.9 %). While an odometry edge is
-        stretched beyond it, the loop spanning that edge with the largest residual is dropped;
-        while a loop edge exceeds it, the worst loop is dropped; the graph is re-solved (LM)
-        after each drop. Odometry edges are trusted: they are never dropped.
+        stretched beyond it, or a loop edge exceeds it, one loop is dropped: of the
+        ``max_suspects`` loops with the largest residuals, the one whose removal lowers the
+        re-solved graph's cost the most (a residual alone can point at a right loop that the
+        wrong one bent; the stretched edge need not lie under the wrong loop). Then the graph is
+        re-solved and checked again. Odometry edges are trusted: they are never dropped.
         """
         gtsam = self._gtsam
         dropped: list[tuple[int, int, str]] = []
@@ -197,28 +200,44 @@ class PoseGraph:
         while len(dropped) < max_drops:
             chi2 = self.edge_chi2()
             loops = {k: v for k, v in chi2.items() if self.edges[k].kind == "loop"}
-            if not loops:
-                break
             odo = {k: v for k, v in chi2.items() if self.edges[k].kind == "odometry"}
             worst_odo = max(odo, key=lambda k: (odo[k], -k)) if odo else None
             if worst_odo is not None and odo[worst_odo] > limit:
                 m = self.edges[worst_odo].i
-                spanning = {k: v for k, v in loops.items() if self.edges[k].i <= m < self.edges[k].j}
-                if not spanning:
-                    break
-                victim = max(spanning, key=lambda k: (spanning[k], -k))
-                why = (f"dropped by the final check: stretched odometry edge {m}-{m + 1} "
-                       f"(chi2 {odo[worst_odo]:.1f} > {limit:.1f}), loop residual chi2 {loops[victim]:.1f}")
+                symptom = f"odometry edge {m}-{m + 1} stretched to chi2 {odo[worst_odo]:.1f} > {limit:.1f}"
+            elif loops and max(loops.values()) > limit:
+                symptom = "loop residual above the chi2 bound"
             else:
-                victim = max(loops, key=lambda k: (loops[k], -k))
-                if loops[victim] <= limit:
-                    break
-                why = f"dropped by the final check: residual chi2 {loops[victim]:.1f} > {limit:.1f} after optimisation"
+                break
+            suspects = list(loops)
+            if not suspects:
+                break
+            suspects = sorted(suspects, key=lambda k: (-loops[k], k))[:max_suspects]
+            base = self._active_graph()
+            best = None
+            for k in suspects:
+                trial = self._graph_without(base, index_of[k])
+                estimate = gtsam.LevenbergMarquardtOptimizer(trial, self._estimate, self._lm_params(30)).optimize()
+                cost = trial.error(estimate)
+                if best is None or cost < best[1] - 1e-9:
+                    best = (k, cost, estimate)
+            victim, _, estimate = best
             self._excluded.add(index_of[victim])
-            dropped.append((self.edges[victim].i, self.edges[victim].j, why))
-            self._estimate = gtsam.LevenbergMarquardtOptimizer(self._active_graph(), self._estimate,
-                                                               self._lm_params(100)).optimize()
+            self._estimate = estimate
+            e = self.edges[victim]
+            dropped.append((e.i, e.j, f"dropped by the final check: {symptom}; its residual chi2 was "
+                                      f"{loops[victim]:.1f}, the graph agrees best without it"))
         return dropped
+
+    def _graph_without(self, graph, factor_index: int):
+        """A copy of ``graph`` (a subset of ``self._graph``) without one factor of ``self._graph``."""
+        out = self._gtsam.NonlinearFactorGraph()
+        drop = self._graph.at(factor_index)
+        for idx in range(graph.size()):
+            f = graph.at(idx)
+            if f is not drop and not (f.keys() == drop.keys() and f.equals(drop, 1e-12)):
+                out.add(f)
+        return out
 
     def odometry_chain(self, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
         """Odometry-only ``(T_i_j, Sigma_i_j)`` between nodes ``i < j`` (loop edges ignored)."""

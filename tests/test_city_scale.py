@@ -1,0 +1,197 @@
+"""City-scale 3D: closures that cannot wreck the map, repeatable decisions, honest summaries."""
+
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from datasets_synth import generate
+from submapslam.backend.pose_graph import PoseGraph
+from submapslam.config import BackendConfig, LoopConfig, PipelineConfig
+from submapslam.geometry import inverse, se2_to_matrix, transform_points
+from submapslam.pipeline import odometry_information
+from submapslam.topology.correspondence import feature_ransac
+from submapslam.topology.loop_closure import LoopCloser
+
+from .test_pose_graph import square_truth
+
+CLI = [sys.executable, "-m", "submapslam"]
+
+
+def _odometry_graph(truth, config, rng):
+    """Pose graph of ``truth`` with odometry edges perturbed within their own noise model."""
+    g = PoseGraph(config)
+    g.add_node(0, truth[0], np.diag([1e8] * 6))
+    for k in range(1, len(truth)):
+        T = inverse(truth[k - 1]) @ truth[k]
+        info = odometry_information(T, 10.0, False, config)
+        noise = rng.multivariate_normal(np.zeros(6), np.linalg.inv(info))
+        meas = T @ se2_to_matrix(noise[3], noise[4], noise[2])
+        g.add_node(k, g.pose(k - 1) @ meas)
+        g.add_between(k - 1, k, meas, info, "odometry")
+    g.update()
+    return g
+
+
+def test_final_check_removes_a_forced_wrong_closure_and_keeps_the_true_ones():
+    truth = square_truth(n_side=6, step=10.0)  # a 240 m block, 24 submaps 10 m apart
+    config = BackendConfig(robust_kernel="none")  # no GNC: the final check alone must act
+    g = _odometry_graph(truth, config, np.random.default_rng(1))
+    loop_info = np.diag([1 / np.deg2rad(0.5) ** 2] * 3 + [1 / 0.05**2] * 3)
+    n = len(truth)
+    true_loops = [(0, n - 1), (1, n - 2), (0, n - 2)]
+    for i, j in true_loops:
+        g.add_between(i, j, inverse(truth[i]) @ truth[j], loop_info, "loop")
+    # street aliasing: node 3 "is" node 15 shifted along the street by 12 m
+    wrong = inverse(truth[3]) @ truth[15] @ se2_to_matrix(12.0, 0.0, 0.0)
+    g.add_between(3, 15, wrong, loop_info, "loop")
+    g.update()
+    g.optimize_batch()
+    dropped = g.final_check()
+    assert [(i, j) for i, j, _ in dropped] == [(3, 15)]
+    assert "final check" in dropped[0][2]
+    kept = {(e.i, e.j) for e in g.active_edges() if e.kind == "loop"}
+    assert kept == set(true_loops)
+    worst = max(np.linalg.norm(g.pose(k)[:2, 3] - truth[k][:2, 3]) for k in range(n))
+    assert worst < 0.5
+    # marginals come from the graph without the dropped edge
+    assert set(g.all_marginal_covariances()) == set(range(n))
+
+
+def test_final_check_keeps_a_consistent_graph_untouched():
+    truth = square_truth(n_side=6, step=10.0)
+    g = _odometry_graph(truth, BackendConfig(robust_kernel="none"), np.random.default_rng(2))
+    loop_info = np.diag([1 / np.deg2rad(0.5) ** 2] * 3 + [1 / 0.05**2] * 3)
+    g.add_between(0, len(truth) - 1, inverse(truth[0]) @ truth[-1], loop_info, "loop")
+    g.update()
+    g.optimize_batch()
+    assert g.final_check() == []
+
+
+def test_pipeline_final_check_rejects_a_closure_forced_into_the_graph(tmp_path, monkeypatch):
+    """A wrong closure slipped past every test (forced here) is dropped at the end: marked
+    rejected with the reason in the loop records, and absent from the graph's edges."""
+    from submapslam.api import run_log
+    from submapslam.io.g2o import read_g2o_edges
+    from submapslam.result import LoopRecord
+
+    log = generate("outdoor", tmp_path / "log", seed=0, laps=2, blocks=(1, 1), max_scans=330)
+    original = LoopCloser.process
+    forced = []
+
+    def process_with_a_wrong_closure(self, new, submaps, graph, hint_pairs):
+        records = original(self, new, submaps, graph, hint_pairs)
+        if new.id == 19 and not forced:  # after the true closures of the second lap (submaps 15-19)
+            T_wrong = inverse(graph.pose(8)) @ graph.pose(19) @ se2_to_matrix(15.0, 4.0, 0.2)
+            info = np.diag([1 / np.deg2rad(0.5) ** 2] * 3 + [1 / 0.05**2] * 3)
+            graph.add_between(8, 19, T_wrong, info, "loop")
+            forced.append(LoopRecord(8, 19, "forced", True, 1.0, 1.0, 0.0, "forced by the test", T_wrong))
+            records.append(forced[0])
+        return records
+
+    monkeypatch.setattr(LoopCloser, "process", process_with_a_wrong_closure)
+    config = PipelineConfig(backend=BackendConfig(robust_kernel="none"))
+    result, paths = run_log(log, tmp_path / "out", config=config)
+    assert forced and not forced[0].accepted
+    assert forced[0].reason.startswith("dropped by the final check")
+    assert all(not (i == 8 and j == 19) for i, j, *_ in result.edges)
+    _, edges = read_g2o_edges(paths["graph.g2o"])
+    assert (8, 19) not in {(i, j) for i, j, *_ in edges}
+    kept = [lp for lp in result.loops if lp.accepted]
+    assert len(kept) >= 5 and sum(j - i >= 2 for i, j, *_ in edges) == len(kept)  # the right ones stay
+    assert "dropped by the final check" in paths["loops.csv"].read_text()
+
+
+def test_short_gap_pairs_are_not_cycle_candidates():
+    from submapslam.submaps import Submap
+
+    closer = LoopCloser(LoopConfig(), planar=False, voxel_size=0.4, max_range=80.0, submap_length=12.0)
+    submaps = [Submap(k, [k], np.eye(4), np.eye(4)[None], np.zeros((0, 3)), 12.0, False) for k in range(10)]
+    # 4 submap lengths (48 m) of path between anchors: submap 9 may pair with 0..5, not 6..8
+    assert closer._last_cycle_partner(9, submaps) == 5
+    planar = LoopCloser(LoopConfig(), planar=True, voxel_size=0.1, max_range=30.0, submap_length=5.0)
+    assert planar._last_cycle_partner(9, submaps) == 9  # planar: the gap in submaps alone decides
+    explicit = LoopCloser(LoopConfig(min_loop_path_m=100.0), planar=False, voxel_size=0.4, max_range=80.0)
+    assert explicit._last_cycle_partner(9, submaps) == 0
+
+
+def _street_cloud(rng, n=4000):
+    """Walls, poles and a ground patch: ``(N, 3)`` with distinct geometry in every direction."""
+    wall_a = np.c_[rng.uniform(-30, 30, n), np.full(n, 8.0), rng.uniform(0, 6, n)]
+    wall_b = np.c_[np.full(n, -20.0), rng.uniform(-8, 20, n), rng.uniform(0, 4, n)]
+    box = np.c_[rng.uniform(5, 9, n // 2), np.full(n // 2, -6.0), rng.uniform(0, 3, n // 2)]
+    poles = np.concatenate([np.c_[x + 0.2 * np.cos(t), y + 0.2 * np.sin(t), z]
+                            for x, y in ((12, -3), (-7, 3), (20, 5))
+                            for t, z in [(rng.uniform(0, 6.3, 300), rng.uniform(0, 5, 300))]])
+    ground = np.c_[rng.uniform(-30, 30, n), rng.uniform(-8, 8, n), rng.normal(0, 0.02, n)]
+    return np.vstack([wall_a, wall_b, box, poles, ground])
+
+
+def test_feature_ransac_recovers_a_transform_and_repeats_exactly():
+    from submapslam.topology.correspondence import SpatialCloud
+
+    rng = np.random.default_rng(0)
+    target = _street_cloud(rng)
+    T_true = se2_to_matrix(4.0, -2.5, np.deg2rad(35.0))
+    source = transform_points(inverse(T_true), target) + rng.normal(0, 0.02, target.shape)
+    s, t = SpatialCloud(source, 0.4), SpatialCloud(target, 0.4)
+    (s_d, s_f), (t_d, t_f) = s.coarse(), t.coarse()
+    args = (np.asarray(s_d.points), np.asarray(s_f.data).T, np.asarray(t_d.points), np.asarray(t_f.data).T)
+    first = feature_ransac(*args, inlier_distance=2.4)
+    again = feature_ransac(*args, inlier_distance=2.4)
+    np.testing.assert_array_equal(first, again)
+    assert np.linalg.norm(first[:3, 3] - T_true[:3, 3]) < 1.0
+    yaw = np.arctan2(first[1, 0], first[0, 0])
+    assert abs(np.rad2deg(yaw) - 35.0) < 3.0
+
+
+def _burn_cpu(seconds: float) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", f"import time\nt=time.time()\nwhile time.time()-t<{seconds}: pass"])
+
+
+def test_3d_runs_repeat_their_decisions_and_trajectory_on_a_loaded_machine(tmp_path):
+    log = generate("outdoor", tmp_path / "log", seed=0, laps=2, blocks=(1, 1), max_scans=360)
+    quiet = subprocess.run([*CLI, "run", str(log), "--out", str(tmp_path / "quiet")], capture_output=True, text=True)
+    assert quiet.returncode == 0, quiet.stderr
+    burners = [_burn_cpu(120) for _ in range(2)]
+    try:
+        loaded = subprocess.run([*CLI, "run", str(log), "--out", str(tmp_path / "loaded")], capture_output=True,
+                                text=True)
+    finally:
+        for b in burners:
+            b.kill()
+    assert loaded.returncode == 0, loaded.stderr
+    loops_quiet = (tmp_path / "quiet" / "loops.csv").read_text()
+    assert loops_quiet == (tmp_path / "loaded" / "loops.csv").read_text()
+    assert loops_quiet.count("\n") > 5  # hypotheses were tested, some accepted
+    a = np.loadtxt(tmp_path / "quiet" / "poses_tum.txt")
+    b = np.loadtxt(tmp_path / "loaded" / "poses_tum.txt")
+    assert np.abs(a[:, 1:4] - b[:, 1:4]).max() < 1e-3
+
+
+def test_summary_reports_the_real_wall_time_and_peak_memory(tmp_path):
+    log = generate("outdoor", tmp_path / "log", seed=1, laps=1, blocks=(1, 1), max_scans=120)
+    t0 = time.perf_counter()
+    proc = subprocess.Popen([*CLI, "run", str(log), "--out", str(tmp_path / "out")],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    assert os.waitstatus_to_exitcode(status) == 0
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    measured_peak_mb = usage.ru_maxrss / 1024.0
+    # the summary is written at the very end: its peak is the process's, to within the json dump
+    assert summary["peak_memory_mb"] == pytest.approx(measured_peak_mb, rel=0.03)
+    # wall time: everything but interpreter start-up and imports, and never the sum of the
+    # overlapping stages
+    assert summary["wall_time_total_s"] <= wall
+    assert summary["wall_time_total_s"] >= 0.5 * wall
+    stages = sum(summary["wall_time_s"].values())
+    assert summary["scans_per_second"] == pytest.approx(summary["scans"] / summary["wall_time_total_s"], rel=0.01)
+    assert stages > 0
+    kms = np.array(summary["memory_mb_by_km"])
+    assert kms.shape == (summary["submaps"], 2)
+    assert np.all(np.diff(kms[:, 0]) > 0) and np.all(kms[:, 1] > 0)
