@@ -80,6 +80,7 @@ class SubmapSLAM:
         self._builder: SubmapBuilder | None = None
         self._graph = PoseGraph(self.config.backend)
         self._loop_closer = None
+        self._clouds = None  # 3D: SubmapClouds
         self._hints = list(hints or [])
         self.timestamps: list[float] = []
         self._odom_poses: list[np.ndarray] = []
@@ -128,12 +129,17 @@ class SubmapSLAM:
         self._odometry = Odometry(cfg.odometry, self.planar)
         voxel = cfg.submaps.voxel_size or self._odometry.voxel_size / 2.0
         self._builder = SubmapBuilder(cfg.submaps, voxel, self.planar, grid_points=self._grid_slice())
+        if not self.planar:  # prepared clouds, shared by odometry-edge registration and loop tests
+            from .topology.correspondence import SubmapClouds, match_voxel
+
+            self._clouds = SubmapClouds(match_voxel(voxel, False))
         if cfg.loops.enabled:
             from .topology.loop_closure import LoopCloser
 
             self._loop_closer = LoopCloser(cfg.loops, planar=self.planar, voxel_size=voxel,
                                            max_range=cfg.odometry.max_range,
-                                           submap_length=self._builder.max_distance, timer=self.timer)
+                                           submap_length=self._builder.max_distance, clouds=self._clouds,
+                                           timer=self.timer)
 
     def _grid_slice(self):
         """For 3D runs with grids on: scan -> its obstacle slice (what the occupancy grid traces)."""
@@ -202,13 +208,13 @@ class SubmapSLAM:
         degenerate (along a corridor), which is where scan matching alone cannot see. Edges
         between submaps that do not overlap keep the drift model alone.
         """
-        from .topology.correspondence import check_correspondence, match_voxel, submap_cloud
+        from .topology.correspondence import check_correspondence, match_voxel
 
         with self.timer("odometry_covariance"):
             voxel = match_voxel(self._builder.voxel, bool(self.planar))
             src, tgt = new.points, prev.points
             if not self.planar:  # the clouds (and normals) the loop tests use too
-                src, tgt = submap_cloud(new, voxel), submap_cloud(prev, voxel)
+                src, tgt = self._clouds(new), self._clouds(prev)
             res = check_correspondence(src, tgt, planar=bool(self.planar), initial_guess=T_prev_new,
                                        refine_only=True, voxel_size=voxel)
         if res.overlap < 0.1:

@@ -34,7 +34,8 @@ class Submap:
         scan_indices: indices of the scans fused into it, in order.
         T_odom_anchor: ``(4, 4)`` anchor pose in the odometry frame (before optimisation).
         T_anchor_scans: ``(K, 4, 4)`` scan poses in the anchor frame.
-        points: ``(M, 3)`` fused, voxel-downsampled points in the anchor frame.
+        points: ``(M, 3)`` fused, voxel-downsampled points in the anchor frame (float32 for 3D
+            submaps: a long drive keeps hundreds of them; float64 for planar ones).
         distance: path length covered [m].
         planar: 2D laser submap (all z = 0).
         scan_points: each scan's ``(n, 3)`` points in its sensor frame, kept for the evidence
@@ -51,7 +52,6 @@ class Submap:
     planar: bool
     scan_points: list[np.ndarray] = field(default_factory=list)
     descriptor: np.ndarray | None = None
-    extras: dict = field(default_factory=dict)
 
 
 class SubmapBuilder:
@@ -127,7 +127,7 @@ class SubmapBuilder:
             scan_indices=list(self._indices),
             T_odom_anchor=self._T_odom_anchor.copy(),
             T_anchor_scans=np.array(self._poses),
-            points=self._fused,
+            points=self._fused if self.planar else self._fused.astype(np.float32),
             distance=self._distance,
             planar=self.planar,
             scan_points=list(self._scan_points),

@@ -65,8 +65,8 @@ class SpatialCloud:
     ``pcd``: open3d cloud voxel-downsampled at ``voxel`` with normals (GICP derives its
     covariances from them); ``level(4)``: the same at 4x the voxel (GICP's coarse stage);
     ``coarse()``: that level with FPFH features (global searches). Coarser levels are built on
-    first use. A submap keeps one per voxel (:func:`submap_cloud`), so normals and features are
-    computed once per submap, not once per test.
+    first use. :class:`SubmapClouds` keeps the prepared clouds of recently used submaps, so normals
+    and features are computed once per submap, not once per test.
     """
 
     def __init__(self, points: np.ndarray, voxel: float) -> None:
@@ -156,13 +156,34 @@ def match_voxel(submap_voxel: float, planar: bool) -> float:
     return max(submap_voxel, 0.05) if planar else 2.0 * submap_voxel
 
 
-def submap_cloud(submap, voxel: float) -> SpatialCloud:
-    """The submap's :class:`SpatialCloud` at ``voxel``, built on first use and kept in its extras."""
-    key = ("spatial_cloud", round(float(voxel), 9))
-    cloud = submap.extras.get(key)
-    if cloud is None:
-        cloud = submap.extras[key] = SpatialCloud(submap.points, voxel)
-    return cloud
+class SubmapClouds:
+    """The prepared :class:`SpatialCloud` of 3D submaps at one voxel, for every registration a
+    submap takes part in (odometry edge, loop tests, adjacent checks).
+
+    Only the ``capacity`` most recently used are kept (least recently used dropped first); a
+    dropped one is rebuilt from the submap's points when it is needed again — the same points
+    give the same cloud, normals and features, so results do not depend on the capacity.
+    Memory stays bounded however long the drive (each prepared cloud is ~1 MB).
+    """
+
+    def __init__(self, voxel: float, capacity: int = 48) -> None:
+        from collections import OrderedDict
+
+        self.voxel = float(voxel)
+        self.capacity = capacity
+        self._clouds: OrderedDict[int, SpatialCloud] = OrderedDict()
+        self.built = 0  # clouds prepared so far (rebuilds included)
+
+    def __call__(self, submap) -> SpatialCloud:
+        """The prepared cloud of ``submap`` (an object with ``id`` and ``points (N, 3)``)."""
+        cloud = self._clouds.pop(submap.id, None)
+        if cloud is None:
+            cloud = SpatialCloud(submap.points, self.voxel)
+            self.built += 1
+        self._clouds[submap.id] = cloud
+        while len(self._clouds) > self.capacity:
+            self._clouds.popitem(last=False)
+        return cloud
 
 
 def _planar_information(info_xyt: np.ndarray) -> np.ndarray:

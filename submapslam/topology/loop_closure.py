@@ -24,7 +24,7 @@ from ..config import LoopConfig
 from ..geometry import inverse, rotation_angle, so3_log
 from ..result import LoopRecord
 from ..submaps import Submap
-from .correspondence import CorrespondenceResult, check_correspondence, match_voxel, submap_cloud
+from .correspondence import CorrespondenceResult, SubmapClouds, check_correspondence, match_voxel
 from .descriptors import DescriptorIndex, compute_descriptor
 
 log = logging.getLogger(__name__)
@@ -52,14 +52,16 @@ class LoopCloser:
     """Proposes and verifies loop closures between submaps and adds them to a pose graph."""
 
     def __init__(self, config: LoopConfig, *, planar: bool, voxel_size: float, max_range: float,
-                 submap_length: float = 12.0, timer=None) -> None:
-        """``submap_length``: the submaps' cut length [m] (scales the shortest cycle)."""
+                 submap_length: float = 12.0, clouds: SubmapClouds | None = None, timer=None) -> None:
+        """``submap_length``: the submaps' cut length [m] (scales the shortest cycle); ``clouds``:
+        the prepared 3D clouds shared with the caller (one is made when not given)."""
         self.config = config
         self.submap_length = submap_length
         self._min_radius = config.spatial_min_radius or (5.0 if planar else 20.0)
         self.planar = planar
         self.voxel = voxel_size
         self._match_voxel = match_voxel(voxel_size, planar)
+        self.clouds = clouds if clouds is not None else SubmapClouds(self._match_voxel)
         self.max_range = max_range
         self.index = DescriptorIndex()
         self._tested: set[tuple[int, int]] = set()
@@ -138,7 +140,7 @@ class LoopCloser:
         if self.planar:
             src, tgt = source.points, target.points
         else:  # downsampled cloud, normals and features once per submap
-            src, tgt = submap_cloud(source, self._match_voxel), submap_cloud(target, self._match_voxel)
+            src, tgt = self.clouds(source), self.clouds(target)
         return check_correspondence(
             src, tgt, planar=self.planar, initial_guess=initial_guess,
             yaw_hint=yaw_hint, voxel_size=self._match_voxel, min_fitness=c.min_fitness,
