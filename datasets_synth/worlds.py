@@ -384,9 +384,75 @@ def outdoor(seed: int = 0, blocks: tuple[int, int] = (3, 2), block_size: float =
                  description="city blocks, poles and walls with a drivable loop (3D)")
 
 
+ALIASED_BLOCK_LENGTH = 44.0  # [m] street length of each of the two identical blocks
+
+
+def aliased(seed: int = 0, shift: float = 18.0) -> World:
+    """Two IDENTICAL street blocks ~93 m apart, joined by a street that looks like nothing else;
+    the open path drives block A, the connecting street, then block B, and never returns to A,
+    so every loop closure between A and B is false (perceptual aliasing, 3D).
+
+    Layout (world frame, x east): block A is the street ``y = 0``, ``0 <= x <= 44``; block B is
+    the same block translated by :func:`aliased_offset` (``(91.2, 18.0)`` m for the default
+    ``shift``): same buildings, parked cars, poles and trees (the ground's fine roughness differs).
+    The connecting street runs 8 m on from A, 30 deg to the left for 36 m (a dog-leg of ``shift``
+    metres sideways, so the buildings at its bends hide one block from the other), and 8 m into
+    B. The path starts 6 m into A and ends 32 m into B, 122 m in all: at the default 8 m/s and
+    10 Hz, 153 scans: 0-47 in block A, 48-112 in the connecting street, 113-152 in block B (3D
+    submaps close every 12 m of travel: the first three or four submaps alias the last three).
+    Buildings along the connecting street are all different; those of the blocks come from one
+    random draw placed twice. The two blocks are ~93 m apart, beyond the loop search's 60 m
+    proximity ceiling, so only a place descriptor proposes A-B pairs: a test that the
+    correspondence and consistency checks reject them.
+    """
+    from .motion import open_path
+    from .streets import StreetBuilder, StreetStyle
+
+    offset = aliased_offset(shift)
+    L = ALIASED_BLOCK_LENGTH
+    bend = np.array([L + 8.0, 0.0])
+    waypoints = np.array([(6.0, 0.0), tuple(bend), tuple(offset - (8.0, 0.0)), tuple(offset + (32.0, 0.0))])
+    corner_radius = 8.0
+    path = open_path(waypoints, 0.5, corner_radius)[:, :2]
+    # denser than a city street: short buildings, small gaps, many cars and poles
+    style = StreetStyle(length=(8.0, 18.0), depth=(8.0, 14.0), building_gap=(1.0, 4.0), park_probability=0.0,
+                        car_run_end=0.1, car_run_gap=(4.0, 12.0), kerb_spacing=(6.0, 14.0))
+    rng = np.random.default_rng([seed, 8111])
+    # the block, built once in its own frame, clear of the path seen from either block's origin
+    block = StreetBuilder([path, path - offset], (-20.0, -60.0, L + 20.0, 60.0), rng, style)
+    block.street(np.array([(0.0, 0.0), (L, 0.0)]))
+    boxes, labels, cyl = block.parts()
+    shifted_boxes, shifted_cyl = boxes.copy(), cyl.copy()
+    shifted_boxes[:, :2] += offset
+    shifted_cyl[:, :2] += offset
+    lo = np.minimum(path.min(axis=0), 0.0) - 60.0
+    hi = path.max(axis=0) + 60.0
+    street = StreetBuilder(path, (lo[0], lo[1], hi[0], hi[1]), rng, style)
+    for origin in (np.zeros(2), offset):  # nothing else inside either block
+        centre = origin + (L / 2, 0.0)
+        street.reserve((centre[0], centre[1], 0.0, L + 8.0, 90.0))
+    # the connecting street: the path from the end of A to the start of B (x grows all along)
+    start = int(np.argmax(path[:, 0] >= L - 2.0))
+    end = int(np.argmax(path[:, 0] >= offset[0] + 2.0))
+    street.street(path[start:end + 1])
+    sboxes, slabels, scyl = street.parts()
+    return World("aliased", False, waypoints, (lo[0] + 20, lo[1] + 20, hi[0] - 20, hi[1] - 20),
+                 cylinders=np.vstack([cyl, shifted_cyl, scyl]), ground=True,
+                 oriented_boxes=np.vstack([boxes, shifted_boxes, sboxes]),
+                 box_labels=np.concatenate([labels, labels, slabels]), closed=False, corner_radius=corner_radius,
+                 description="two identical street blocks ~93 m apart joined by a different street; open path A -> B")
+
+
+def aliased_offset(shift: float = 18.0) -> np.ndarray:
+    """Translation ``(2,)`` [m] from block A to block B of :func:`aliased` (B = A + offset)."""
+    run = shift / np.tan(np.deg2rad(30.0))
+    return np.array([ALIASED_BLOCK_LENGTH + 8.0 + run + 8.0, shift])
+
+
 WORLDS: dict[str, tuple[Callable[..., World], str, str]] = {
     "rectangle": (rectangle, "laser2d", "four hallways forming a rectangle (the seed's cyclic example)"),
     "rooms": (rooms, "laser2d", "hallway loop of identical rooms, built to fool place recognition"),
     "figure8": (figure8, "laser2d", "two loops sharing a corridor, figure-eight path"),
     "outdoor": (outdoor, "lidar3d", "city blocks, poles and walls, loop of ~200 m (3D LiDAR)"),
+    "aliased": (aliased, "lidar3d", "two identical street blocks on an open path A -> B: every A-B closure is false (3D)"),
 }
