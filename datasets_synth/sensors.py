@@ -86,6 +86,7 @@ class RayCaster:
         self._o3d = o3d
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+        self.triangles = len(mesh.triangles)
 
     def ranges(self, T_world_sensor: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """Distances ``(N,)`` along sensor-frame unit ``directions`` (inf where nothing is hit)."""
