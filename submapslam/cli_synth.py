@@ -1,4 +1,4 @@
-"""CLI command ``synth``: write a synthetic log."""
+"""CLI command ``synth``: write a synthetic log (a named world, or a city along a KITTI path)."""
 
 from __future__ import annotations
 
@@ -17,26 +17,69 @@ def register(app: typer.Typer) -> None:
 
     @app.command("synth")
     def synth_cmd(
-        world: Annotated[str, typer.Argument(help="rectangle, rooms, figure8 or outdoor.")],
+        world: Annotated[str, typer.Argument(help="rectangle, rooms, figure8, outdoor, aliased, or kitti (a city "
+                                                  "along a KITTI ground-truth path: --path, --rings).")],
         out: Annotated[Path, typer.Option("--out", "-o", help="Output log folder.")],
         seed: Annotated[int, typer.Option(help="Random seed (same seed, same files).")] = 0,
-        laps: Annotated[int, typer.Option(help="Laps around the loop.")] = 2,
+        laps: Annotated[int | None, typer.Option(help="Laps around the loop [default: 2].")] = None,
         sensor: Annotated[str | None, typer.Option(help="laser2d or lidar3d (default: the world's).")] = None,
         max_scans: Annotated[int | None, typer.Option(help="Cut the log after N scans.")] = None,
         odometry_noise: Annotated[float, typer.Option(help="Scale of the wheel-odometry noise.")] = 1.0,
         poles: Annotated[int, typer.Option(min=0, help="rectangle: free-standing poles (EKF point features).")] = 0,
+        path: Annotated[Path | None, typer.Option("--path", help="kitti: KITTI pose file (NN.txt or NN.txt.xz).")] = None,
+        rings: Annotated[int, typer.Option(help="kitti: 16 (VLP-16 like) or 64 (HDL-64E like).")] = 16,
     ) -> None:
-        """Generate a synthetic loop world and write it as a log folder (and CARMEN for 2D)."""
-        import yaml
+        """Generate a synthetic world and write it as a log folder (and CARMEN for 2D).
 
-        from datasets_synth import generate
-
+        ``synth kitti --path 00.txt.xz --rings 16 --out DIR`` drives the KITTI path through a
+        generated city and ray-casts a Velodyne-like LiDAR at every pose (10 Hz).
+        """
         try:
-            extra = {"poles": poles} if poles else {}
-            path = generate(world, out, seed=seed, laps=laps, sensor=sensor, max_scans=max_scans,
-                            odometry_noise=odometry_noise, **extra)
+            if world == "kitti":
+                _kitti(out, path, rings, seed, max_scans, odometry_noise, laps=laps, sensor=sensor, poles=poles)
+            else:
+                if path is not None:
+                    raise SubmapSlamError(f"--path is for the kitti world, not {world!r}")
+                _world(world, out, seed, laps or 2, sensor, max_scans, odometry_noise, poles)
         except SubmapSlamError as exc:
             raise fail(exc) from None
-        meta = yaml.safe_load((path / "meta.yaml").read_text())
-        Console().print(f"{meta['n_scans']} scans of {world} ({meta['sensor']['type']}), loop {meta['loop_length_m']:.0f} m "
-                        f"x {laps} laps, wheel odometry end drift {meta['odometry_end_drift_m']:.2f} m -> {path}")
+
+
+def _world(world, out, seed, laps, sensor, max_scans, odometry_noise, poles) -> None:
+    import yaml
+
+    from datasets_synth import generate
+
+    extra = {"poles": poles} if poles else {}
+    path = generate(world, out, seed=seed, laps=laps, sensor=sensor, max_scans=max_scans,
+                    odometry_noise=odometry_noise, **extra)
+    meta = yaml.safe_load((path / "meta.yaml").read_text())
+    Console().print(f"{meta['n_scans']} scans of {world} ({meta['sensor']['type']}), loop {meta['loop_length_m']:.0f} m "
+                    f"x {meta['laps']} laps, wheel odometry end drift {meta['odometry_end_drift_m']:.2f} m -> {path}")
+
+
+def _kitti(out, path, rings, seed, max_scans, odometry_noise, *, laps, sensor, poles) -> None:
+    import yaml
+
+    from datasets_synth import generate_kitti_drive
+
+    if path is None:
+        raise SubmapSlamError("synth kitti needs --path: a KITTI pose file such as kitti_gt/00.txt.xz")
+    unused = [name for name, value in (("--laps", laps), ("--sensor", sensor), ("--poles", poles or None))
+              if value is not None]
+    if unused:
+        raise SubmapSlamError(f"{', '.join(unused)} not used by synth kitti (the path is driven once, "
+                              "the sensor is set by --rings)")
+    if rings not in (16, 64):
+        raise SubmapSlamError(f"--rings must be 16 or 64, not {rings}")
+    from .api import _progress_bar
+
+    with _progress_bar(None) as bar:
+        task = bar.add_task("scans", total=None)
+        log = generate_kitti_drive(path, out, rings=rings, seed=seed, max_scans=max_scans,
+                                   odometry_noise=odometry_noise,
+                                   progress=lambda done, total: bar.update(task, completed=done, total=total))
+    meta = yaml.safe_load((log / "meta.yaml").read_text())
+    Console().print(f"{meta['n_scans']} scans along {path.name} ({rings}-ring LiDAR), "
+                    f"{meta['path_length_m'] / 1000:.2f} km, {meta['city']['buildings']} buildings, "
+                    f"{meta['city']['cars']} parked cars -> {log}")
