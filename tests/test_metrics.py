@@ -11,7 +11,7 @@ from submapslam.evaluation.metrics import (
     umeyama,
 )
 from submapslam.geometry import se2_to_matrix, se3_exp
-from submapslam.io.trajectory import Relations, Trajectory
+from submapslam.trajectory import Relations, Trajectory
 
 
 def line(n=50, step=1.0, t0=0.0):

@@ -1,6 +1,6 @@
 """Trajectory error metrics on numpy arrays: association, alignment, ATE, RPE.
 
-Everything takes :class:`~submapslam.io.trajectory.Trajectory` objects (timestamps + poses) and
+Everything takes :class:`~submapslam.trajectory.Trajectory` objects (timestamps + poses) and
 returns plain dicts of floats; no files, no plots.
 """
 
@@ -12,7 +12,7 @@ import numpy as np
 
 from ..errors import SubmapSlamError
 from ..geometry import inverse, rotation_angle
-from ..io.trajectory import Trajectory
+from ..trajectory import Trajectory
 
 AlignMode = Literal["se3", "sim3", "se2", "none"]
 

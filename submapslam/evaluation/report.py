@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.trajectory import Trajectory
+from ..trajectory import Trajectory
 from .metrics import align as align_fn
 from .metrics import associate, ate, kitti_segment_error, rpe
 

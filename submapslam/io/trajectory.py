@@ -1,47 +1,26 @@
 """Trajectory files: TUM, KITTI, CARMEN (poses in FLASER lines), and CARMEN references.
 
-A :class:`Trajectory` is ``timestamps (N,)`` plus ``poses (N, 4, 4)`` ``T_world_base``.
+Readers return the core types :class:`~submapslam.trajectory.Trajectory` (``timestamps (N,)``
+plus ``poses (N, 4, 4)`` ``T_world_base``) and :class:`~submapslam.trajectory.Relations`, which
+are re-exported here for compatibility.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
 from ..geometry import matrix_to_quat, pose_from_xyz_quat, se2_to_matrix
+from ..trajectory import Relations, Trajectory
 from .compression import base_suffix, open_text
 
-
-@dataclass
-class Trajectory:
-    """Timestamped poses: ``timestamps (N,)`` [s], ``poses (N, 4, 4)`` ``T_world_base``."""
-
-    timestamps: np.ndarray
-    poses: np.ndarray
-
-    def __post_init__(self) -> None:
-        self.timestamps = np.asarray(self.timestamps, dtype=np.float64).reshape(-1)
-        self.poses = np.asarray(self.poses, dtype=np.float64).reshape(-1, 4, 4)
-        if len(self.timestamps) != len(self.poses):
-            raise ValueError(f"{len(self.timestamps)} timestamps for {len(self.poses)} poses")
-
-    def __len__(self) -> int:
-        return len(self.poses)
-
-    @property
-    def positions(self) -> np.ndarray:
-        """``(N, 3)`` translations."""
-        return self.poses[:, :3, 3]
-
-    def subset(self, index: np.ndarray) -> Trajectory:
-        return Trajectory(self.timestamps[index], self.poses[index])
-
-    def path_length(self) -> float:
-        return float(np.linalg.norm(np.diff(self.positions, axis=0), axis=1).sum()) if len(self) > 1 else 0.0
+__all__ = [
+    "Relations", "Trajectory", "carmen_reference_trajectory", "read_carmen_trajectory", "read_kitti",
+    "read_relations", "read_trajectory", "read_tum", "write_kitti", "write_tum",
+]
 
 
 def _rows(path: Path, ncols: tuple[int, ...]) -> list[tuple[int, np.ndarray]]:
@@ -183,18 +162,6 @@ def read_trajectory(path: str | Path, format: str | None = None) -> Trajectory:
     if fmt == "carmen":
         return read_carmen_trajectory(path)
     raise InputError(path, "unknown trajectory format (expected TUM: 8 columns, KITTI: 12, or a CARMEN log)")
-
-
-@dataclass
-class Relations:
-    """Relative-pose relations (Kümmerle et al. 2009): ``T_a_b`` between poses stamped ``t_a``, ``t_b``."""
-
-    t_a: np.ndarray
-    t_b: np.ndarray
-    T_a_b: np.ndarray  # (R, 4, 4)
-
-    def __len__(self) -> int:
-        return len(self.t_a)
 
 
 def read_relations(path: str | Path) -> Relations:
