@@ -26,6 +26,7 @@ from submapslam.io.cloud_folder import read_cloud
 from submapslam.io.trajectory import read_kitti, read_tum
 
 from .conftest import shared_data
+from .test_cli import one_line_error
 
 ROAD = StreetStyle().road_half_width
 
@@ -215,16 +216,6 @@ def test_kitti_bad_input_raises_clear_errors(tmp_path):
 
 
 runner = CliRunner()
-
-
-def one_line_error(result, *needles):
-    assert result.exit_code == 1, result.output
-    text = result.output.strip()
-    assert "Traceback" not in text
-    last = text.splitlines()[-1]
-    assert last.startswith("error:"), text
-    for n in needles:
-        assert n in last, last
 
 
 def test_cli_synth_kitti(tmp_path):
