@@ -30,12 +30,11 @@ def register(app: typer.Typer) -> None:
         raw_log: Annotated[Path | None, typer.Option(help="Raw CARMEN log, when REF is a corrected CARMEN log.")] = None,
     ) -> None:
         """ATE (RMSE) and RPE of EST against REF; with --relations the relations error."""
-        from .evaluation.metrics import ate, relations_error, rpe
+        from .evaluation.metrics import Alignment, ate, relations_error, rpe
         from .io.trajectory import carmen_reference_trajectory, read_relations, read_trajectory
 
-        if align not in ("se3", "sim3", "se2", "none"):
-            raise fail(SubmapSlamError(f"--align must be se3, sim3, se2 or none, not {align!r}"))
         try:
+            Alignment(align)  # an unknown value fails before any file is read
             e = read_trajectory(est)
             r = carmen_reference_trajectory(ref, raw_log) if raw_log else read_trajectory(ref)
             a = ate(e, r, align=align, max_diff=max_diff)
@@ -69,6 +68,7 @@ def register(app: typer.Typer) -> None:
         raw_log: Annotated[Path | None, typer.Option(help="Raw CARMEN log, when REF is a corrected CARMEN log.")] = None,
     ) -> None:
         """Side-by-side report (table + plots) of several trajectories against one reference."""
+        from .evaluation.metrics import Alignment
         from .evaluation.report import compare_trajectories
         from .io.trajectory import carmen_reference_trajectory, read_trajectory
 
@@ -76,6 +76,7 @@ def register(app: typer.Typer) -> None:
         if labels and len(labels) != len(est):
             raise fail(SubmapSlamError(f"{len(labels)} labels for {len(est)} trajectories"))
         try:
+            Alignment(align)  # an unknown value fails before any file is read
             r = carmen_reference_trajectory(ref, raw_log) if raw_log else read_trajectory(ref)
             named = {(labels[k] if labels else p.stem): read_trajectory(p) for k, p in enumerate(est)}
             report = compare_trajectories(r, named, out, align=align)

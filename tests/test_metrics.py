@@ -1,8 +1,11 @@
 import numpy as np
 import pytest
 
-from submapslam.errors import SubmapSlamError
+from submapslam.errors import ConfigError, SubmapSlamError
 from submapslam.evaluation.metrics import (
+    Alignment,
+    DeltaUnit,
+    align,
     associate,
     ate,
     kitti_segment_error,
@@ -10,8 +13,11 @@ from submapslam.evaluation.metrics import (
     rpe,
     umeyama,
 )
+from submapslam.evaluation.report import compare_trajectories
 from submapslam.geometry import se2_to_matrix, se3_exp
 from submapslam.trajectory import Relations, Trajectory
+
+from .cli_errors import assert_one_error_line
 
 
 def line(n=50, step=1.0, t0=0.0):
@@ -87,3 +93,68 @@ def test_association_tolerance_and_failure():
     assert len(i_e) == 10
     with pytest.raises(SubmapSlamError, match="no timestamps match"):
         associate(a, line(10, t0=100.0))
+
+
+# ---------------------------------------------------------------------------- option values are checked
+def test_unknown_alignment_is_a_config_error_not_se3():
+    t = square()
+    for call in (lambda: ate(t, t, align="foo"), lambda: align(t, t, "foo")):
+        with pytest.raises(ConfigError) as err:
+            call()
+        assert str(err.value) == "unknown alignment 'foo': use one of se3, sim3, se2, none"
+    # the Enum and its strings are the same choice
+    assert ate(t, t, align=Alignment.SIM3)["scale"] == ate(t, t, align="sim3")["scale"]
+    assert Alignment("se2") is Alignment.SE2
+
+
+def test_unknown_rpe_unit_and_bad_delta_are_config_errors():
+    t = line()
+    with pytest.raises(ConfigError) as err:
+        rpe(t, t, unit="bogus")
+    assert str(err.value) == "unknown RPE unit 'bogus': use one of frames, meters"
+    for delta, unit, message in ((0, "frames", "RPE delta in frames must be a whole number >= 1, not 0"),
+                                 (1.5, "frames", "RPE delta in frames must be a whole number >= 1, not 1.5"),
+                                 (-2.0, "meters", "RPE delta in meters must be > 0, not -2.0")):
+        with pytest.raises(ConfigError) as err:
+            rpe(t, t, delta=delta, unit=unit)
+        assert str(err.value) == message
+    # metres still work: 2 m apart on a 1 m-step line is 2 frames
+    assert rpe(t, t, delta=2.0, unit=DeltaUnit.METERS)["n"] == rpe(t, t, delta=2)["n"] == 48
+
+
+def test_compare_report_checks_alignment_before_writing(tmp_path):
+    ref = square()
+    with pytest.raises(ConfigError, match=r"^unknown alignment 'foo': use one of se3, sim3, se2, none$"):
+        compare_trajectories(ref, {"a": ref}, tmp_path / "rep", align="foo")
+    assert not (tmp_path / "rep").exists()
+
+
+def test_compare_report_leaves_segments_empty_only_when_none_fits(tmp_path, monkeypatch):
+    import submapslam.evaluation.report as report
+
+    still = Trajectory(np.arange(5, dtype=float), np.tile(np.eye(4), (5, 1, 1)))  # no path: no segment
+    rows = compare_trajectories(still, {"a": still}, tmp_path / "rep").rows
+    assert np.isnan(rows["a"]["segment_trans_percent"]) and rows["a"]["ate_rmse"] == pytest.approx(0.0)
+    # anything else than "no segment fits" is not turned into an empty column
+
+    def broken(*_args, **_kwargs):
+        raise ValueError("a bug")
+
+    monkeypatch.setattr(report, "kitti_segment_error", broken)
+    with pytest.raises(ValueError, match="a bug"):
+        compare_trajectories(square(), {"a": square()}, tmp_path / "rep2")
+
+
+@pytest.mark.parametrize("command", ["eval", "compare"])
+def test_cli_unknown_alignment_is_one_line(tmp_path, command):
+    from typer.testing import CliRunner
+
+    from submapslam.cli import app
+    from submapslam.io.trajectory import write_tum
+
+    write_tum(tmp_path / "t.txt", square())
+    args = ([command, str(tmp_path / "t.txt"), str(tmp_path / "t.txt"), "--align", "foo"]
+            + (["--out", str(tmp_path / "rep")] if command == "compare" else []))
+    r = CliRunner().invoke(app, args)
+    assert_one_error_line(r, "unknown alignment 'foo': use one of se3, sim3, se2, none")
+    assert not (tmp_path / "rep").exists()

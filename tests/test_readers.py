@@ -155,3 +155,36 @@ def test_real_mulran_pcd_folder():
     assert 30_000 < len(scan.points) < 45_000
     assert np.isfinite(scan.points).all()
     assert scan.timestamp > 1e9  # unix time from times.txt.xz
+
+
+def test_carmen_laser_choice_is_checked(tmp_path):
+    from submapslam.errors import ConfigError
+    from submapslam.io.carmen import CarmenReader
+
+    path = tmp_path / "two.clf"
+    front = carmen_line(np.full(180, 2.0), ts=100.5)
+    write_log(path, [front, front.replace("FLASER", "RLASER").replace(" 2.00 ", " 3.00 ", 1)])
+    for laser in ("Front", "back", ""):
+        with pytest.raises(ConfigError) as err:
+            CarmenReader(path, laser=laser)
+        assert str(err.value) == f"unknown CARMEN laser {laser!r}: use front (FLASER lines) or rear (RLASER lines)"
+    with pytest.raises(ConfigError, match="unknown CARMEN laser 'Front'"):
+        open_log(path, "carmen", laser="Front")
+    # the two known lasers read their own lines: the rear one starts at +90 degrees
+    (rear,) = list(open_log(path, "carmen", laser="rear"))
+    np.testing.assert_allclose(rear.points[0], [0.0, 3.0, 0.0], atol=1e-9)
+    (front_scan,) = list(open_log(path, "carmen", laser="front"))
+    np.testing.assert_allclose(front_scan.points[0], [0.0, -2.0, 0.0], atol=1e-9)
+
+
+def test_carmen_trajectory_timestamp_choice_is_checked(tmp_path):
+    from submapslam.errors import ConfigError
+    from submapslam.io.trajectory import read_carmen_trajectory
+
+    path = tmp_path / "a.clf"
+    write_log(path, [carmen_line(np.full(180, 2.0), ts=100.5)])
+    assert read_carmen_trajectory(path, "logger").timestamps[0] == pytest.approx(1.5)
+    assert read_carmen_trajectory(path).timestamps[0] == pytest.approx(100.5)
+    with pytest.raises(ConfigError) as err:
+        read_carmen_trajectory(path, "IPC")
+    assert str(err.value) == "unknown CARMEN timestamp 'IPC': use ipc or logger"

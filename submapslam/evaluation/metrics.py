@@ -6,15 +6,48 @@ returns plain dicts of floats; no files, no plots.
 
 from __future__ import annotations
 
-from typing import Literal
+from enum import StrEnum
 
 import numpy as np
 
-from ..errors import SubmapSlamError
+from ..errors import ConfigError, SubmapSlamError
 from ..geometry import inverse, rotation_angle
 from ..trajectory import Trajectory
 
-AlignMode = Literal["se3", "sim3", "se2", "none"]
+
+def _unknown(what: str, value: object, choices: type[StrEnum]) -> ConfigError:
+    return ConfigError(f"unknown {what} {value!r}: use one of {', '.join(c.value for c in choices)}")
+
+
+class Alignment(StrEnum):
+    """How an estimate is aligned to the reference before its error is measured (Umeyama):
+    ``se3`` rigid, ``sim3`` rigid and scale, ``se2`` rigid about z only (planar), ``none``.
+
+    ``Alignment(value)`` accepts the strings; any other value is a :class:`ConfigError`.
+    """
+
+    SE3 = "se3"
+    SIM3 = "sim3"
+    SE2 = "se2"
+    NONE = "none"
+
+    @classmethod
+    def _missing_(cls, value: object) -> Alignment:
+        raise _unknown("alignment", value, cls)
+
+
+class DeltaUnit(StrEnum):
+    """What the RPE's ``delta`` counts: ``frames`` (matched poses) or ``meters`` of reference path."""
+
+    FRAMES = "frames"
+    METERS = "meters"
+
+    @classmethod
+    def _missing_(cls, value: object) -> DeltaUnit:
+        raise _unknown("RPE unit", value, cls)
+
+
+AlignMode = Alignment | str  # an Alignment or its value
 
 
 def associate(est: Trajectory, ref: Trajectory, max_diff: float = 0.02) -> tuple[np.ndarray, np.ndarray]:
@@ -72,13 +105,17 @@ def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = False, planar: 
     return T, s
 
 
-def align(est: Trajectory, ref: Trajectory, mode: AlignMode = "se3") -> tuple[np.ndarray, float]:
-    """Transform (and scale) that best maps the associated ``est`` positions onto ``ref``."""
-    if mode == "none":
+def align(est: Trajectory, ref: Trajectory, mode: AlignMode = Alignment.SE3) -> tuple[np.ndarray, float]:
+    """Transform (and scale) that best maps the associated ``est`` positions onto ``ref``.
+
+    ``mode`` is an :class:`Alignment` (or its string); returns ``(T (4, 4), scale)``.
+    """
+    mode = Alignment(mode)
+    if mode == Alignment.NONE:
         return np.eye(4), 1.0
     if len(est) < 3:
         raise SubmapSlamError(f"alignment needs at least 3 matched poses, got {len(est)}")
-    return umeyama(est.positions, ref.positions, with_scale=(mode == "sim3"), planar=(mode == "se2"))
+    return umeyama(est.positions, ref.positions, with_scale=(mode == Alignment.SIM3), planar=(mode == Alignment.SE2))
 
 
 def _apply(T: np.ndarray, s: float, poses: np.ndarray) -> np.ndarray:
@@ -95,11 +132,13 @@ def _stats(errors: np.ndarray) -> dict:
     }
 
 
-def ate(est: Trajectory, ref: Trajectory, align: AlignMode = "se3", max_diff: float = 0.02) -> dict:
+def ate(est: Trajectory, ref: Trajectory, align: AlignMode = Alignment.SE3, max_diff: float = 0.02) -> dict:
     """Absolute trajectory error (translation) after alignment: rmse/mean/median/std/max/n [m].
 
-    Also returns ``errors`` (per matched pose), ``rotation_rmse_deg`` and ``scale``.
+    ``align`` is an :class:`Alignment` (or its string). Also returns ``errors`` (per matched
+    pose), ``rotation_rmse_deg`` and ``scale``.
     """
+    align = Alignment(align)
     i_e, i_r = associate(est, ref, max_diff)
     e, r = est.subset(i_e), ref.subset(i_r)
     T, s = globals()["align"](e, r, align)
@@ -112,15 +151,21 @@ def ate(est: Trajectory, ref: Trajectory, align: AlignMode = "se3", max_diff: fl
     return out
 
 
-def rpe(est: Trajectory, ref: Trajectory, delta: float = 1, unit: Literal["frames", "meters"] = "frames",
+def rpe(est: Trajectory, ref: Trajectory, delta: float = 1, unit: DeltaUnit | str = DeltaUnit.FRAMES,
         max_diff: float = 0.02) -> dict:
     """Relative pose error over pose pairs ``delta`` frames (or metres of reference path) apart.
 
-    Returns translational stats [m] and ``rotation_*`` stats [deg].
+    ``unit`` is a :class:`DeltaUnit` (or its string); in frames ``delta`` is a positive whole
+    number. Returns translational stats [m] and ``rotation_*`` stats [deg].
     """
+    unit = DeltaUnit(unit)
+    if unit == DeltaUnit.FRAMES and not (float(delta).is_integer() and delta >= 1):
+        raise ConfigError(f"RPE delta in frames must be a whole number >= 1, not {delta!r}")
+    if unit == DeltaUnit.METERS and not delta > 0:
+        raise ConfigError(f"RPE delta in meters must be > 0, not {delta!r}")
     i_e, i_r = associate(est, ref, max_diff)
     e, r = est.poses[i_e], ref.poses[i_r]
-    if unit == "frames":
+    if unit == DeltaUnit.FRAMES:
         step = int(delta)
         pairs = [(k, k + step) for k in range(len(e) - step)]
     else:

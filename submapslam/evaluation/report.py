@@ -11,9 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import SubmapSlamError
 from ..trajectory import Trajectory
+from .metrics import Alignment, AlignMode, associate, ate, kitti_segment_error, rpe
 from .metrics import align as align_fn
-from .metrics import associate, ate, kitti_segment_error, rpe
 
 
 @dataclass
@@ -26,8 +27,13 @@ class ComparisonResult:
 
 
 def compare_trajectories(reference: Trajectory, estimates: dict[str, Trajectory], out_dir: str | Path,
-                         align: str = "se3") -> ComparisonResult:
-    """Write ``report.md``, ``report.json``, ``trajectories.png`` and ``ate.png`` into ``out_dir``."""
+                         align: AlignMode = Alignment.SE3) -> ComparisonResult:
+    """Write ``report.md``, ``report.json``, ``trajectories.png`` and ``ate.png`` into ``out_dir``.
+
+    ``align`` is an :class:`~submapslam.evaluation.metrics.Alignment` (or its string), checked
+    before anything is computed or written.
+    """
+    align = Alignment(align)
     import matplotlib
 
     matplotlib.use("Agg")
@@ -43,7 +49,7 @@ def compare_trajectories(reference: Trajectory, estimates: dict[str, Trajectory]
         p = rpe(est, reference)
         try:
             seg = kitti_segment_error(est, reference)
-        except Exception:  # too short: leave the column empty
+        except SubmapSlamError:  # no segment fits (the association already succeeded in ate): empty column
             seg = {"trans_percent": float("nan"), "rot_deg_per_m": float("nan")}
         rows[name] = {"ate_rmse": a["rmse"], "ate_mean": a["mean"], "ate_max": a["max"], "rpe_trans_rmse": p["rmse"],
                       "rpe_rot_rmse_deg": p["rotation_rmse"], "segment_trans_percent": seg["trans_percent"],

@@ -17,16 +17,18 @@ import math
 import zlib
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import ConfigError, InputError
 from ..geometry import se2_to_matrix
 from .compression import base_suffix, open_text, open_text_prefetched
 from .registry import register_reader
 from .scan import Scan
 
-_LASER_TAGS = {"FLASER", "RLASER"}
+_LASERS = {"front": "FLASER", "rear": "RLASER"}
+_LASER_TAGS = set(_LASERS.values())
 _KNOWN_TAGS = _LASER_TAGS | {"ODOM", "PARAM", "SYNC", "TRUEPOS", "NEFF", "ROBOTLASER1", "NMEA-GGA"}
 
 
@@ -80,15 +82,18 @@ class CarmenReader:
 
     Args:
         path: the log file.
-        laser: ``"front"`` reads FLASER lines, ``"rear"`` RLASER lines.
+        laser: ``"front"`` reads FLASER lines, ``"rear"`` RLASER lines; any other value is a
+            :class:`~submapslam.errors.ConfigError`.
         max_valid_range: readings at or above this [m] are "no return" and dropped.
     """
 
     name = "carmen"
 
-    def __init__(self, path: Path, laser: str = "front", max_valid_range: float = 80.0) -> None:
+    def __init__(self, path: Path, laser: Literal["front", "rear"] = "front", max_valid_range: float = 80.0) -> None:
         self.path = Path(path)
-        self.tag = "FLASER" if laser == "front" else "RLASER"
+        if laser not in _LASERS:
+            raise ConfigError(f"unknown CARMEN laser {laser!r}: use front (FLASER lines) or rear (RLASER lines)")
+        self.tag = _LASERS[laser]
         self.rear = laser == "rear"
         self.max_valid_range = max_valid_range
 

@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import ConfigError, InputError
 from ..geometry import matrix_to_quat, pose_from_xyz_quat, se2_to_matrix
 from ..trajectory import Relations, Trajectory
 from .compression import base_suffix, open_text
@@ -105,8 +106,10 @@ def _carmen_flaser_rows(path: Path) -> list[tuple[float, float, np.ndarray]]:
     return out
 
 
-def read_carmen_trajectory(path: str | Path, timestamp: str = "ipc") -> Trajectory:
+def read_carmen_trajectory(path: str | Path, timestamp: Literal["ipc", "logger"] = "ipc") -> Trajectory:
     """Poses of a CARMEN log's FLASER lines (``x y theta``), stamped with ``ipc`` or ``logger`` time."""
+    if timestamp not in ("ipc", "logger"):
+        raise ConfigError(f"unknown CARMEN timestamp {timestamp!r}: use ipc or logger")
     rows = _carmen_flaser_rows(Path(path))
     col = 0 if timestamp == "ipc" else 1
     return Trajectory(np.array([r[col] for r in rows]), np.array([se2_to_matrix(*r[2]) for r in rows]))
