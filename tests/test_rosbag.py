@@ -255,6 +255,42 @@ def test_corrupt_files_are_one_line_input_errors(tmp_path):
         open_log(mc)
 
 
+@pytest.mark.parametrize("error", [TypeError, KeyError, AssertionError])
+@pytest.mark.parametrize("name", ["b.bag", "b.mcap"])
+def test_bugs_in_the_decoding_are_not_reported_as_a_damaged_bag(tmp_path, monkeypatch, error, name):
+    import submapslam.io.rosbag as rosbag
+
+    w = BagWriter(tmp_path / name)
+    w.cloud("/points", T0, random_clouds(1, 10)[0])
+    path = w.write()
+
+    def buggy(*_args, **_kwargs):
+        raise error("a bug in submapslam")
+
+    monkeypatch.setattr(rosbag, "pointcloud2_to_points", buggy)
+    with pytest.raises(error, match="a bug in submapslam"):
+        list(open_log(path))
+
+
+@pytest.mark.parametrize("error", [TypeError, KeyError, AssertionError])
+def test_the_same_errors_inside_rosbags_mean_a_damaged_bag(tmp_path, monkeypatch, error):
+    # rosbags' readers hit bare asserts, ord() of empty reads and corrupt ids on damaged bytes
+    from rosbags.highlevel import AnyReader
+
+    w = BagWriter(tmp_path / "b.mcap")
+    w.cloud("/points", T0, random_clouds(1, 10)[0])
+    path = w.write()
+    reader = open_log(path)
+
+    def damaged(*_args, **_kwargs):
+        raise error("corrupt record")
+
+    monkeypatch.setattr(AnyReader, "deserialize", damaged)
+    with pytest.raises(InputError) as err:
+        list(reader)
+    assert str(err.value) == f"{path}: bag breaks off or is damaged after 0 scans on /points (corrupt record)"
+
+
 def test_truncated_mcap_yields_scans_before_the_damage(tmp_path):
     clouds = random_clouds(8, 40000)  # 640 kB messages: rosbags closes a 1 MiB chunk every 2 scans
     for c in clouds:

@@ -79,8 +79,21 @@ def _first_line(exc: BaseException) -> str:
     return (text.strip().splitlines() or [type(exc).__name__])[0][:200]
 
 
+class _BagReadError(Exception):
+    """rosbags could not read the file's bytes (damaged, cut off, not a bag). The message is
+    the library's first line. Raised only by :class:`_AnyBag` / :class:`_PartialMcap`, so an
+    exception in this module's own decoding is never mistaken for a damaged bag."""
+
+
 def _rosbags_errors() -> tuple[type[BaseException], ...]:
-    """Exceptions the rosbags readers raise on bad input (imported lazily)."""
+    """Exceptions rosbags raises on bad input (imported lazily).
+
+    Besides its own error types, its readers hit plain Python errors on damaged bytes: a bare
+    ``assert`` on a record's time, ``ord()`` of an empty read (TypeError), a lookup of a corrupt
+    connection id (KeyError), an undecodable name (UnicodeDecodeError), a huge corrupt length
+    (OverflowError). They are caught only around calls into rosbags, never around this module's
+    own code, and become :class:`_BagReadError`.
+    """
     import sqlite3
 
     from rosbags.highlevel import AnyReaderError
@@ -91,7 +104,7 @@ def _rosbags_errors() -> tuple[type[BaseException], ...]:
 
     return (AnyReaderError, ReaderError1, ReaderError2, SerdeError, TypesysError, sqlite3.Error,
             OSError, EOFError, struct.error, ValueError, KeyError, IndexError, TypeError,
-            AssertionError)
+            AssertionError, OverflowError)
 
 
 def stamp_ns(header) -> int:
@@ -267,6 +280,28 @@ class FrameTree:
 
 
 # ---------------------------------------------------------------------------- bag access
+def _decoded(records: Iterator, deserialize, truncated: tuple[type[BaseException], ...] = ()
+             ) -> Iterator[tuple[str, str, object]]:
+    """``(topic, msgtype, message)`` from rosbags' ``(connection, time, raw)`` records.
+
+    Only rosbags' reading and decoding is guarded (its errors become :class:`_BagReadError`),
+    not the caller's loop body: a bug there surfaces as itself.
+    """
+    errors = _rosbags_errors()
+    while True:
+        try:
+            item = next(records, None)
+            if item is None:
+                return
+            conn, _t, raw = item
+            msg = deserialize(raw, conn.msgtype)
+        except truncated as exc:
+            raise _BagReadError(f"truncated record ({exc})") from exc
+        except errors as exc:
+            raise _BagReadError(_first_line(exc)) from exc
+        yield conn.topic, conn.msgtype, msg
+
+
 class _AnyBag:
     """A bag opened with ``rosbags.highlevel.AnyReader``."""
 
@@ -278,8 +313,11 @@ class _AnyBag:
 
         self.path = path
         default = get_typestore(Stores.ROS1_NOETIC if path.suffix == ".bag" else Stores.ROS2_HUMBLE)
-        self.reader = AnyReader([path], default_typestore=default)
-        self.reader.open()
+        try:
+            self.reader = AnyReader([path], default_typestore=default)
+            self.reader.open()
+        except _rosbags_errors() as exc:
+            raise _BagReadError(_first_line(exc)) from exc
 
     def close(self) -> None:
         self.reader.close()
@@ -289,8 +327,7 @@ class _AnyBag:
 
     def messages(self, topics: set[str]) -> Iterator[tuple[str, str, object]]:
         conns = [c for c in self.reader.connections if c.topic in topics]
-        for conn, _t, raw in self.reader.messages(connections=conns):
-            yield conn.topic, conn.msgtype, self.reader.deserialize(raw, conn.msgtype)
+        return _decoded(self.reader.messages(connections=conns), self.reader.deserialize)
 
 
 class _PartialMcap:
@@ -332,26 +369,23 @@ class _PartialMcap:
 
     def messages(self, topics: set[str]) -> Iterator[tuple[str, str, object]]:
         conns = [c for c in self.connections if c.topic in topics]
-        try:
-            for conn, _t, raw in self.storage.messages_scan(conns):
-                yield conn.topic, conn.msgtype, self.typestore.deserialize_cdr(raw, conn.msgtype)
-        except (struct.error, TypeError) as exc:  # a record cut inside its fixed-size header
-            raise ValueError(f"truncated record ({exc})") from None
+        # a record cut inside its fixed-size header raises struct.error or TypeError
+        return _decoded(self.storage.messages_scan(conns), self.typestore.deserialize_cdr,
+                        truncated=(struct.error, TypeError))
 
 
 def _open_bag(path: Path) -> _AnyBag | _PartialMcap:
     """Open ``path``; a bare MCAP file without its summary falls back to a linear scan."""
-    errors = _rosbags_errors()
     try:
         return _AnyBag(path)
-    except errors as exc:
-        problem = _first_line(exc).rstrip(".")
+    except _BagReadError as exc:
+        problem = str(exc).rstrip(".")
         mcap = _single_mcap(path)
         if mcap is not None and ("end magic" in problem or "footer" in problem.lower()):
             log.debug("%s: %s; reading the MCAP data linearly up to the damage", path, problem)
             try:
                 return _PartialMcap(mcap)
-            except (*errors, ImportError, AttributeError):  # rosbags internals moved: no recovery
+            except (*_rosbags_errors(), ImportError, AttributeError):  # rosbags internals moved: no recovery
                 pass
             raise InputError(path, f"cannot read the MCAP file ({problem})") from None
         if "index" in problem.lower() or "Header could not be read" in problem:
@@ -437,7 +471,7 @@ class RosbagReader:
         try:
             for _topic, _typ, msg in bag.messages({self.topic}):
                 return frame_name(msg.header.frame_id)
-        except _rosbags_errors():
+        except _BagReadError:
             pass  # reported with its scan index when the scans are read
         finally:
             bag.close()
@@ -462,8 +496,8 @@ class RosbagReader:
                         first[key] = T
                     elif not np.allclose(T, first[key], atol=1e-9):
                         moving.add(key)
-        except _rosbags_errors() as exc:
-            log.debug("%s: reading %s stopped: %s", self.path, "/".join(topics), _first_line(exc))
+        except _BagReadError as exc:
+            log.debug("%s: reading %s stopped: %s", self.path, "/".join(topics), exc)
         finally:
             bag.close()
         for (parent, child), T in first.items():
@@ -538,10 +572,9 @@ class RosbagReader:
                 stamps.append(stamp_ns(msg.header))
                 xyz.append((p.x, p.y, p.z))
                 quats.append((q.x, q.y, q.z, q.w))
-        except _rosbags_errors() as exc:
+        except _BagReadError as exc:
             if not bag.partial:
-                raise InputError(self.path, f"cannot read odometry on {self.odometry_topic} "
-                                            f"({_first_line(exc)})") from None
+                raise InputError(self.path, f"cannot read odometry on {self.odometry_topic} ({exc})") from None
             # damaged MCAP: the scans stop at the same place; keep the odometry read so far
         finally:
             bag.close()
@@ -578,12 +611,9 @@ class RosbagReader:
                     source=f"{self.path.name}:{self.topic}:{index}",
                 )
                 index += 1
-        except InputError:
-            raise
-        except _rosbags_errors() as exc:
-            problem = _first_line(exc)
+        except _BagReadError as exc:
             raise InputError(self.path, f"bag breaks off or is damaged after {index} scans on "
-                                        f"{self.topic} ({problem})") from None
+                                        f"{self.topic} ({exc})") from None
         finally:
             bag.close()
         if bag.partial:
