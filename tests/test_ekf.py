@@ -7,7 +7,7 @@ from submapslam.backend.landmark_graph import solve_landmark_graph
 from submapslam.cli import app
 from submapslam.ekf import CredibilityParams, StochasticMap, credibility
 from submapslam.ekf.runner import landmark_rmse, run_ekf
-from submapslam.errors import InputError
+from submapslam.errors import ConfigError, InputError
 from submapslam.evaluation.metrics import umeyama
 from submapslam.io.landmark_logs import read_mrclam, read_victoria_park
 
@@ -26,6 +26,23 @@ def test_credibility_formula_and_clamp():
     assert credibility(3, 2, a=2.0, b=4.0) == pytest.approx(1 - np.exp(-(1.5 - 0.5)))
     assert credibility(1, 5, a=1.0, b=1.0) == 0.0       # negative exponent clamps to 0
     assert 0.0 <= credibility(1000, 0, 1.0, 1.0) <= 1.0
+
+
+def test_credibility_rates_must_be_positive():
+    for a, b, message in ((0, 1.0, "credibility learning rate a must be > 0, got 0"),
+                          (-1.0, 1.0, "credibility learning rate a must be > 0, got -1.0"),
+                          (float("nan"), 1.0, "credibility learning rate a must be > 0, got nan"),
+                          (1.0, 0.0, "credibility forgetting rate b must be > 0, got 0.0")):
+        with pytest.raises(ConfigError) as err:
+            credibility(1, 0, a=a, b=b)
+        assert str(err.value) == message
+        with pytest.raises(ConfigError) as err:
+            CredibilityParams(a=a, b=b)
+        assert str(err.value) == message
+    with pytest.raises(ConfigError) as err:
+        CredibilityParams(remove_below=1.5)
+    assert str(err.value) == "credibility remove_below must be in [0, 1], got 1.5"
+    assert credibility(1, 3, a=1.0, b=float("inf")) == pytest.approx(1 - np.exp(-1))  # never forgets
 
 
 def test_three_matching_outcomes():

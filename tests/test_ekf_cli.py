@@ -8,6 +8,8 @@ from typer.testing import CliRunner
 from datasets_synth.landmarks import generate_landmark_log
 from submapslam.cli_ekf import register
 
+from .cli_errors import assert_one_error_line
+
 
 def _app() -> typer.Typer:
     app = typer.Typer()
@@ -68,3 +70,14 @@ def test_ekf_fej_on_a_synthetic_log_agrees_with_the_plain_filter(tmp_path):
     assert marks["--fej"].keys() == marks["--no-fej"].keys() and len(marks["--fej"]) >= 10
     # small noise: both linearisations land on the same map within a few centimetres
     assert max(abs(a - b) for k in marks["--fej"] for a, b in zip(marks["--fej"][k], marks["--no-fej"][k])) < 0.05
+
+
+def test_ekf_bad_credibility_rates_are_one_line(tmp_path):
+    path = generate_landmark_log(tmp_path / "syn.txt", seed=0, laps=1)
+    for option, value, message in (("--a", "0", "credibility learning rate a must be > 0, got 0.0"),
+                                   ("--b", "-1", "credibility forgetting rate b must be > 0, got -1.0"),
+                                   ("--remove-below", "2", "credibility remove_below must be in [0, 1], got 2.0")):
+        out = tmp_path / option.strip("-")
+        r = CliRunner().invoke(_app(), ["ekf", str(path), "--out", str(out), option, value])
+        assert_one_error_line(r, message)
+        assert not out.exists()
