@@ -45,6 +45,8 @@ class Odometry:
         kiss.adaptive_threshold.initial_threshold = config.initial_threshold
         kiss.adaptive_threshold.min_motion_th = config.min_motion_threshold
         self.voxel_size: float = kiss.mapping.voxel_size
+        self.frame_voxel: float = 0.5 * self.voxel_size  # [m] each scan is thinned to this first
+        self.last_frame_down = np.zeros((0, 3))
         self._preprocessor = get_preprocessor(kiss)
         self._registration = get_registration(kiss)
         self._local_map = get_voxel_hash_map(kiss)
@@ -64,7 +66,8 @@ class Odometry:
         """Register one scan; return ``(T_odom_base, points_deskewed)``.
 
         ``points_deskewed`` is ``(N, 3)`` in the scan's sensor frame after range filtering and
-        motion compensation (what the submap should store).
+        motion compensation; :attr:`last_frame_down` is the same thinned to :attr:`frame_voxel`
+        (what registration used).
         """
         times = scan.point_times if scan.point_times is not None else np.zeros(len(scan.points))
         frame = self._preprocessor.preprocess(scan.points, times, self.last_delta)
@@ -73,8 +76,9 @@ class Odometry:
             # nothing to register: dead-reckon on the prediction
             new_pose = self.last_pose @ prediction
             self._advance(new_pose)
+            self.last_frame_down = frame
             return new_pose, frame
-        frame_down = self._down(frame, self.voxel_size * 0.5)
+        frame_down = self._down(frame, self.frame_voxel)
         source = self._down(frame_down, self.voxel_size * 1.5)
         initial_guess = self.last_pose @ prediction
         if self._local_map.empty():
@@ -98,6 +102,7 @@ class Odometry:
         self._threshold.update_model_deviation(inverse(initial_guess) @ new_pose)
         self._local_map.update(frame_down, new_pose)
         self._advance(new_pose)
+        self.last_frame_down = frame_down
         return new_pose, frame
 
     def _predicted_delta(self, scan: Scan) -> np.ndarray:

@@ -22,7 +22,7 @@ from .io.scan import Scan
 from .odometry import Odometry
 from .process_stats import current_memory_mb, peak_memory_mb
 from .result import LoopRecord, SlamResult
-from .submaps import Submap, SubmapBuilder, voxel_downsample
+from .submaps import Submap, SubmapBuilder
 
 log = logging.getLogger(__name__)
 
@@ -75,12 +75,15 @@ class SubmapSLAM:
         self._travelled = 0.0  # odometry path length so far [m]
         self.memory_by_km: list[tuple[float, float]] = []  # (km travelled, resident MiB) per closed submap
         self.planar: bool | None = None
+        self._fuse_thinned = False  # 3D: fuse the odometry's thinned scans into submaps (set at the first scan)
+        self.map_voxel = self.config.mapping.map_voxel_size or 0.1  # resolved for the log's kind at the first scan
         self._odometry: Odometry | None = None
         self._wheel_scans = 0  # scans that came with wheel odometry
         self._builder: SubmapBuilder | None = None
         self._graph = PoseGraph(self.config.backend)
         self._loop_closer = None
         self._clouds = None  # 3D: SubmapClouds
+        self._world_up: np.ndarray | None = None  # 3D: the world's up direction (first ground seen)
         self._hints = list(hints or [])
         self.timestamps: list[float] = []
         self._odom_poses: list[np.ndarray] = []
@@ -119,7 +122,11 @@ class SubmapSLAM:
         self._odom_poses.append(T_odom_base)
         self._scan_submap.append(-1)
         with self.timer("submaps"):
-            submap = self._builder.add(len(self.timestamps) - 1, T_odom_base, frame)
+            if self._fuse_thinned:
+                submap = self._builder.add(len(self.timestamps) - 1, T_odom_base, self._odometry.last_frame_down,
+                                           full_scan=frame)
+            else:
+                submap = self._builder.add(len(self.timestamps) - 1, T_odom_base, frame)
         if submap is not None:
             self._close_submap(submap)
 
@@ -128,6 +135,10 @@ class SubmapSLAM:
         cfg = self.config
         self._odometry = Odometry(cfg.odometry, self.planar)
         voxel = cfg.submaps.voxel_size or self._odometry.voxel_size / 2.0
+        # 3D: a submap at the odometry's thinning voxel or coarser is the same when fused from the
+        # thinned scans, with ~5x fewer points to transform and voxelise
+        self._fuse_thinned = not self.planar and voxel >= self._odometry.frame_voxel
+        self.map_voxel = cfg.mapping.map_voxel_size or (0.1 if self.planar else max(0.1, voxel))
         self._builder = SubmapBuilder(cfg.submaps, voxel, self.planar, grid_points=self._grid_slice())
         if not self.planar:  # prepared clouds, shared by odometry-edge registration and loop tests
             from .topology.correspondence import SubmapClouds, match_voxel
@@ -192,6 +203,7 @@ class SubmapSLAM:
             else:
                 self._graph.add_node(k, self._graph.pose(k - 1) @ T_prev_k)
                 self._graph.add_between(k - 1, k, T_prev_k, info, "odometry")
+            self._add_ground_attitude(submap)
             self._graph.update()
         if self._loop_closer is not None:
             records = self._loop_closer.process(submap, self.submaps, self._graph, hint_pairs)
@@ -199,6 +211,21 @@ class SubmapSLAM:
             if any(r.accepted for r in records):
                 with self.timer("optimisation"):
                     self._graph.update(extra_iterations=2)
+
+    def _add_ground_attitude(self, submap: Submap) -> None:
+        """3D: the soft prior that the ground under each anchor is level in the world (the
+        world's up is the ground normal under the first anchor that sees ground)."""
+        sigma = self.config.backend.ground_attitude_sigma_deg
+        if self.planar or sigma is None:
+            return
+        from .mapping.height_band import ground_normal
+
+        up = ground_normal(submap.points)
+        if up is None:
+            return
+        if self._world_up is None:
+            self._world_up = submap.T_odom_anchor[:3, :3] @ up  # the odometry frame is the world frame
+        self._graph.add_attitude(submap.id, up, self._world_up, np.deg2rad(sigma))
 
     def _registration_shaped(self, info: np.ndarray, prev: Submap, new: Submap, T_prev_new: np.ndarray) -> np.ndarray:
         """Add the registration's own uncertainty to the drift model of an odometry edge.
@@ -287,19 +314,14 @@ class SubmapSLAM:
 
     def map_points(self, voxel: float | None = None) -> np.ndarray:
         """Fused map ``(M, 3)`` in the world frame from the optimised submap anchors."""
-        voxel = voxel or self.config.mapping.map_voxel_size
+        from .mapping.global_map import fuse_clouds
+
         self._settle()
-        chunks = [
-            s.points @ self._graph.pose(s.id)[:3, :3].T + self._graph.pose(s.id)[:3, 3]
-            for s in self.submaps
-        ]
+        clouds = [(self._graph.pose(s.id), s.points) for s in self.submaps]
         if self._builder is not None and self.submaps:
-            growing = self._builder.current_points()
             T = self._corrections()[self.submaps[-1].id] @ self._builder.current_anchor
-            chunks.append(growing @ T[:3, :3].T + T[:3, 3])
-        if not chunks:
-            return np.zeros((0, 3))
-        return voxel_downsample(np.vstack(chunks), voxel)
+            clouds.append((T, self._builder.current_points()))
+        return fuse_clouds(clouds, voxel or self.map_voxel)
 
     # ------------------------------------------------------------------ finishing
     def finish(self, input_error: str | None = None, source: str = "") -> SlamResult:
@@ -346,6 +368,7 @@ class SubmapSLAM:
             config=self.config,
             stage_seconds=dict(self.timer.seconds),
             wall_time_s=time.perf_counter() - self._t_start,
+            map_voxel_size=self.map_voxel,
             path_length_m=self._travelled,
             memory_mb_by_km=list(self.memory_by_km),
             peak_memory_mb=peak_memory_mb(),
@@ -370,27 +393,90 @@ def run(
     config = config or PipelineConfig()
     slam = SubmapSLAM(config, hints)
     input_error = None
-    iterator = iter(scans)
     n = 0
-    while True:
-        try:
-            with slam.timer("read"):
-                scan = next(iterator)
-        except StopIteration:
-            break
-        except InputError as exc:
-            if n == 0:
-                raise
-            input_error = str(exc)
-            log.warning("stopped reading: %s", exc)
-            break
-        slam.process_scan(scan)
-        n += 1
-        if progress is not None:
-            progress(n)
-        if config.max_scans is not None and n >= config.max_scans:
-            break
+    with ReadAhead(scans) as iterator:
+        while True:
+            try:
+                with slam.timer("read"):  # time spent waiting for the reader
+                    scan = next(iterator)
+            except StopIteration:
+                break
+            except InputError as exc:
+                if n == 0:
+                    raise
+                input_error = str(exc)
+                log.warning("stopped reading: %s", exc)
+                break
+            slam.process_scan(scan)
+            n += 1
+            if progress is not None:
+                progress(n)
+            if config.max_scans is not None and n >= config.max_scans:
+                break
     return slam.finish(input_error=input_error, source=source)
+
+
+class ReadAhead:
+    """Iterate ``scans`` while a background thread reads the next ``depth`` of them.
+
+    Parsing a scan file (open3d, numpy, decompression) releases the GIL for most of its time,
+    so reading overlaps with registration. Order, items and errors are those of the wrapped
+    iterable: an exception the reader raises comes out of ``next`` at the same position.
+    Leaving the ``with`` block stops the thread (it may have read up to ``depth`` scans more).
+    """
+
+    _END = object()
+
+    def __init__(self, scans: Iterable[Scan], depth: int = 8) -> None:
+        import queue
+        import threading
+
+        self._scans = scans
+        self._queue: queue.Queue = queue.Queue(maxsize=depth)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._read, name="scan-reader", daemon=True)
+
+    def _put(self, item) -> bool:
+        import queue
+
+        while not self._stop.is_set():
+            try:
+                self._queue.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def _read(self) -> None:
+        try:
+            for scan in self._scans:
+                if not self._put((scan, None)):
+                    return
+        except BaseException as exc:  # handed to the consumer, raised there
+            self._put((None, exc))
+            return
+        self._put((self._END, None))
+
+    def __enter__(self) -> ReadAhead:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+
+    def __iter__(self) -> ReadAhead:
+        return self
+
+    def __next__(self) -> Scan:
+        item, error = self._queue.get()
+        if error is not None:
+            self._queue.put((None, error))  # a reader stays failed
+            raise error
+        if item is self._END:
+            self._queue.put((self._END, None))
+            raise StopIteration
+        return item
 
 
 def _hint_scan(value: float, by_index: bool, stamps: np.ndarray) -> int | None:

@@ -48,6 +48,7 @@ class SlamResult:
         stage_seconds: wall time per stage; stages overlap (a closed submap's graph work runs
             beside the next scans' registration), so they add up to more than ``wall_time_s``.
         wall_time_s: wall-clock seconds from the engine's start to the result.
+        map_voxel_size: [m] voxel of the fused map (the config's, resolved for the log's kind).
         path_length_m: odometry path length [m].
         memory_mb_by_km: ``(km travelled, resident MiB)`` when each submap closed.
         peak_memory_mb: the process's peak resident set [MiB] (``ru_maxrss``) when the result was made.
@@ -70,6 +71,7 @@ class SlamResult:
     config: PipelineConfig
     stage_seconds: dict[str, float] = field(default_factory=dict)
     wall_time_s: float = 0.0
+    map_voxel_size: float = 0.1
     path_length_m: float = 0.0
     memory_mb_by_km: list[tuple[float, float]] = field(default_factory=list)
     peak_memory_mb: float = 0.0

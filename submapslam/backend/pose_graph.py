@@ -101,6 +101,16 @@ class PoseGraph:
             self._pending_graph.add(f)
             self._graph.add(f)
 
+    def add_attitude(self, key: int, up_in_node: np.ndarray, up_in_world: np.ndarray, sigma_rad: float) -> None:
+        """Soft prior that the node's ``up_in_node`` ``(3,)`` direction points along the world's
+        ``up_in_world`` ``(3,)``: constrains roll and pitch, never yaw or position (2 DOF)."""
+        gtsam = self._gtsam
+        f = gtsam.AttitudeFactorPose3(key, gtsam.Unit3(np.asarray(up_in_world, dtype=np.float64)),
+                                      gtsam.noiseModel.Isotropic.Sigma(2, float(sigma_rad)),
+                                      gtsam.Unit3(np.asarray(up_in_node, dtype=np.float64)))
+        self._pending_graph.add(f)
+        self._graph.add(f)
+
     def add_between(self, i: int, j: int, T_i_j: np.ndarray, information: np.ndarray, kind: str) -> None:
         """Add ``T_i_j`` (pose of node j in node i's frame); loop edges get the robust kernel."""
         gtsam = self._gtsam

@@ -22,17 +22,19 @@ def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None = 
         if len(colors) != len(points):
             raise SubmapSlamError(f"{path}: {len(colors)} colours for {len(points)} points")
         fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
-    rows = np.empty(len(points), dtype=fields)
-    rows["x"], rows["y"], rows["z"] = points.T
-    if colors is not None:
-        rgb = np.round(np.clip(colors, 0.0, 1.0) * 255.0).astype(np.uint8)
-        rows["red"], rows["green"], rows["blue"] = rgb.T
     props = "".join(f"property {'double' if t == '<f8' else 'uchar'} {name}\n" for name, t in fields)
     header = ("ply\nformat binary_little_endian 1.0\ncomment Created by submapslam\n"
               f"element vertex {len(points)}\n{props}end_header\n")
+    if colors is None:
+        rows = np.ascontiguousarray(points, dtype="<f8")  # no copy for the usual float64 map
+    else:
+        rows = np.empty(len(points), dtype=fields)
+        rows["x"], rows["y"], rows["z"] = points.T
+        rgb = np.round(np.clip(colors, 0.0, 1.0) * 255.0).astype(np.uint8)
+        rows["red"], rows["green"], rows["blue"] = rgb.T
     try:
         with open(path, "wb") as fh:
             fh.write(header.encode("ascii"))
-            fh.write(rows.tobytes())
+            rows.tofile(fh)
     except OSError as exc:
         raise SubmapSlamError(f"{path}: could not write the PLY file ({exc})") from exc

@@ -11,6 +11,7 @@ import numpy as np
 
 from ..config import dump_config
 from ..geometry import matrix_to_se2
+from ..mapping.global_map import fused_map
 from ..process_stats import peak_memory_mb
 from ..result import SlamResult
 from .g2o import write_g2o
@@ -57,30 +58,6 @@ def write_results(result: SlamResult, out_dir: str | Path) -> dict[str, Path]:
     summary["peak_memory_mb"] = round(peak_memory_mb(), 1)
     paths["summary.json"].write_text(json.dumps(summary, indent=2) + "\n")
     return paths
-
-
-def fused_map(result: SlamResult, voxel: float | None = None, chunk_points: int = 2_000_000) -> np.ndarray:
-    """All submap clouds in the world frame, voxel-downsampled: ``(M, 3)``.
-
-    Streaming: submaps are moved into the world frame and merged into the map a chunk of about
-    ``chunk_points`` points at a time, so memory holds the map plus one chunk, never every
-    submap's cloud in the world frame at once.
-    """
-    from ..submaps import voxel_downsample
-
-    voxel = voxel or result.config.mapping.map_voxel_size
-    merged = np.zeros((0, 3))
-    chunk: list[np.ndarray] = []
-    size = 0
-    for T, pts in zip(result.submap_poses, result.submap_points):
-        chunk.append(np.asarray(pts, dtype=np.float64) @ T[:3, :3].T + T[:3, 3])
-        size += len(pts)
-        if size >= chunk_points:
-            merged = voxel_downsample(np.vstack([merged, *chunk]), voxel)
-            chunk, size = [], 0
-    if chunk:
-        merged = voxel_downsample(np.vstack([merged, *chunk]), voxel)
-    return merged
 
 
 def _write_loops(path: Path, result: SlamResult) -> None:

@@ -1,7 +1,9 @@
-"""Global occupancy map: local grids per submap fused through optimised anchors (2D lasers, and
-3D LiDAR through the obstacle slice of each scan)."""
+"""Global maps from the optimised anchors: the occupancy grid (local grids per submap fused; 2D
+lasers, and 3D LiDAR through the obstacle slice of each scan) and the fused point cloud."""
 
 from __future__ import annotations
+
+from collections.abc import Iterable
 
 import numpy as np
 
@@ -69,3 +71,57 @@ def build_global_grid(result: SlamResult, params: GridParams | None = None) -> t
         if grid is not None:
             cleared += fuse_submap_grids(global_grid, grid, T_world_anchor)
     return global_grid, cleared
+
+
+_KEY_BITS = 21  # per axis: +-2^20 voxels (419 km at 0.4 m, 52 km at 5 cm)
+
+
+def _voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
+    """One int64 key ``(N,)`` per point: its voxel's integer coordinates packed 21 bits each."""
+    cells = np.floor(points / voxel).astype(np.int64) + (1 << (_KEY_BITS - 1))
+    return (cells[:, 0] << (2 * _KEY_BITS)) | (cells[:, 1] << _KEY_BITS) | cells[:, 2]
+
+
+def fuse_clouds(clouds: Iterable[tuple[np.ndarray, np.ndarray]], voxel: float,
+                chunk_points: int = 500_000) -> np.ndarray:
+    """Clouds ``(T_world_cloud (4, 4), points (N, 3))`` fused into one ``(M, 3)`` world cloud, the
+    first point of each ``voxel`` [m] kept (clouds in the given order).
+
+    Streaming: the clouds are moved into the world frame about ``chunk_points`` points at a time
+    and merged into the sorted voxel keys of the map so far, so memory holds the map (a key and
+    three float32 per voxel) and one chunk — not every cloud in the world frame at once, nor a
+    hash map over all of them (a 3.7 km drive took 300 MB more that way).
+    """
+    keys = np.zeros(0, dtype=np.int64)  # sorted voxel keys of the map
+    fused = np.zeros((0, 3), dtype=np.float32)
+    chunk: list[np.ndarray] = []
+    size = 0
+
+    def merge() -> None:
+        nonlocal keys, fused
+        pts = np.vstack(chunk)
+        chunk_keys, first = np.unique(_voxel_keys(pts, voxel), return_index=True)
+        pos = np.searchsorted(keys, chunk_keys)
+        known = pos < len(keys)
+        known[known] = keys[pos[known]] == chunk_keys[known]
+        new_keys = chunk_keys[~known]
+        new_points = pts[first[~known]].astype(np.float32)
+        keys = np.concatenate([keys, new_keys])
+        order = np.argsort(keys, kind="stable")  # two sorted runs: linear
+        keys = keys[order]
+        fused = np.concatenate([fused, new_points])[order]
+
+    for T, points in clouds:
+        chunk.append(np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3])
+        size += len(points)
+        if size >= chunk_points:
+            merge()
+            chunk, size = [], 0
+    if chunk:
+        merge()
+    return fused.astype(np.float64)
+
+
+def fused_map(result: SlamResult, voxel: float | None = None) -> np.ndarray:
+    """All submap clouds in the world frame, fused at ``voxel`` (default: the run's map voxel)."""
+    return fuse_clouds(zip(result.submap_poses, result.submap_points), voxel or result.map_voxel_size)

@@ -45,3 +45,27 @@ def obstacle_points(points: np.ndarray, cell: float, min_above_ground: float = 0
     if len(band) == 0:
         return np.zeros((0, 3), dtype=np.float32)
     return band[first_point_per_cell(band[:, :2], cell)].astype(np.float32)
+
+
+def ground_normal(points: np.ndarray, radius: float = 15.0, band: float = 0.5,
+                  min_points: int = 50) -> np.ndarray | None:
+    """Unit ``(3,)`` normal (pointing up) of the ground around the origin of ``(N, 3)`` points.
+
+    The ground is taken as the points within ``radius`` m horizontally whose height is within
+    ``band`` m of a low percentile of the heights there; a plane is fitted to them (PCA). None
+    when too few points qualify or they do not lie on a plane (standard deviation across it
+    above 0.1 m) — e.g. a planar 2D scan, or a sensor that sees no ground near itself.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    near = points[np.hypot(points[:, 0], points[:, 1]) <= radius]
+    if len(near) < min_points:
+        return None
+    low = near[near[:, 2] <= np.percentile(near[:, 2], GROUND_PERCENTILE) + band]
+    if len(low) < min_points:
+        return None
+    centred = low - low.mean(axis=0)
+    w, V = np.linalg.eigh(centred.T @ centred / len(low))
+    if np.sqrt(max(w[0], 0.0)) > 0.1 or w[1] < 1.0:  # not thin, or not spread in two directions
+        return None
+    normal = V[:, 0]
+    return normal if normal[2] > 0 else -normal
