@@ -164,12 +164,6 @@ def se3_exp(xi: ArrayLike) -> Array:
     return T
 
 
-def se3_log_approx(T: ArrayLike) -> Array:
-    """``(4, 4)`` -> ``(6,)`` (translation, rotation vector); decoupled approximation."""
-    T = np.asarray(T, dtype=np.float64)
-    return np.concatenate([T[:3, 3], so3_log(T[:3, :3])])
-
-
 def blend_poses(T_a: ArrayLike, T_b: ArrayLike, alpha: float) -> Array:
     """Pose ``alpha`` of the way from ``T_a`` to ``T_b`` (``(4, 4)``): rotation along the geodesic,
     translation linear. ``alpha`` 0 gives ``T_a``, 1 gives ``T_b``."""

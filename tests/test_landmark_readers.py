@@ -78,7 +78,8 @@ def test_mrclam_camera_model_covers_the_measurements():
     from .conftest import shared_data
 
     log = read_mrclam(shared_data("landmarks", "utias_mrclam7"), 1)
-    assert log.fov == pytest.approx(np.deg2rad(60.0)) and log.max_range == pytest.approx(6.5)
     rb = np.vstack([s.ranges_bearings for s in log.steps if len(s.ranges_bearings)])
     inside = (rb[:, 0] <= log.max_range) & (np.abs(rb[:, 1]) <= log.fov / 2)
     assert len(rb) > 2000 and inside.mean() > 0.95
+    # and it stays inside the camera's reach: at the very edge a miss says nothing
+    assert log.max_range < rb[:, 0].max() and log.fov / 2 < np.abs(rb[:, 1]).max()

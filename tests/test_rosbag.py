@@ -564,7 +564,9 @@ def test_converter_round_trips_the_mounting(small_rectangle, tmp_path):
 def test_cloud_folder_with_the_mounting_matches_the_bag(small_rectangle, tmp_path):
     folder, _ = mounted_folder(small_rectangle, tmp_path / "mounted", n=3)
     bag, _ = mounted_bag(tmp_path / "m.mcap", small_rectangle, n=3)
-    for a, b in zip(open_log(folder), open_log(bag)):
+    from_folder, from_bag = list(open_log(folder)), list(open_log(bag))
+    assert len(from_folder) == len(from_bag) == 3  # zip alone would stop at the shorter reader
+    for a, b in zip(from_folder, from_bag, strict=True):
         np.testing.assert_allclose(a.points, b.points, atol=2e-5)
 
 

@@ -158,19 +158,6 @@ class StochasticMap:
             P[:3, 3:] = F @ P[:3, 3:]
             P[3:, :3] = P[:3, 3:].T
 
-    def predict_velocity(self, v: float, w: float, dt: float, Q_vw: np.ndarray) -> None:
-        """Unicycle motion for ``dt`` seconds at forward speed ``v`` and turn rate ``w``."""
-        if dt <= 0:
-            return
-        dth = w * dt
-        if abs(w) > 1e-9:
-            r = v / w
-            u = np.array([r * np.sin(dth), r * (1 - np.cos(dth)), dth])
-        else:
-            u = np.array([v * dt, 0.0, 0.0])
-        J = np.array([[dt, 0], [0, 0], [0, dt]])  # first-order map of (v, w) noise onto u
-        self.predict(u, J @ Q_vw @ J.T + np.diag([1e-10, 1e-10, 1e-10]))
-
     # ------------------------------------------------------------------ measurement model
     def _h(self, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Predicted range-bearing of the feature at slot ``k`` and its Jacobians w.r.t. robot, feature."""
