@@ -5,27 +5,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
-import numpy as np
 import typer
 from rich.console import Console
 
 from .cli_common import fail
-from .errors import InputError, SubmapSlamError
-
-
-def _load(log: Path, fmt: str | None, robot: int):
-    from .ekf.features import landmark_log_from_cloud_log
-    from .io.landmark_logs import read_mrclam, read_victoria_park
-
-    if fmt is None:
-        fmt = ("cloud" if (log / "scans").is_dir() else "mrclam") if log.is_dir() else "victoria"
-    if fmt == "mrclam":
-        return read_mrclam(log, robot)
-    if fmt in ("victoria", "synth"):
-        return read_victoria_park(log)
-    if fmt == "cloud":
-        return landmark_log_from_cloud_log(log)
-    raise InputError(log, f"unknown landmark log format {fmt!r}; use mrclam, victoria, synth or cloud")
+from .errors import SubmapSlamError
 
 
 def register(app: typer.Typer) -> None:
@@ -49,38 +33,19 @@ def register(app: typer.Typer) -> None:
                                           "longer, but needs roughly right first estimates.")] = False,
     ) -> None:
         """Run the full-covariance EKF (stochastic map with credibility); write poses, landmarks, plot."""
-        import numpy as np
-
-        from .ekf.outputs import write_ekf_results
-        from .ekf.runner import landmark_errors_nearest, landmark_rmse, run_ekf, trajectory_rmse
+        from .ekf.runner import run_ekf
         from .ekf.stochastic_map import CredibilityParams
+        from .evaluation.landmark_compare import ekf_summary, plot_stochastic_map
+        from .io.ekf_results import write_ekf_results
+        from .io.landmark_logs import read_landmark_log
 
         try:
-            data = _load(log, format, robot)
-            run = run_ekf(data, CredibilityParams(a=a, b=b, remove_below=remove_below), max_range=max_range,
-                          first_estimate_jacobians=fej)
-            est = {lm["id"]: np.array([lm["x"], lm["y"]]) for lm in run.filter.landmarks()}
-            summary = {"log": data.name, "jacobians": "first estimates" if fej else "current estimates",
-                       "steps": len(data.steps), "features": run.filter.n, "ekf_seconds": round(run.seconds, 3),
-                       "matched": run.matched, "new": run.new, "unobserved": run.unobserved, "removed": run.removed}
-            if data.truth_landmarks and data.known_association:
-                summary["ekf_landmark_rmse_m"], summary["landmarks_compared"] = landmark_rmse(est, data.truth_landmarks)
-            elif data.truth_landmarks:
-                near = landmark_errors_nearest(est, data.truth_landmarks)
-                summary["ekf_landmark_rmse_m"], summary["landmarks_compared"] = near["rmse"], near["found"]
-                summary["landmarks_total"], summary["spurious_features"] = near["total"], near["spurious"]
-            if data.truth_poses is not None:
-                summary["ekf_trajectory_rmse_m"] = trajectory_rmse(run.times, run.poses, data.truth_times, data.truth_poses)
-            if compare:
-                from .backend.landmark_graph import solve_landmark_graph
-                from .ekf.runner import with_ekf_association
-                from .evaluation.landmark_compare import compare_landmark_solutions
-
-                # without ids in the log, the graph gets the filter's own data association
-                graph_data = data if data.known_association else with_ekf_association(data, run)
-                sol = solve_landmark_graph(graph_data, incremental=incremental, warm_start=True)
-                summary["comparison"] = compare_landmark_solutions(data, run, sol)
-            write_ekf_results(out, run, summary, data.truth_landmarks or None, data.truth_poses)
+            cred = CredibilityParams(a=a, b=b, remove_below=remove_below)
+            data = read_landmark_log(log, format, robot)
+            run = run_ekf(data, cred, max_range=max_range, first_estimate_jacobians=fej)
+            summary = ekf_summary(data, run, compare=compare, incremental=incremental)
+            write_ekf_results(out, run, summary)
+            plot_stochastic_map(out / "landmarks.png", run, data.truth_landmarks or None, data.truth_poses)
         except SubmapSlamError as exc:
             raise fail(exc) from None
         Console().print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in summary.items()})
@@ -97,7 +62,7 @@ def register(app: typer.Typer) -> None:
         import json
         import tempfile
 
-        from .evaluation.landmark_compare import nees_study, plot_nees
+        from .evaluation.landmark_compare import nees_study, nees_summary, plot_nees
 
         try:
             out.mkdir(parents=True, exist_ok=True)
@@ -105,15 +70,11 @@ def register(app: typer.Typer) -> None:
                 study = nees_study(tmp, runs=runs, seed=seed, laps=laps, with_graph=graph)
         except (SubmapSlamError, OSError) as exc:
             raise fail(exc) from None
-        lo, hi = study["band"]
-        inside = float(np.mean((study["ekf"] >= lo) & (study["ekf"] <= hi)))
-        doc = {"runs": runs, "band_95": [lo, hi], "ekf_fraction_inside": inside,
-               "ekf_left_band_at": study["ekf_left_band_at"], "ekf_fej_left_band_at": study["ekf_fej_left_band_at"],
-               "graph_left_band_at": study["graph_left_band_at"],
-               "ekf_mean_nees": study["ekf"].tolist(), "ekf_fej_mean_nees": study["ekf_fej"].tolist(),
-               "graph_mean_nees": None if study["graph"] is None else study["graph"].tolist()}
+        doc = nees_summary(study)
         (out / "nees.json").write_text(json.dumps(doc, indent=1))
         plot_nees(out / "nees.png", study)
+        lo, hi = doc["band_95"]
+        inside = doc["ekf_fraction_inside"]
         Console().print(f"band [{lo:.2f}, {hi:.2f}]; EKF inside for {inside:.0%} of steps; 10-step mean leaves "
                         f"the band at step {study['ekf_left_band_at']} (FEJ-EKF: {study['ekf_fej_left_band_at']}, "
                         f"graph: {study['graph_left_band_at']})")

@@ -179,7 +179,8 @@ def test_pole_detector_on_a_synthetic_laser_log(tmp_path):
 
     from datasets_synth import generate
     from datasets_synth.worlds import rectangle
-    from submapslam.ekf.features import landmark_log_from_cloud_log, poles_from_planar_scan
+    from submapslam.ekf.features import poles_from_planar_scan
+    from submapslam.io.landmark_logs import read_cloud_pole_log
     from submapslam.io.registry import open_log
     from submapslam.io.trajectory import read_tum
 
@@ -194,7 +195,7 @@ def test_pole_detector_on_a_synthetic_laser_log(tmp_path):
             good += np.min(np.linalg.norm(poles - p, axis=1)) < 0.15
             total += 1
     assert total > 20 and good / total > 0.75
-    lm_log = landmark_log_from_cloud_log(log)
+    lm_log = read_cloud_pole_log(log)
     assert len(lm_log.steps) == 400 and all(i is None for s in lm_log.steps for i in s.ids)
 
 

@@ -81,3 +81,9 @@ def test_ekf_bad_credibility_rates_are_one_line(tmp_path):
         r = CliRunner().invoke(_app(), ["ekf", str(path), "--out", str(out), option, value])
         assert_one_error_line(r, message)
         assert not out.exists()
+
+
+def test_ekf_unknown_log_format_is_one_line(tmp_path):
+    path = generate_landmark_log(tmp_path / "syn.txt", seed=0, laps=1)
+    r = CliRunner().invoke(_app(), ["ekf", str(path), "--out", str(tmp_path / "o"), "--format", "kitti"])
+    assert_one_error_line(r, "syn.txt: unknown landmark log format 'kitti'; use mrclam, victoria, synth or cloud")

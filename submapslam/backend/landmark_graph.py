@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..io.landmark_logs import LandmarkLog
+from ..landmark_log import LandmarkLog
 
 
 @dataclass

@@ -8,7 +8,13 @@ pole's centre (the cluster centre pushed back by the pole radius) in the sensor 
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 import numpy as np
+
+from ..geometry import inverse, matrix_to_se2
+from ..landmark_log import LandmarkLog, Step
+from ..trajectory import Trajectory
 
 PLANAR_POLE_RANGE = 15.0  # [m] how far the pole detectors look (and the EKF expects to see poles)
 SPATIAL_POLE_RANGE = 30.0
@@ -78,38 +84,23 @@ def poles_from_3d_scan(points: np.ndarray, *, z_band: tuple[float, float] = (-1.
     return np.array(out).reshape(-1, 2)
 
 
-def landmark_log_from_cloud_log(path, sigma_range: float = 0.05, sigma_bearing: float = 0.02,
-                                odometry_sigma: tuple[float, float, float] = (0.05, 0.02, 0.03)):
-    """A point-cloud log folder (scans + odometry_tum.txt) -> a LandmarkLog of pole observations.
+def landmark_log_from_scans(scans: Iterable, name: str, *, fov_deg: float = 360.0, truth: Trajectory | None = None,
+                            truth_landmarks: dict[int, np.ndarray] | None = None, sigma_range: float = 0.05,
+                            sigma_bearing: float = 0.02,
+                            odometry_sigma: tuple[float, float, float] = (0.05, 0.02, 0.03)) -> LandmarkLog:
+    """Scans with wheel odometry -> a :class:`LandmarkLog` of pole observations (no file access).
 
-    Motion comes from the log's wheel odometry (the same input the submap pipeline gets);
-    association is unknown (ids None), so the filter's gating does it.
+    Each scan needs ``timestamp``, ``points (N, 3)``, ``planar`` and ``odometry`` (``(4, 4)``
+    ``T_odom_base``): motion comes from the wheel odometry (the same input the submap pipeline
+    gets), its covariance grows with the distance; association is unknown (ids None), so the
+    filter's gating does it. ``fov_deg`` is a planar laser's field of view; ``truth`` (poses in
+    the world frame) sets the initial pose and the ground-truth path, ``truth_landmarks`` the
+    true poles (world frame).
     """
-    from pathlib import Path
-
-    import yaml
-
-    from ..errors import InputError
-    from ..geometry import inverse, matrix_to_se2
-    from ..io.landmark_logs import LandmarkLog, Step
-    from ..io.registry import open_log
-    from ..io.trajectory import read_tum
-
-    reader = open_log(Path(path), "cloud_folder")
-    meta_file = Path(path) / "meta.yaml"
-    try:
-        meta = yaml.safe_load(meta_file.read_text()) if meta_file.is_file() else {}
-    except yaml.YAMLError as exc:
-        raise InputError(meta_file, f"not valid YAML ({str(exc).splitlines()[0]})") from None
-    sensor = (meta or {}).get("sensor", {}) if isinstance(meta, dict) else {}
-    if reader.odometry is None:
-        raise InputError(path, "the log has no odometry_tum.txt: the EKF needs odometry")
-    gt_file = Path(path) / "groundtruth_tum.txt"
-    truth = read_tum(gt_file) if gt_file.is_file() else None
     steps = []
     prev = None
     planar = True
-    for scan in reader:
+    for scan in scans:
         planar = scan.planar
         if prev is None:
             motion = np.zeros(3)
@@ -127,23 +118,7 @@ def landmark_log_from_cloud_log(path, sigma_range: float = 0.05, sigma_bearing: 
     if truth is not None:
         init = matrix_to_se2(truth.poses[0])
         truth_times, truth_poses = truth.timestamps, matrix_to_se2(truth.poses)
-    return LandmarkLog(f"poles from {Path(path).name}", init, steps, np.diag([sigma_range**2, sigma_bearing**2]),
-                       truth_times, truth_poses, _truth_poles(Path(path) / "landmarks_groundtruth.csv"),
+    return LandmarkLog(name, init, steps, np.diag([sigma_range**2, sigma_bearing**2]),
+                       truth_times, truth_poses, dict(truth_landmarks or {}),
                        known_association=False, max_range=PLANAR_POLE_RANGE if planar else SPATIAL_POLE_RANGE,
-                       fov=np.deg2rad(float(sensor.get("fov_deg", 360.0))) if planar else 2 * np.pi)
-
-
-def _truth_poles(path) -> dict[int, np.ndarray]:
-    """``landmarks_groundtruth.csv`` (``id,x,y``, world frame) written by the synthetic generator, if any."""
-    from ..errors import InputError
-
-    if not path.is_file():
-        return {}
-    out = {}
-    for lineno, line in enumerate(path.read_text().splitlines()[1:], start=2):
-        try:
-            k, x, y = line.split(",")[:3]
-            out[int(k)] = np.array([float(x), float(y)])
-        except ValueError:
-            raise InputError(path, f"expected id,x,y, got {line[:40]!r}", lineno) from None
-    return out
+                       fov=np.deg2rad(float(fov_deg)) if planar else 2 * np.pi)

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import DivergenceError
-from ..io.landmark_logs import LandmarkLog
+from ..landmark_log import LandmarkLog, Step
 from .stochastic_map import CredibilityParams, StochasticMap
 
 
@@ -73,8 +73,6 @@ def with_ekf_association(log: LandmarkLog, run: EkfRun) -> LandmarkLog:
     """``log`` with the ids the filter's gating gave each observation (ambiguous ones dropped),
     so a factor graph can solve the same data with the same data association."""
     from dataclasses import replace
-
-    from ..io.landmark_logs import Step
 
     steps = []
     for step, ids in zip(log.steps, run.associations or []):

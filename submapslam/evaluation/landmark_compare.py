@@ -1,4 +1,5 @@
-"""EKF (stochastic map) vs factor graph vs ground truth on one landmark log.
+"""EKF (stochastic map) vs factor graph vs ground truth on one landmark log; the EKF's summary,
+its NEES study and plots.
 
 Trajectory errors are position RMSE in the world frame (both estimators start at the log's
 initial pose, so no alignment); landmark errors are over shared ids; covariance agreement
@@ -14,7 +15,7 @@ import numpy as np
 
 from ..backend.landmark_graph import GraphSolution
 from ..ekf.runner import EkfRun, landmark_errors_nearest, landmark_rmse, trajectory_rmse
-from ..io.landmark_logs import LandmarkLog
+from ..landmark_log import LandmarkLog
 
 
 def _sym_kl(A: np.ndarray, B: np.ndarray) -> float:
@@ -53,6 +54,35 @@ def compare_landmark_solutions(log: LandmarkLog, run: EkfRun, sol: GraphSolution
         out["ekf_trajectory_rmse_m"] = trajectory_rmse(run.times, run.poses, log.truth_times, log.truth_poses)
         out["graph_trajectory_rmse_m"] = trajectory_rmse(run.times, sol.poses[1:], log.truth_times, log.truth_poses)
     return out
+
+
+def ekf_summary(log: LandmarkLog, run: EkfRun, compare: bool = False, incremental: bool = False) -> dict:
+    """What ``submapslam ekf`` reports (``summary.json``): counts of the matching step, time,
+    landmark and trajectory errors against the log's ground truth where it has one, and with
+    ``compare`` the factor graph solved on the same data (iSAM2 step by step with
+    ``incremental``, else batch LM warm-started) as ``comparison``
+    (:func:`compare_landmark_solutions`). Without ids in the log, the graph gets the filter's
+    own data association and landmarks are matched to the truth by nearest neighbour."""
+    est = {lm["id"]: np.array([lm["x"], lm["y"]]) for lm in run.filter.landmarks()}
+    summary = {"log": log.name, "jacobians": "first estimates" if run.filter.fej else "current estimates",
+               "steps": len(log.steps), "features": run.filter.n, "ekf_seconds": round(run.seconds, 3),
+               "matched": run.matched, "new": run.new, "unobserved": run.unobserved, "removed": run.removed}
+    if log.truth_landmarks and log.known_association:
+        summary["ekf_landmark_rmse_m"], summary["landmarks_compared"] = landmark_rmse(est, log.truth_landmarks)
+    elif log.truth_landmarks:
+        near = landmark_errors_nearest(est, log.truth_landmarks)
+        summary["ekf_landmark_rmse_m"], summary["landmarks_compared"] = near["rmse"], near["found"]
+        summary["landmarks_total"], summary["spurious_features"] = near["total"], near["spurious"]
+    if log.truth_poses is not None:
+        summary["ekf_trajectory_rmse_m"] = trajectory_rmse(run.times, run.poses, log.truth_times, log.truth_poses)
+    if compare:
+        from ..backend.landmark_graph import solve_landmark_graph
+        from ..ekf.runner import with_ekf_association
+
+        graph_log = log if log.known_association else with_ekf_association(log, run)
+        sol = solve_landmark_graph(graph_log, incremental=incremental, warm_start=True)
+        summary["comparison"] = compare_landmark_solutions(log, run, sol)
+    return summary
 
 
 def nees_series(est: np.ndarray, covs: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -115,6 +145,19 @@ def nees_study(workdir: str | Path, runs: int = 50, seed: int = 100, laps: int =
             "graph_left_band_at": left(graph) if graph is not None else None}
 
 
+def nees_summary(study: dict) -> dict:
+    """The figures of a :func:`nees_study` as plain JSON values (``nees.json``): the band, the
+    fraction of steps the EKF's mean NEES lies inside it, where each estimator leaves it, and
+    the per-step means."""
+    lo, hi = study["band"]
+    return {"runs": study["runs"], "band_95": [lo, hi],
+            "ekf_fraction_inside": float(np.mean((study["ekf"] >= lo) & (study["ekf"] <= hi))),
+            "ekf_left_band_at": study["ekf_left_band_at"], "ekf_fej_left_band_at": study["ekf_fej_left_band_at"],
+            "graph_left_band_at": study["graph_left_band_at"],
+            "ekf_mean_nees": study["ekf"].tolist(), "ekf_fej_mean_nees": study["ekf_fej"].tolist(),
+            "graph_mean_nees": None if study["graph"] is None else study["graph"].tolist()}
+
+
 def plot_nees(path: str | Path, study: dict) -> None:
     """Mean NEES per step with the 95 % band (PNG)."""
     import matplotlib
@@ -135,4 +178,38 @@ def plot_nees(path: str | Path, study: dict) -> None:
     ax.legend()
     fig.tight_layout()
     fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def plot_stochastic_map(path: str | Path, run: EkfRun, truth_landmarks: dict[int, np.ndarray] | None = None,
+                        truth_poses: np.ndarray | None = None) -> None:
+    """Features with 3-sigma uncertainty ellipses coloured by credibility (seed fig. 5.39)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import Ellipse
+
+    fig, ax = plt.subplots(figsize=(8, 8))
+    if truth_poses is not None:
+        ax.plot(truth_poses[:, 0], truth_poses[:, 1], color="0.7", lw=0.8, label="ground truth path")
+    ax.plot(run.poses[:, 0], run.poses[:, 1], "b-", lw=0.8, label="EKF path")
+    cmap = plt.get_cmap("viridis")
+    for lm in run.filter.landmarks():
+        C = np.array([[lm["var_xx"], lm["var_xy"]], [lm["var_xy"], lm["var_yy"]]])
+        w, V = np.linalg.eigh(C)
+        angle = np.degrees(np.arctan2(V[1, 1], V[0, 1]))
+        color = cmap(lm["credibility"])
+        ax.add_patch(Ellipse((lm["x"], lm["y"]), 6 * np.sqrt(max(w[1], 0)), 6 * np.sqrt(max(w[0], 0)), angle=angle,
+                             fill=False, color=color, lw=1.2))
+        ax.plot(lm["x"], lm["y"], "+", color=color)
+    if truth_landmarks:
+        t = np.array(list(truth_landmarks.values()))
+        ax.plot(t[:, 0], t[:, 1], "kx", ms=5, label="ground-truth landmarks")
+    sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, 1))
+    fig.colorbar(sm, ax=ax, label="credibility c_t", shrink=0.7)
+    ax.set_aspect("equal")
+    ax.legend(fontsize=8, loc="best")
+    ax.set_title("stochastic map: features, 3-sigma ellipses, credibility")
+    fig.savefig(path, dpi=110, bbox_inches="tight")
     plt.close(fig)

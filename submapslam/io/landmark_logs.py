@@ -1,6 +1,7 @@
 """Landmark logs for the stochastic-map reference: UTIAS MR.CLAM, Victoria Park, synthetic.
 
-Every reader returns a :class:`LandmarkLog`: a time-ordered list of steps, each a motion
+Every reader returns the core type :class:`~submapslam.landmark_log.LandmarkLog` (re-exported
+here with :class:`~submapslam.landmark_log.Step`): a time-ordered list of steps, each a motion
 ``(dx, dy, dtheta)`` in the robot frame with its covariance followed by the range-bearing
 observations made at the step's end (with known landmark ids when the log gives them).
 """
@@ -8,38 +9,15 @@ observations made at the step's end (with known landmark ids when the log gives 
 from __future__ import annotations
 
 import lzma
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
+from ..landmark_log import LandmarkLog, Step
 from .compression import open_text
 
-
-@dataclass
-class Step:
-    """Motion then observations. ``ranges_bearings (M, 2)``, ``ids`` per observation (or None)."""
-
-    t: float
-    motion: np.ndarray            # (3,) dx, dy, dtheta in the robot frame
-    motion_cov: np.ndarray        # (3, 3)
-    ranges_bearings: np.ndarray   # (M, 2)
-    ids: list[int | None]
-
-
-@dataclass
-class LandmarkLog:
-    name: str
-    initial_pose: np.ndarray                  # (3,) world frame
-    steps: list[Step]
-    measurement_cov: np.ndarray               # (2, 2) range [m], bearing [rad]
-    truth_times: np.ndarray | None = None     # ground truth (N,), (N, 3)
-    truth_poses: np.ndarray | None = None
-    truth_landmarks: dict[int, np.ndarray] = field(default_factory=dict)
-    known_association: bool = True            # observations carry landmark ids
-    max_range: float = np.inf                 # sensor model for unobserved predictions [m]
-    fov: float = 2 * np.pi                    # [rad], centred on the robot's heading
+__all__ = ["LandmarkLog", "Step", "read_cloud_pole_log", "read_landmark_log", "read_mrclam", "read_victoria_park"]
 
 
 def _numeric_table(path: Path, ncols: int) -> np.ndarray:
@@ -195,3 +173,64 @@ def read_victoria_park(path: str | Path) -> LandmarkLog:
     ordered = [steps[k] for k in sorted(steps)]
     R = np.diag([sig_r2 or 0.1, sig_b2 or 0.01])
     return LandmarkLog("Victoria Park", np.zeros(3), ordered, R)
+
+
+def read_cloud_pole_log(path: str | Path, sigma_range: float = 0.05, sigma_bearing: float = 0.02,
+                        odometry_sigma: tuple[float, float, float] = (0.05, 0.02, 0.03)) -> LandmarkLog:
+    """A point-cloud log folder (scans + ``odometry_tum.txt``) -> a LandmarkLog of pole observations.
+
+    The files are read here and handed to :func:`~submapslam.ekf.features.landmark_log_from_scans`:
+    the scans and wheel odometry (the folder reader), the laser's field of view (``sensor:
+    fov_deg`` in the reader's meta.yaml), ``groundtruth_tum.txt`` and
+    ``landmarks_groundtruth.csv`` (``id,x,y``, world frame) when present.
+    """
+    from ..ekf.features import landmark_log_from_scans
+    from .registry import open_log
+    from .trajectory import read_tum
+
+    path = Path(path)
+    reader = open_log(path, "cloud_folder")
+    if reader.odometry is None:
+        raise InputError(path, "the log has no odometry_tum.txt: the EKF needs odometry")
+    sensor = reader.meta.get("sensor") or {}
+    fov_deg = sensor.get("fov_deg", 360.0) if isinstance(sensor, dict) else None
+    if not isinstance(fov_deg, int | float):
+        raise InputError(path / "meta.yaml", f"sensor.fov_deg must be a number of degrees, got {fov_deg!r}")
+    gt_file = path / "groundtruth_tum.txt"
+    truth = read_tum(gt_file) if gt_file.is_file() else None
+    return landmark_log_from_scans(reader, f"poles from {path.name}", fov_deg=fov_deg, truth=truth,
+                                   truth_landmarks=_truth_poles(path / "landmarks_groundtruth.csv"),
+                                   sigma_range=sigma_range, sigma_bearing=sigma_bearing, odometry_sigma=odometry_sigma)
+
+
+def _truth_poles(path: Path) -> dict[int, np.ndarray]:
+    """``landmarks_groundtruth.csv`` (``id,x,y``, world frame) written by the synthetic generator, if any."""
+    if not path.is_file():
+        return {}
+    out = {}
+    for lineno, line in enumerate(path.read_text().splitlines()[1:], start=2):
+        try:
+            k, x, y = line.split(",")[:3]
+            out[int(k)] = np.array([float(x), float(y)])
+        except ValueError:
+            raise InputError(path, f"expected id,x,y, got {line[:40]!r}", lineno) from None
+    return out
+
+
+def read_landmark_log(path: str | Path, format: str | None = None, robot: int = 1) -> LandmarkLog:
+    """Read a landmark log: ``mrclam`` (a folder), ``victoria`` or ``synth`` (a victoria_park-format
+    file), ``cloud`` (a point-cloud log folder: pole features, unknown association).
+
+    ``format=None`` sniffs: a folder with ``scans/`` is ``cloud``, another folder ``mrclam``, a
+    file ``victoria``. ``robot`` is the MR.CLAM robot number.
+    """
+    path = Path(path)
+    if format is None:
+        format = ("cloud" if (path / "scans").is_dir() else "mrclam") if path.is_dir() else "victoria"
+    if format == "mrclam":
+        return read_mrclam(path, robot)
+    if format in ("victoria", "synth"):
+        return read_victoria_park(path)
+    if format == "cloud":
+        return read_cloud_pole_log(path)
+    raise InputError(path, f"unknown landmark log format {format!r}; use mrclam, victoria, synth or cloud")
