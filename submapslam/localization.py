@@ -7,12 +7,12 @@ odometry (``Scan.odometry``), else with the last increment (constant velocity).
 
 Registration reuses the package's matchers, nothing new:
 
-* planar maps (2D laser, z = 0): point-to-line Gauss-Newton (:func:`.planar_refine.point_to_line`)
+* planar maps (2D laser, z = 0): point-to-line Gauss-Newton (:func:`.registration.point_to_line.point_to_line`)
   against the map's line-like points, once with a wide and once with a tight correspondence
   distance; directions the scene does not constrain (a corridor's axis) take the prediction.
-  The global search is the correlative FFT search + ICP of :func:`.topology.planar_match.match_planar`.
+  The global search is the correlative FFT search + ICP of :func:`.registration.planar.match_planar`.
 * 3D maps: generalized ICP from the prediction (open3d); the global search is FPFH + RANSAC,
-  then GICP (:func:`.topology.correspondence.check_correspondence`).
+  then GICP (:func:`.registration.correspondence.check_correspondence`).
 
 Frames: the map's frame is the world frame (for a ``submapslam run`` folder: the pose of that
 run's first scan). Every pose is ``T_world_base``, a ``(4, 4)`` float64 array; scan points are
@@ -55,7 +55,7 @@ from scipy.spatial import cKDTree
 from .errors import InputError, SubmapSlamError
 from .geometry import inverse, matrix_to_se2, se2_to_matrix
 from .io.scan import Scan
-from .planar_refine import first_point_per_cell, line_normals, point_to_line
+from .registration.point_to_line import first_point_per_cell, line_normals, point_to_line
 
 log = logging.getLogger(__name__)
 
@@ -227,7 +227,7 @@ class Localizer:
             self._line_tree = cKDTree(self._line_pts)
             self._map3d = np.column_stack([xy, np.zeros(len(xy))])
         else:
-            from .topology.correspondence import SpatialCloud
+            from .registration.spatial import SpatialCloud
 
             self._cloud = SpatialCloud(pts, self.voxel)
             self._tree = cKDTree(np.asarray(self._cloud.pcd.points))
@@ -337,7 +337,7 @@ class Localizer:
 
     def _gicp_pose(self, scan: np.ndarray, guess: np.ndarray) -> np.ndarray:
         from ._deps import open3d
-        from .topology.correspondence import SpatialCloud
+        from .registration.spatial import SpatialCloud
 
         reg = open3d().pipelines.registration
         src = SpatialCloud(scan, self.voxel).pcd
@@ -360,12 +360,13 @@ class Localizer:
         if len(cloud) < 20:
             return np.eye(4), 0.0, float("inf"), 1.0
         if self.planar:
-            from .topology.planar_match import match_planar
+            from .registration.planar import match_planar
 
             m = match_planar(cloud, self._map3d, resolution=0.1, inlier_distance=self.inlier)
             reg = self.register(cloud, m.T)
             return reg.T, reg.fitness_mapped, reg.rmse, float(m.ambiguity)
-        from .topology.correspondence import SpatialCloud, check_correspondence
+        from .registration.correspondence import check_correspondence
+        from .registration.spatial import SpatialCloud
 
         res = check_correspondence(SpatialCloud(cloud, self.voxel), self._cloud, planar=False,
                                    voxel_size=self.voxel)

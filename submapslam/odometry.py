@@ -5,7 +5,7 @@ point-to-point registration) ourselves so that the ICP initial guess can come fr
 odometry increment when the log has one (else KISS-ICP's constant-velocity model).
 Planar scans (z = 0) stay planar: point-to-point ICP is well-posed on them, the estimate is
 projected back onto SE(2) after every step, and then refined point-to-line against the last
-scans (:mod:`.planar_refine`), which removes point-to-point ICP's lag on sparse 2D scans.
+scans (:mod:`.registration.point_to_line`), which removes point-to-point ICP's lag on sparse 2D scans.
 """
 
 from __future__ import annotations
@@ -58,7 +58,7 @@ class Odometry:
         self.n_registered = 0
         self._refiner = None
         if planar and config.planar_point_to_line:
-            from .planar_refine import RecentScanMap
+            from .registration.point_to_line import RecentScanMap
 
             self._refiner = RecentScanMap()
 

@@ -13,10 +13,10 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from .backend.pose_graph import PoseGraph, cap_covariance
 from .config import PipelineConfig
 from .errors import InputError, SubmapSlamError
-from .geometry import blend_poses_many, inverse, rotation_angle
+from .geometry import blend_poses_many, inverse
+from .graph_builder import GraphBuilder
 from .io.hints import LoopHint
 from .io.scan import Scan
 from .odometry import Odometry
@@ -25,9 +25,6 @@ from .result import LoopRecord, SlamResult
 from .submaps import Submap, SubmapBuilder
 
 log = logging.getLogger(__name__)
-
-PRIOR_INFORMATION = np.diag([1e8] * 6)
-
 
 class StageTimer:
     """Accumulates wall time per named stage."""
@@ -42,24 +39,6 @@ class StageTimer:
             yield
         finally:
             self.seconds[stage] = self.seconds.get(stage, 0.0) + time.perf_counter() - t0
-
-
-def odometry_information(T_i_j: np.ndarray, distance: float, planar: bool, config) -> np.ndarray:
-    """Information ``(6, 6)`` (GTSAM order) of an odometry edge between consecutive anchors.
-
-    Drift model of scan-to-map odometry: translation sigma ``odometry_drift`` of the distance
-    travelled plus a floor; rotation sigma ``odometry_drift_deg_per_m`` per metre plus a
-    fraction of the turned angle plus a floor (:meth:`BackendConfig.rotation_drift`). For planar
-    logs z, roll and pitch are pinned (they are not observable and must not drift).
-    """
-    angle = rotation_angle(T_i_j)
-    per_m, turn = config.rotation_drift(planar)
-    s_t = config.odometry_sigma_floor_m + config.odometry_drift * distance
-    s_r = np.deg2rad(config.odometry_sigma_floor_deg) + np.deg2rad(per_m) * distance + turn * angle
-    sig = np.array([s_r, s_r, s_r, s_t, s_t, s_t])
-    if planar:
-        sig[[0, 1, 5]] = 1e-4
-    return np.diag(1.0 / sig**2)
 
 
 class SubmapSLAM:
@@ -80,10 +59,9 @@ class SubmapSLAM:
         self._odometry: Odometry | None = None
         self._wheel_scans = 0  # scans that came with wheel odometry
         self._builder: SubmapBuilder | None = None
-        self._graph = PoseGraph(self.config.backend)
+        self._graph_builder: GraphBuilder | None = None  # made at the first scan (planar or not)
         self._loop_closer = None
         self._clouds = None  # 3D: SubmapClouds
-        self._world_up: np.ndarray | None = None  # 3D: the world's up direction (first ground seen)
         self._hints = list(hints or [])
         self.timestamps: list[float] = []
         self._odom_poses: list[np.ndarray] = []
@@ -140,10 +118,15 @@ class SubmapSLAM:
         self._fuse_thinned = not self.planar and voxel >= self._odometry.frame_voxel
         self.map_voxel = cfg.mapping.map_voxel_size or (0.1 if self.planar else max(0.1, voxel))
         self._builder = SubmapBuilder(cfg.submaps, voxel, self.planar, grid_points=self._grid_slice())
+        from .registration.correspondence import match_voxel
+
         if not self.planar:  # prepared clouds, shared by odometry-edge registration and loop tests
-            from .topology.correspondence import SubmapClouds, match_voxel
+            from .registration.spatial import SubmapClouds
 
             self._clouds = SubmapClouds(match_voxel(voxel, False))
+        self._graph_builder = GraphBuilder(cfg.backend, cfg.odometry, planar=self.planar,
+                                           match_voxel=match_voxel(voxel, self.planar), clouds=self._clouds,
+                                           timer=self.timer)
         if cfg.loops.enabled:
             from .topology.loop_closure import LoopCloser
 
@@ -189,74 +172,13 @@ class SubmapSLAM:
         self._pending = self._worker.submit(self._add_submap_to_graph, submap, hint_pairs)
 
     def _add_submap_to_graph(self, submap: Submap, hint_pairs: list[tuple[int, int]]) -> None:
-        k = submap.id
-        info = T_prev_k = None
-        if k > 0:
-            prev = self.submaps[k - 1]
-            T_prev_k = inverse(prev.T_odom_anchor) @ submap.T_odom_anchor
-            info = odometry_information(T_prev_k, prev.distance, self.planar, self.config.backend)
-            if self.config.backend.odometry_registration_covariance:
-                info = self._registration_shaped(info, prev, submap, T_prev_k)  # its own stage
-        with self.timer("optimisation"):
-            if k == 0:
-                self._graph.add_node(0, submap.T_odom_anchor, PRIOR_INFORMATION)
-            else:
-                self._graph.add_node(k, self._graph.pose(k - 1) @ T_prev_k)
-                self._graph.add_between(k - 1, k, T_prev_k, info, "odometry")
-            self._add_ground_attitude(submap)
-            self._graph.update()
+        """The graph work of one closed submap: node and odometry edge, then its loop tests."""
+        previous = self.submaps[submap.id - 1] if submap.id > 0 else None
+        self._graph_builder.add_submap(submap, previous, wheel_odometry=self._wheel_scans > 0)
         if self._loop_closer is not None:
-            records = self._loop_closer.process(submap, self.submaps, self._graph, hint_pairs)
+            records = self._loop_closer.process(submap, self.submaps, self._graph_builder.estimate(), hint_pairs)
             self.loops.extend(records)
-            if any(r.accepted for r in records):
-                with self.timer("optimisation"):
-                    self._graph.update(extra_iterations=2)
-
-    def _add_ground_attitude(self, submap: Submap) -> None:
-        """3D: the soft prior that the ground under each anchor is level in the world (the
-        world's up is the ground normal under the first anchor that sees ground)."""
-        sigma = self.config.backend.ground_attitude_sigma_deg
-        if self.planar or sigma is None:
-            return
-        from .mapping.height_band import ground_normal
-
-        up = ground_normal(submap.points)
-        if up is None:
-            return
-        if self._world_up is None:
-            self._world_up = submap.T_odom_anchor[:3, :3] @ up  # the odometry frame is the world frame
-        self._graph.add_attitude(submap.id, up, self._world_up, np.deg2rad(sigma))
-
-    def _registration_shaped(self, info: np.ndarray, prev: Submap, new: Submap, T_prev_new: np.ndarray) -> np.ndarray:
-        """Add the registration's own uncertainty to the drift model of an odometry edge.
-
-        The new submap is aligned to the previous one (fine registration from the odometry
-        estimate); the inverse of that registration's information grows where the geometry is
-        degenerate (along a corridor), which is where scan matching alone cannot see. Edges
-        between submaps that do not overlap keep the drift model alone.
-        """
-        from .topology.correspondence import check_correspondence, match_voxel
-
-        with self.timer("odometry_covariance"):
-            voxel = match_voxel(self._builder.voxel, bool(self.planar))
-            src, tgt = new.points, prev.points
-            if not self.planar:  # the clouds (and normals) the loop tests use too
-                src, tgt = self._clouds(new), self._clouds(prev)
-            res = check_correspondence(src, tgt, planar=bool(self.planar), initial_guess=T_prev_new,
-                                       refine_only=True, voxel_size=voxel)
-        if res.overlap < 0.1:
-            return info
-        cov_reg = np.linalg.inv(0.5 * (res.information + res.information.T))
-        # Never more than a cap in any direction: 2 m / 20 deg, or, where the wheel odometry
-        # holds the directions scan matching cannot see (planar refinement), the wheel's drift
-        # over the edge.
-        cap_m, cap_rad = 2.0, np.deg2rad(20.0)
-        odo_cfg = self.config.odometry
-        if self.planar and odo_cfg.planar_point_to_line and odo_cfg.use_wheel_odometry and self._wheel_scans:
-            cap_m = max(0.05, self.config.backend.wheel_drift * prev.distance)
-        cov_reg = cap_covariance(cov_reg, cap_m, cap_rad)
-        cov = np.linalg.inv(info) + cov_reg
-        return np.linalg.inv(0.5 * (cov + cov.T))
+            self._graph_builder.add_loops(records)
 
     def _hint_pairs(self) -> list[tuple[int, int]]:
         """Submap pairs of the manual hints whose scans are both in closed submaps."""
@@ -276,7 +198,8 @@ class SubmapSLAM:
     # ------------------------------------------------------------------ reading state
     def _corrections(self) -> dict[int, np.ndarray]:
         """Per closed submap: ``T_world_odom`` correction = optimised anchor @ odom anchor^-1."""
-        return {s.id: self._graph.pose(s.id) @ inverse(s.T_odom_anchor) for s in self.submaps}
+        graph = self._graph_builder.graph
+        return {s.id: graph.pose(s.id) @ inverse(s.T_odom_anchor) for s in self.submaps}
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """Current ``(timestamps (N,), T_world_base (N, 4, 4))`` of every scan so far.
@@ -317,7 +240,7 @@ class SubmapSLAM:
         from .mapping.global_map import fuse_clouds
 
         self._settle()
-        clouds = [(self._graph.pose(s.id), s.points) for s in self.submaps]
+        clouds = [(self._graph_builder.graph.pose(s.id), s.points) for s in self.submaps]
         if self._builder is not None and self.submaps:
             T = self._corrections()[self.submaps[-1].id] @ self._builder.current_anchor
             clouds.append((T, self._builder.current_points()))
@@ -335,34 +258,28 @@ class SubmapSLAM:
         if self._worker is not None:
             self._worker.shutdown()
             self._worker = None
-        with self.timer("optimisation"):
-            weights, dropped = {}, []
-            if self.config.backend.final_batch and self.submaps:
-                weights = self._graph.optimize_batch()
-                if self.config.backend.final_check:
-                    dropped = self._graph.final_check()
-            covs = self._graph.all_marginal_covariances()
-        reasons = {key: f"rejected by the optimiser (GNC weight {w:.2f})" for key, w in weights.items() if w < 0.5}
-        reasons.update({(i, j): why for i, j, why in dropped})
+        reasons, covs = self._graph_builder.finish()
         for rec in self.loops:
             if rec.accepted and (rec.i, rec.j) in reasons:
                 rec.accepted = False
                 rec.reason = reasons[(rec.i, rec.j)]
+        dropped = sum(why.startswith("dropped by the final check") for why in reasons.values())
         if dropped:
-            log.warning("final check dropped %d loop closure(s) the odometry cannot reconcile", len(dropped))
+            log.warning("final check dropped %d loop closure(s) the odometry cannot reconcile", dropped)
         timestamps, poses = self.trajectory()
         n = len(self.submaps)
+        graph = self._graph_builder.graph
         return SlamResult(
             timestamps=timestamps,
             poses=poses,
             odometry_poses=np.array(self._odom_poses),
-            submap_poses=np.array([self._graph.pose(k) for k in range(n)]).reshape(-1, 4, 4),
+            submap_poses=np.array([graph.pose(k) for k in range(n)]).reshape(-1, 4, 4),
             submap_covariances=np.array([covs[k] for k in range(n)]).reshape(-1, 6, 6),
             submap_points=[s.points for s in self.submaps],
             submap_scan_indices=[s.scan_indices for s in self.submaps],
             submap_scan_poses=[s.T_anchor_scans for s in self.submaps],
             submap_scan_points=[s.scan_points for s in self.submaps],
-            edges=[(e.i, e.j, e.T_i_j, e.information, e.kind) for e in self._graph.active_edges()],
+            edges=[(e.i, e.j, e.T_i_j, e.information, e.kind) for e in graph.active_edges()],
             loops=self.loops,
             planar=bool(self.planar),
             config=self.config,

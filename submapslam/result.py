@@ -11,7 +11,11 @@ from .config import PipelineConfig
 
 @dataclass
 class LoopRecord:
-    """One tested cycle hypothesis between submaps ``i`` (older) and ``j`` (newer)."""
+    """One tested cycle hypothesis between submaps ``i`` (older) and ``j`` (newer).
+
+    An accepted one is a loop constraint: ``T_i_j`` (pose of ``j``'s anchor in ``i``'s) with the
+    registration's ``information``; the graph builder adds it to the graph.
+    """
 
     i: int
     j: int
@@ -22,8 +26,9 @@ class LoopRecord:
     inlier_rmse: float
     reason: str
     T_i_j: np.ndarray | None = None
-    structure_overlap: float = float("nan")
-    plane_rmse: float = float("nan")
+    structure_overlap: float = float("nan")  # 3D: overlap of the non-ground points, both ways
+    plane_rmse: float = float("nan")  # 3D: point-to-plane RMSE [m] of those inliers
+    information: np.ndarray | None = None  # (6, 6) GTSAM order: the registration's, as measured
 
 
 @dataclass

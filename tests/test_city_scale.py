@@ -13,8 +13,8 @@ from datasets_synth import generate
 from submapslam.backend.pose_graph import PoseGraph
 from submapslam.config import BackendConfig, LoopConfig, PipelineConfig
 from submapslam.geometry import inverse, se2_to_matrix, transform_points
-from submapslam.pipeline import odometry_information
-from submapslam.topology.correspondence import feature_ransac
+from submapslam.graph_builder import odometry_information
+from submapslam.registration.spatial import feature_ransac
 from submapslam.topology.loop_closure import LoopCloser
 
 from .test_pose_graph import square_truth
@@ -73,8 +73,9 @@ def test_final_check_keeps_a_consistent_graph_untouched():
 
 
 def test_pipeline_final_check_rejects_a_closure_forced_into_the_graph(tmp_path, monkeypatch):
-    """A wrong closure slipped past every test (forced here) is dropped at the end: marked
-    rejected with the reason in the loop records, and absent from the graph's edges."""
+    """A wrong closure slipped past every test (forced here: the closer returns it accepted, the
+    graph builder adds it) is dropped at the end: marked rejected with the reason in the loop
+    records, and absent from the graph's edges."""
     from submapslam.api import run_log
     from submapslam.io.g2o import read_g2o_edges
     from submapslam.result import LoopRecord
@@ -88,8 +89,8 @@ def test_pipeline_final_check_rejects_a_closure_forced_into_the_graph(tmp_path, 
         if new.id == 19 and not forced:  # after the true closures of the second lap (submaps 15-19)
             T_wrong = inverse(graph.pose(8)) @ graph.pose(19) @ se2_to_matrix(15.0, 4.0, 0.2)
             info = np.diag([1 / np.deg2rad(0.5) ** 2] * 3 + [1 / 0.05**2] * 3)
-            graph.add_between(8, 19, T_wrong, info, "loop")
-            forced.append(LoopRecord(8, 19, "forced", True, 1.0, 1.0, 0.0, "forced by the test", T_wrong))
+            forced.append(LoopRecord(8, 19, "forced", True, 1.0, 1.0, 0.0, "forced by the test", T_wrong,
+                                     information=info))
             records.append(forced[0])
         return records
 
@@ -132,7 +133,7 @@ def _street_cloud(rng, n=4000):
 
 
 def test_feature_ransac_recovers_a_transform_and_repeats_exactly():
-    from submapslam.topology.correspondence import SpatialCloud
+    from submapslam.registration.spatial import SpatialCloud
 
     rng = np.random.default_rng(0)
     target = _street_cloud(rng)
@@ -204,7 +205,8 @@ def test_identical_blocks_far_apart_offer_a_wrong_closure_that_is_rejected(tmp_p
     from datasets_synth.worlds import aliased_offset
     from submapslam.api import run_log
     from submapslam.io.trajectory import read_tum
-    from submapslam.topology.correspondence import SpatialCloud, check_correspondence, match_voxel
+    from submapslam.registration.correspondence import check_correspondence, match_voxel
+    from submapslam.registration.spatial import SpatialCloud
 
     log = generate("aliased", tmp_path / "log", laps=1)
     result, _ = run_log(log, None)

@@ -11,7 +11,7 @@ from submapslam.geometry import (
     transform_points,
 )
 from submapslam.io.registry import open_log
-from submapslam.topology.correspondence import check_correspondence
+from submapslam.registration.correspondence import check_correspondence
 from submapslam.topology.descriptors import DescriptorIndex, compute_descriptor, descriptor_distance
 
 from .conftest import shared_data

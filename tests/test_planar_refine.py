@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from submapslam.planar_refine import RecentScanMap
+from submapslam.registration.point_to_line import RecentScanMap
 
 from .planar_scenes import wall_points
 
@@ -52,7 +52,7 @@ def test_submap_matching_ends_point_to_line_where_sparse_samples_bias_point_to_p
     """Two views of a room seen with a 1-degree laser and 6 m reach: walls end at the sensor's reach,
     where the last samples differ between the views. The match must land on the truth."""
     from submapslam.geometry import se2_to_matrix
-    from submapslam.topology.planar_match import match_planar
+    from submapslam.registration.planar import match_planar
 
     rooms = ROOM + [(0, -1.5, 0, -6), (12, 1.5, 12, 5)]
     a, b = np.array([0.0, 0.0, 0.0]), np.array([1.3, 0.05, np.deg2rad(2.0)])

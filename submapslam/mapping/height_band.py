@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..planar_refine import first_point_per_cell
+from ..registration.point_to_line import first_point_per_cell
 
 GROUND_PERCENTILE = 2.0  # [%] of the nearby heights taken as the ground
 

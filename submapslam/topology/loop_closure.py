@@ -9,22 +9,23 @@ Each goes through the correspondence test (coarse alignment without a good guess
 registration, gated on fitness, inlier RMSE and overlap), then the seed's check: the implied
 transform must also explain the submaps adjacent to ``i`` ("move to adjacent nodes and see
 whether the readings agree"), and must be plausible under the current estimate's uncertainty.
-Only then is it added to the pose graph as a robust loop edge.
+Only then is it returned as a loop constraint; the graph builder adds it as a robust edge.
 """
 
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
-from ..backend.pose_graph import PoseGraph, floor_information
 from ..config import LoopConfig
 from ..geometry import inverse, rotation_angle, so3_log
+from ..registration.correspondence import CorrespondenceResult, check_correspondence, match_voxel
+from ..registration.spatial import SubmapClouds
 from ..result import LoopRecord
 from ..submaps import Submap
-from .correspondence import CorrespondenceResult, SubmapClouds, check_correspondence, match_voxel
 from .descriptors import DescriptorIndex, compute_descriptor
 
 log = logging.getLogger(__name__)
@@ -38,6 +39,19 @@ def se3_log_gtsam(T: np.ndarray) -> np.ndarray:
     return np.concatenate([so3_log(T[:3, :3]), T[:3, 3]])
 
 
+class GraphEstimate(Protocol):
+    """What the loop closer reads of the submap graph (it never writes it)."""
+
+    def pose(self, key: int) -> np.ndarray:
+        """Current ``(4, 4)`` ``T_world_submap``."""
+
+    def marginal_covariance(self, key: int) -> np.ndarray:
+        """``(6, 6)`` marginal covariance (GTSAM order) of an anchor."""
+
+    def odometry_chain(self, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+        """Odometry-only ``(T_i_j, Sigma_i_j)`` between anchors ``i < j``."""
+
+
 @dataclass
 class Hypothesis:
     i: int
@@ -49,7 +63,12 @@ class Hypothesis:
 
 
 class LoopCloser:
-    """Proposes and verifies loop closures between submaps and adds them to a pose graph."""
+    """Proposes and verifies loop closures between submaps; returns them as records.
+
+    Reads the graph through a :class:`GraphEstimate`; an accepted record is a constraint the
+    caller adds (:class:`~submapslam.graph_builder.GraphBuilder`). Keeps the place descriptor
+    of every submap it has seen in its own index.
+    """
 
     def __init__(self, config: LoopConfig, *, planar: bool, voxel_size: float, max_range: float,
                  submap_length: float = 12.0, clouds: SubmapClouds | None = None, timer=None) -> None:
@@ -83,8 +102,9 @@ class LoopCloser:
         floor = self._min_radius
         return float(np.clip(floor + c.spatial_sigma * sigma, floor, max(floor, c.spatial_max_radius)))
 
-    def propose(self, new: Submap, submaps: list[Submap], graph: PoseGraph,
+    def propose(self, new: Submap, descriptor: np.ndarray | None, submaps: list[Submap], graph: GraphEstimate,
                 hint_pairs: list[tuple[int, int]]) -> list[Hypothesis]:
+        """Hypotheses ``(i, new.id)`` with older submaps: spatial, by ``descriptor``, and hints."""
         c = self.config
         k = new.id
         eligible = min(k - c.min_submap_gap, self._last_cycle_partner(k, submaps))
@@ -106,8 +126,8 @@ class LoopCloser:
                 window = float(np.clip(radius - self._min_radius, c.min_search_window, c.max_search_window))
                 hyps[i] = Hypothesis(i, k, "spatial", inverse(graph.pose(i)) @ T_k, None, window)
         # appearance
-        if c.use_descriptor and new.descriptor is not None and eligible >= 0:
-            for i, dist, yaw in self.index.query(new.descriptor, c.descriptor_top_k,
+        if c.use_descriptor and descriptor is not None and eligible >= 0:
+            for i, dist, yaw in self.index.query(descriptor, c.descriptor_top_k,
                                                  exclude_ids=set(range(eligible + 1, k + 1))):
                 if dist <= c.descriptor_max_distance and i not in hyps:
                     hyps[i] = Hypothesis(i, k, "descriptor", None, yaw, None)
@@ -158,7 +178,7 @@ class LoopCloser:
         return True, "ok"
 
     def _neighbour_check(self, hyp: Hypothesis, T_i_j: np.ndarray, first: CorrespondenceResult,
-                         submaps: list[Submap], graph: PoseGraph) -> tuple[bool, str]:
+                         submaps: list[Submap], graph: GraphEstimate) -> tuple[bool, str]:
         """Seed's check: the hypothesis must also explain the submaps adjacent to ``i``.
 
         Submap ``j`` is placed next to ``i - 1`` and ``i + 1`` through the hypothesis and refined
@@ -190,7 +210,7 @@ class LoopCloser:
             return True, "no adjacent overlap; clear match accepted"
         return False, "no adjacent submap overlaps to confirm it"
 
-    def _plausible(self, hyp: Hypothesis, T_i_j: np.ndarray, graph: PoseGraph) -> tuple[bool, str]:
+    def _plausible(self, hyp: Hypothesis, T_i_j: np.ndarray, graph: GraphEstimate) -> tuple[bool, str]:
         """Mahalanobis gate of the loop against the current estimate.
 
         The uncertainty is the odometry chain's between ``i`` and ``j`` (loop edges ignored: a
@@ -211,7 +231,7 @@ class LoopCloser:
             return False, f"implausible under current uncertainty (Mahalanobis^2 {m2:.1f} > {limit})"
         return True, "plausible"
 
-    def _reachable(self, hyp: Hypothesis, graph: PoseGraph) -> tuple[bool, str]:
+    def _reachable(self, hyp: Hypothesis, graph: GraphEstimate) -> tuple[bool, str]:
         """Cheap check before registering a descriptor hypothesis: can it pass :meth:`_plausible`?
 
         A descriptor match means the two anchors see one place within the descriptor radius
@@ -235,38 +255,41 @@ class LoopCloser:
                            f"Mahalanobis^2 >= {bound:.1f} > {limit})")
         return True, ""
 
-    def process(self, new: Submap, submaps: list[Submap], graph: PoseGraph,
+    def process(self, new: Submap, submaps: list[Submap], graph: GraphEstimate,
                 hint_pairs: list[tuple[int, int]]) -> list[LoopRecord]:
-        """Test the hypotheses for a newly closed submap; add accepted loops to ``graph``."""
-        floor_m = graph.config.loop_sigma_floor_m
-        floor_rad = float(np.deg2rad(graph.config.loop_sigma_floor_deg))
+        """Test the hypotheses for a newly closed submap; return every tested one.
+
+        Accepted records carry the constraint (``T_i_j`` and the registration's information);
+        nothing is added to the graph here.
+        """
         with self._time("descriptors"):
-            new.descriptor = compute_descriptor(new.points, planar=self.planar, max_range=self.config.descriptor_radius)
+            descriptor = compute_descriptor(new.points, planar=self.planar, max_range=self.config.descriptor_radius)
         with self._time("loop_proposal"):
-            hyps = self.propose(new, submaps, graph, hint_pairs)
+            hyps = self.propose(new, descriptor, submaps, graph, hint_pairs)
         records: list[LoopRecord] = []
         with self._time("loop_testing"):
             for hyp in hyps:
                 self._tested.add((hyp.i, hyp.j))
-                reachable, why = self._reachable(hyp, graph)
-                if not reachable:
-                    records.append(LoopRecord(hyp.i, hyp.j, hyp.source, False, 0.0, 0.0, float("inf"), why, None))
-                    continue
-                res = self._correspond(submaps[hyp.i], submaps[hyp.j], hyp.initial_guess, hyp.yaw_hint, hyp.search_radius)
-                accepted, reason = res.accepted, res.reason
-                if accepted and not self.planar:
-                    accepted, reason = self._structure_gate(res)
-                if accepted:
-                    accepted, reason = self._plausible(hyp, res.T_target_source, graph)
-                if accepted:
-                    accepted, reason = self._neighbour_check(hyp, res.T_target_source, res, submaps, graph)
-                records.append(LoopRecord(hyp.i, hyp.j, hyp.source, accepted, res.fitness, res.overlap,
-                                          res.inlier_rmse, reason, res.T_target_source,
-                                          res.structure_overlap, res.plane_rmse))
-                if accepted:
-                    info = floor_information(res.information_gtsam, floor_m, floor_rad)
-                    graph.add_between(hyp.i, hyp.j, res.T_target_source, info, "loop")
-                    log.info("loop %d-%d accepted (%s): %s", hyp.i, hyp.j, hyp.source, reason)
-        self.index.add(new.id, new.descriptor)
+                records.append(self._test(hyp, submaps, graph))
+        self.index.add(new.id, descriptor)
         return records
 
+    def _test(self, hyp: Hypothesis, submaps: list[Submap], graph: GraphEstimate) -> LoopRecord:
+        """One hypothesis through the gates: reachable, correspondence, structure (3D),
+        plausible under the estimate, confirmed by the adjacent submaps."""
+        reachable, why = self._reachable(hyp, graph)
+        if not reachable:
+            return LoopRecord(hyp.i, hyp.j, hyp.source, False, 0.0, 0.0, float("inf"), why, None)
+        res = self._correspond(submaps[hyp.i], submaps[hyp.j], hyp.initial_guess, hyp.yaw_hint, hyp.search_radius)
+        accepted, reason = res.accepted, res.reason
+        if accepted and not self.planar:
+            accepted, reason = self._structure_gate(res)
+        if accepted:
+            accepted, reason = self._plausible(hyp, res.T_target_source, graph)
+        if accepted:
+            accepted, reason = self._neighbour_check(hyp, res.T_target_source, res, submaps, graph)
+        if accepted:
+            log.info("loop %d-%d accepted (%s): %s", hyp.i, hyp.j, hyp.source, reason)
+        return LoopRecord(hyp.i, hyp.j, hyp.source, accepted, res.fitness, res.overlap, res.inlier_rmse, reason,
+                          res.T_target_source, res.structure_overlap, res.plane_rmse,
+                          res.information_gtsam if accepted else None)

@@ -26,7 +26,7 @@ from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
 from ..geometry import matrix_to_se2, se2_to_matrix
-from ..planar_refine import first_point_per_cell, line_normals, point_to_line
+from .point_to_line import first_point_per_cell, line_normals, point_to_line
 
 
 @dataclass

@@ -1,0 +1,168 @@
+"""The submap graph, built from what the front end and the loop closer return.
+
+:class:`GraphBuilder` owns the :class:`~submapslam.backend.pose_graph.PoseGraph`. It turns each
+closed submap into a node with its odometry edge (a drift model, shaped by a registration
+between consecutive submaps) and, for 3D logs, a soft ground-level attitude prior; it adds the
+loop constraints the closer returns (information floored: no registration is trusted beyond
+a few centimetres); and at the end it runs the batch pass, the final check and the marginals.
+Nothing else writes the graph; the loop closer reads it through :meth:`estimate`.
+"""
+
+from __future__ import annotations
+
+from contextlib import nullcontext
+
+import numpy as np
+
+from .backend.pose_graph import PoseGraph, cap_covariance, floor_information
+from .config import BackendConfig, OdometryConfig
+from .geometry import inverse, rotation_angle
+from .result import LoopRecord
+from .submaps import Submap
+
+PRIOR_INFORMATION = np.diag([1e8] * 6)  # the first anchor is the world frame
+
+
+def odometry_information(T_i_j: np.ndarray, distance: float, planar: bool, config: BackendConfig) -> np.ndarray:
+    """Information ``(6, 6)`` (GTSAM order) of an odometry edge between consecutive anchors.
+
+    Drift model of scan-to-map odometry: translation sigma ``odometry_drift`` of the distance
+    travelled plus a floor; rotation sigma ``odometry_drift_deg_per_m`` per metre plus a
+    fraction of the turned angle plus a floor (:meth:`BackendConfig.rotation_drift`). For planar
+    logs z, roll and pitch are pinned (they are not observable and must not drift).
+    """
+    angle = rotation_angle(T_i_j)
+    per_m, turn = config.rotation_drift(planar)
+    s_t = config.odometry_sigma_floor_m + config.odometry_drift * distance
+    s_r = np.deg2rad(config.odometry_sigma_floor_deg) + np.deg2rad(per_m) * distance + turn * angle
+    sig = np.array([s_r, s_r, s_r, s_t, s_t, s_t])
+    if planar:
+        sig[[0, 1, 5]] = 1e-4
+    return np.diag(1.0 / sig**2)
+
+
+class GraphBuilder:
+    """Adds submaps, odometry edges, ground priors and loop constraints to one pose graph.
+
+    ``clouds``: the prepared 3D clouds (:class:`~submapslam.registration.spatial.SubmapClouds`)
+    shared with the loop closer; ``match_voxel``: the voxel [m] submaps are registered at;
+    ``timer``: a stage timer (``timer("stage")`` is a context manager) or None.
+    """
+
+    def __init__(self, config: BackendConfig, odometry: OdometryConfig, *, planar: bool, match_voxel: float,
+                 clouds=None, timer=None) -> None:
+        self.config = config
+        self.odometry = odometry
+        self.planar = planar
+        self.match_voxel = match_voxel
+        self.clouds = clouds
+        self.graph = PoseGraph(config)
+        self._timer = timer
+        self._world_up: np.ndarray | None = None  # 3D: the world's up direction (first ground seen)
+
+    def _time(self, stage: str):
+        return self._timer(stage) if self._timer is not None else nullcontext()
+
+    def estimate(self) -> PoseGraph:
+        """The graph, for reading (poses, marginals, odometry chains)."""
+        return self.graph
+
+    # ------------------------------------------------------------------ nodes and odometry
+    def add_submap(self, submap: Submap, previous: Submap | None, wheel_odometry: bool) -> None:
+        """Add ``submap``'s anchor, its odometry edge from ``previous`` and its ground prior; update.
+
+        ``wheel_odometry``: the log has wheel odometry (planar refinement then follows it where
+        scan matching is blind, which caps the odometry edge's registration covariance).
+        """
+        info = T_prev_k = None
+        if previous is not None:
+            T_prev_k = inverse(previous.T_odom_anchor) @ submap.T_odom_anchor
+            info = odometry_information(T_prev_k, previous.distance, self.planar, self.config)
+            if self.config.odometry_registration_covariance:
+                info = self._registration_shaped(info, previous, submap, T_prev_k, wheel_odometry)
+        with self._time("optimisation"):
+            if previous is None:
+                self.graph.add_node(submap.id, submap.T_odom_anchor, PRIOR_INFORMATION)
+            else:
+                self.graph.add_node(submap.id, self.graph.pose(previous.id) @ T_prev_k)
+                self.graph.add_between(previous.id, submap.id, T_prev_k, info, "odometry")
+            self._add_ground_attitude(submap)
+            self.graph.update()
+
+    def _add_ground_attitude(self, submap: Submap) -> None:
+        """3D: the soft prior that the ground under each anchor is level in the world (the
+        world's up is the ground normal under the first anchor that sees ground)."""
+        sigma = self.config.ground_attitude_sigma_deg
+        if self.planar or sigma is None:
+            return
+        from .mapping.height_band import ground_normal
+
+        up = ground_normal(submap.points)
+        if up is None:
+            return
+        if self._world_up is None:
+            self._world_up = submap.T_odom_anchor[:3, :3] @ up  # the odometry frame is the world frame
+        self.graph.add_attitude(submap.id, up, self._world_up, np.deg2rad(sigma))
+
+    def _registration_shaped(self, info: np.ndarray, prev: Submap, new: Submap, T_prev_new: np.ndarray,
+                             wheel_odometry: bool) -> np.ndarray:
+        """Add the registration's own uncertainty to the drift model of an odometry edge.
+
+        The new submap is aligned to the previous one (fine registration from the odometry
+        estimate); the inverse of that registration's information grows where the geometry is
+        degenerate (along a corridor), which is where scan matching alone cannot see. Edges
+        between submaps that do not overlap keep the drift model alone.
+        """
+        from .registration.correspondence import check_correspondence
+
+        with self._time("odometry_covariance"):
+            src, tgt = new.points, prev.points
+            if not self.planar:  # the clouds (and normals) the loop tests use too
+                src, tgt = self.clouds(new), self.clouds(prev)
+            res = check_correspondence(src, tgt, planar=self.planar, initial_guess=T_prev_new,
+                                       refine_only=True, voxel_size=self.match_voxel)
+        if res.overlap < 0.1:
+            return info
+        cov_reg = np.linalg.inv(0.5 * (res.information + res.information.T))
+        # Never more than a cap in any direction: 2 m / 20 deg, or, where the wheel odometry
+        # holds the directions scan matching cannot see (planar refinement), the wheel's drift
+        # over the edge.
+        cap_m, cap_rad = 2.0, np.deg2rad(20.0)
+        odo = self.odometry
+        if self.planar and odo.planar_point_to_line and odo.use_wheel_odometry and wheel_odometry:
+            cap_m = max(0.05, self.config.wheel_drift * prev.distance)
+        cov_reg = cap_covariance(cov_reg, cap_m, cap_rad)
+        cov = np.linalg.inv(info) + cov_reg
+        return np.linalg.inv(0.5 * (cov + cov.T))
+
+    # ------------------------------------------------------------------ loops
+    def add_loops(self, records: list[LoopRecord]) -> None:
+        """Add the accepted loop constraints among ``records`` (their registration information,
+        floored) as robust loop edges; update when any was added."""
+        floor_m = self.config.loop_sigma_floor_m
+        floor_rad = float(np.deg2rad(self.config.loop_sigma_floor_deg))
+        accepted = [r for r in records if r.accepted]
+        for rec in accepted:
+            info = floor_information(rec.information, floor_m, floor_rad)
+            self.graph.add_between(rec.i, rec.j, rec.T_i_j, info, "loop")
+        if accepted:
+            with self._time("optimisation"):
+                self.graph.update(extra_iterations=2)
+
+    # ------------------------------------------------------------------ finishing
+    def finish(self) -> tuple[dict[tuple[int, int], str], dict[int, np.ndarray]]:
+        """Batch pass, final check and marginals.
+
+        Returns ``({(i, j): why} of loop edges the solution rejected, {node: (6, 6) marginal
+        covariance}``); the graph keeps only the loops it did not reject.
+        """
+        with self._time("optimisation"):
+            weights, dropped = {}, []
+            if self.config.final_batch and self.graph.edges:
+                weights = self.graph.optimize_batch()
+                if self.config.final_check:
+                    dropped = self.graph.final_check()
+            covs = self.graph.all_marginal_covariances()
+        reasons = {key: f"rejected by the optimiser (GNC weight {w:.2f})" for key, w in weights.items() if w < 0.5}
+        reasons.update({(i, j): why for i, j, why in dropped})
+        return reasons, covs
