@@ -42,7 +42,8 @@ class SlamResult:
         submap_poses: ``(S, 4, 4)`` optimised ``T_world_submap`` anchors.
         submap_covariances: ``(S, 6, 6)`` marginal covariances of the anchors, GTSAM order
             ``(rx, ry, rz, tx, ty, tz)`` in the anchor frame.
-        submap_points: list of ``(M_k, 3)`` submap clouds in their anchor frames.
+        submap_points: list of ``(M_k, 3)`` submap clouds in their anchor frames (3D: float16 or
+            float32, :func:`~submapslam.submaps.compact_points`).
         submap_scan_indices: list of scan-index lists per submap.
         submap_scan_poses: list of ``(K, 4, 4)`` ``T_anchor_scan`` per submap.
         submap_scan_points: per submap, each scan's ``(n, 3)`` sensor-frame points for the

@@ -83,33 +83,30 @@ def _voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
 
 
 def fuse_clouds(clouds: Iterable[tuple[np.ndarray, np.ndarray]], voxel: float,
-                chunk_points: int = 500_000) -> np.ndarray:
-    """Clouds ``(T_world_cloud (4, 4), points (N, 3))`` fused into one ``(M, 3)`` world cloud, the
-    first point of each ``voxel`` [m] kept (clouds in the given order).
+                chunk_points: int = 300_000) -> np.ndarray:
+    """Clouds ``(T_world_cloud (4, 4), points (N, 3))`` fused into one float32 ``(M, 3)`` world
+    cloud, the first point of each ``voxel`` [m] kept (clouds in the given order).
 
-    Streaming: the clouds are moved into the world frame about ``chunk_points`` points at a time
-    and merged into the sorted voxel keys of the map so far, so memory holds the map (a key and
-    three float32 per voxel) and one chunk — not every cloud in the world frame at once, nor a
-    hash map over all of them (a 3.7 km drive took 300 MB more that way).
+    Streaming: the clouds are moved into the world frame about ``chunk_points`` points at a time;
+    a chunk's voxels not yet in the map are appended. Memory holds the map (three float32 a
+    point, kept in pieces) and its sorted voxel keys, plus one chunk — not every cloud in the
+    world frame at once, nor a hash map over all of them (a 3.7 km drive took 300 MB more that
+    way).
     """
     keys = np.zeros(0, dtype=np.int64)  # sorted voxel keys of the map
-    fused = np.zeros((0, 3), dtype=np.float32)
+    pieces: list[np.ndarray] = []
     chunk: list[np.ndarray] = []
     size = 0
 
     def merge() -> None:
-        nonlocal keys, fused
+        nonlocal keys
         pts = np.vstack(chunk)
         chunk_keys, first = np.unique(_voxel_keys(pts, voxel), return_index=True)
         pos = np.searchsorted(keys, chunk_keys)
         known = pos < len(keys)
         known[known] = keys[pos[known]] == chunk_keys[known]
-        new_keys = chunk_keys[~known]
-        new_points = pts[first[~known]].astype(np.float32)
-        keys = np.concatenate([keys, new_keys])
-        order = np.argsort(keys, kind="stable")  # two sorted runs: linear
-        keys = keys[order]
-        fused = np.concatenate([fused, new_points])[order]
+        pieces.append(pts[first[~known]].astype(np.float32))
+        keys = np.insert(keys, pos[~known], chunk_keys[~known])
 
     for T, points in clouds:
         chunk.append(np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3])
@@ -119,7 +116,8 @@ def fuse_clouds(clouds: Iterable[tuple[np.ndarray, np.ndarray]], voxel: float,
             chunk, size = [], 0
     if chunk:
         merge()
-    return fused.astype(np.float64)
+    del keys
+    return np.concatenate(pieces) if pieces else np.zeros((0, 3), dtype=np.float32)
 
 
 def fused_map(result: SlamResult, voxel: float | None = None) -> np.ndarray:

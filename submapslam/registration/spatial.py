@@ -113,7 +113,7 @@ class SubmapClouds:
     Memory stays bounded however long the drive (each prepared cloud is ~1 MB).
     """
 
-    def __init__(self, voxel: float, capacity: int = 48) -> None:
+    def __init__(self, voxel: float, capacity: int = 24) -> None:
         from collections import OrderedDict
 
         self.voxel = float(voxel)

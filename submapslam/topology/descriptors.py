@@ -21,6 +21,7 @@ def compute_descriptor(points: np.ndarray, *, planar: bool, max_range: float, ri
     desc = np.zeros((rings, sectors))
     if len(points) == 0:
         return desc
+    points = np.asarray(points, dtype=np.float64)
     xy = points[:, :2]
     r = np.hypot(xy[:, 0], xy[:, 1])
     keep = r < max_range
