@@ -26,6 +26,7 @@ from .submaps import Submap, SubmapBuilder
 
 log = logging.getLogger(__name__)
 
+
 class StageTimer:
     """Accumulates wall time per named stage."""
 
@@ -52,7 +53,7 @@ class SubmapSLAM:
         self.timer = StageTimer()
         self._t_start = time.perf_counter()
         self._travelled = 0.0  # odometry path length so far [m]
-        self.memory_by_km: list[tuple[float, float]] = []  # (km travelled, resident MiB) per closed submap
+        self.memory_mb_by_km: list[tuple[float, float]] = []  # (km travelled, resident MiB) per closed submap
         self.planar: bool | None = None
         self._fuse_thinned = False  # 3D: fuse the odometry's thinned scans into submaps (set at the first scan)
         self.map_voxel = self.config.mapping.map_voxel_size or 0.1  # resolved for the log's kind at the first scan
@@ -155,13 +156,14 @@ class SubmapSLAM:
 
     def _close_submap(self, submap: Submap, background: bool = True) -> None:
         self._settle()
-        self.memory_by_km.append((self._travelled / 1000.0, current_memory_mb()))
+        self.memory_mb_by_km.append((self._travelled / 1000.0, current_memory_mb()))
         self.submaps.append(submap)
         for idx in submap.scan_indices:
             self._scan_submap[idx] = submap.id
         hint_pairs = self._hint_pairs()
+        wheel = self._wheel_scans > 0  # read here: the worker must not see the main thread's later scans
         if not background:
-            self._add_submap_to_graph(submap, hint_pairs)
+            self._add_submap_to_graph(submap, hint_pairs, wheel)
             return
         if self._worker is None:
             from concurrent.futures import ThreadPoolExecutor
@@ -169,12 +171,12 @@ class SubmapSLAM:
             self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="submap-graph")
         # scan registration (main thread) does not read the graph: its KISS-ICP, k-d tree, FFT
         # and numpy kernels overlap with the loop tests on a second core
-        self._pending = self._worker.submit(self._add_submap_to_graph, submap, hint_pairs)
+        self._pending = self._worker.submit(self._add_submap_to_graph, submap, hint_pairs, wheel)
 
-    def _add_submap_to_graph(self, submap: Submap, hint_pairs: list[tuple[int, int]]) -> None:
+    def _add_submap_to_graph(self, submap: Submap, hint_pairs: list[tuple[int, int]], wheel_odometry: bool) -> None:
         """The graph work of one closed submap: node and odometry edge, then its loop tests."""
         previous = self.submaps[submap.id - 1] if submap.id > 0 else None
-        self._graph_builder.add_submap(submap, previous, wheel_odometry=self._wheel_scans > 0)
+        self._graph_builder.add_submap(submap, previous, wheel_odometry=wheel_odometry)
         if self._loop_closer is not None:
             records = self._loop_closer.process(submap, self.submaps, self._graph_builder.estimate(), hint_pairs)
             self.loops.extend(records)
@@ -198,6 +200,8 @@ class SubmapSLAM:
     # ------------------------------------------------------------------ reading state
     def _corrections(self) -> dict[int, np.ndarray]:
         """Per closed submap: ``T_world_odom`` correction = optimised anchor @ odom anchor^-1."""
+        if not self.submaps:
+            return {}
         graph = self._graph_builder.graph
         return {s.id: graph.pose(s.id) @ inverse(s.T_odom_anchor) for s in self.submaps}
 
@@ -287,7 +291,7 @@ class SubmapSLAM:
             wall_time_s=time.perf_counter() - self._t_start,
             map_voxel_size=self.map_voxel,
             path_length_m=self._travelled,
-            memory_mb_by_km=list(self.memory_by_km),
+            memory_mb_by_km=list(self.memory_mb_by_km),
             peak_memory_mb=peak_memory_mb(),
             input_error=input_error,
             source=source,
