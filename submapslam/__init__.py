@@ -13,7 +13,7 @@ __version__ = "0.1.0"
 from .config import PipelineConfig, dump_config, load_config  # noqa: E402
 from .errors import ConfigError, InputError, SubmapSlamError  # noqa: E402
 from .io.registry import open_log  # noqa: E402
-from .io.scan import Scan  # noqa: E402
+from .scan import Scan  # noqa: E402
 
 __all__ = [
     "ConfigError", "InputError", "PipelineConfig", "Scan", "SubmapSLAM", "SubmapSlamError",

@@ -1,17 +1,28 @@
-"""High-level library calls behind the CLI: run a log to a results folder, run the demo."""
+"""High-level library calls behind the CLI: run a log to a results folder, localise a log in a map."""
 
 from __future__ import annotations
 
 import logging
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from .config import PipelineConfig, load_config
 from .result import SlamResult
 
+if TYPE_CHECKING:
+    from collections.abc import Iterable
+
+    import numpy as np
+
+    from .ekf.stochastic_map import CredibilityParams
+    from .landmark_log import LandmarkLog
+    from .localization import LocalizationConfig, LocalizationResult
+
 log = logging.getLogger(__name__)
 
 
-def _progress_bar(total: int | None):
+def progress_bar(total: int | None):
+    """A transient rich progress bar on stderr (scans done of ``total``, None: unknown)."""
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -61,7 +72,7 @@ def run_log(
     if max_scans is not None and total is not None:
         total = min(total, max_scans)
     if progress:
-        with _progress_bar(total) as bar:
+        with progress_bar(total) as bar:
             task = bar.add_task("run", total=total)
             result = run(reader, cfg, source=str(log_path), hints=hint_pairs,
                          progress=lambda n: bar.update(task, completed=n))
@@ -75,38 +86,132 @@ def run_log(
     return result, paths
 
 
-def run_demo(out_dir: str | Path, *, world: str = "rectangle", seed: int = 0, laps: int = 2) -> dict:
-    """Generate a synthetic loop world, run the pipeline, and measure ATE against ground truth.
+def localize_to_folder(
+    log_path: str | Path,
+    map_path: str | Path,
+    out_dir: str | Path,
+    *,
+    initial_pose: str | None = None,
+    format: str | None = None,
+    start: int = 0,
+    max_scans: int | None = None,
+    config: LocalizationConfig | None = None,
+    progress: bool = False,
+) -> tuple[LocalizationResult, dict[str, Path]]:
+    """Localise every scan of the log at ``log_path`` in the fixed map at ``map_path`` (a run
+    folder or a PLY/PCD cloud, world frame) and write the results into ``out_dir``.
 
-    Returns a dict with the ATE (se3-aligned) of wheel odometry, pipeline odometry and the full
-    pipeline, loop counts and paths; the same dict is written to ``OUT/demo_report.json``.
+    ``initial_pose``: ``"x y yaw"`` of the first localised scan in the map frame (None: global
+    search). ``start`` skips that many scans, ``max_scans`` stops after that many. Returns the
+    :class:`~submapslam.localization.LocalizationResult` and the written paths.
     """
+    from .io.localization_results import write_localization
+    from .io.registry import open_log
+    from .localization import load_map, localize_log, parse_initial_pose
+
+    T0 = parse_initial_pose(initial_pose)
+    points = load_map(map_path)
+    reader = open_log(log_path, format)
+    if progress:
+        try:
+            total = max(0, len(reader) - start)  # type: ignore[arg-type]
+            total = min(total, max_scans) if max_scans else total
+        except TypeError:
+            total = None
+        with progress_bar(total) as bar:
+            task = bar.add_task("localize", total=total)
+            result = localize_log(reader, points, T0, config=config, start=start, max_scans=max_scans,
+                                  on_scan=lambda k: bar.update(task, completed=k + 1))
+    else:
+        result = localize_log(reader, points, T0, config=config, start=start, max_scans=max_scans)
+    paths = write_localization(result, out_dir,
+                               extra={"log": str(log_path), "map": str(map_path), "map_points": len(points)})
+    return result, paths
+
+
+def run_ekf_log(
+    log_path: str | Path,
+    out_dir: str | Path,
+    *,
+    format: str | None = None,
+    robot: int = 1,
+    credibility: CredibilityParams | None = None,
+    max_range: float | None = None,
+    first_estimate_jacobians: bool = False,
+    compare: bool = False,
+    incremental: bool = False,
+) -> dict:
+    """Read a landmark log, run the stochastic map (EKF) on it, write ``poses_tum.txt``,
+    ``landmarks.csv``, ``summary.json`` and ``landmarks.png`` into ``out_dir``; return the summary.
+
+    ``compare`` also solves the landmark factor graph (``incremental``: iSAM2 step by step).
+    """
+    from .ekf.runner import run_ekf
+    from .evaluation.landmark_compare import ekf_summary, plot_stochastic_map
+    from .io.ekf_results import write_ekf_results
+    from .io.landmark_logs import read_landmark_log
+
+    data = read_landmark_log(log_path, format, robot)
+    run = run_ekf(data, credibility, max_range=max_range, first_estimate_jacobians=first_estimate_jacobians)
+    summary = ekf_summary(data, run, compare=compare, incremental=incremental)
+    write_ekf_results(out_dir, run, summary)
+    plot_stochastic_map(Path(out_dir) / "landmarks.png", run, data.truth_landmarks or None, data.truth_poses)
+    return summary
+
+
+def nees_report(trials: Iterable[tuple[LandmarkLog, np.ndarray]], out_dir: str | Path,
+                with_graph: bool = True) -> tuple[dict, dict]:
+    """Run :func:`~submapslam.evaluation.landmark_compare.nees_study` on ``trials`` and write
+    ``nees.json`` and ``nees.png`` into ``out_dir`` (created); return ``(study, nees.json's dict)``."""
     import json
 
-    from datasets_synth import generate
-
-    from .evaluation.metrics import ate
-    from .io.trajectory import Trajectory, read_tum
+    from .evaluation.landmark_compare import nees_study, nees_summary, plot_nees
 
     out = Path(out_dir)
-    log_dir = generate(world, out / "log", seed=seed, laps=laps)
-    result, _ = run_log(log_dir, out / "results", progress=True)
-    gt = read_tum(Path(log_dir) / "groundtruth_tum.txt")
-    wheel = read_tum(Path(log_dir) / "odometry_tum.txt")
-    est = Trajectory(result.timestamps, result.poses)
-    odo = Trajectory(result.timestamps, result.odometry_poses)
-    report = {
-        "world": world, "seed": seed, "laps": laps, "scans": result.n_scans, "submaps": result.n_submaps,
-        "loops_tested": len(result.loops), "loops_accepted": result.loops_accepted,
-        "ate": {name: _ate_summary(ate(t, gt, align="se3"))
-                for name, t in (("wheel odometry", wheel), ("odometry (no loop closure)", odo), ("submapslam", est))},
-        "out": str(out),
-    }
-    (out / "demo_report.json").write_text(json.dumps(report, indent=2) + "\n")
-    return report
+    out.mkdir(parents=True, exist_ok=True)
+    study = nees_study(trials, with_graph=with_graph)
+    doc = nees_summary(study)
+    (out / "nees.json").write_text(json.dumps(doc, indent=1))
+    plot_nees(out / "nees.png", study)
+    return study, doc
 
 
-def _ate_summary(stats: dict) -> dict:
-    return {k: float(stats[k]) for k in ("rmse", "mean", "max") if k in stats}
+def _reference(ref: str | Path, raw_log: str | Path | None):
+    from .io.trajectory import carmen_reference_trajectory, read_trajectory
+
+    return carmen_reference_trajectory(ref, raw_log) if raw_log else read_trajectory(ref)
 
 
+def evaluate_files(est: str | Path, ref: str | Path, *, align: str = "se3", relations: str | Path | None = None,
+                   max_diff: float = 0.02, raw_log: str | Path | None = None) -> dict:
+    """ATE of the trajectory file ``est`` against ``ref`` (TUM, KITTI or CARMEN; ``raw_log``: the raw
+    CARMEN log when ``ref`` is a corrected one), RPE over consecutive frames, and with
+    ``relations`` the relations error (Kümmerle et al. 2009).
+
+    Returns ``{"ate": ate(...), "rpe": rpe(...), "relations": ... or None}``. An unknown
+    ``align`` fails before any file is read.
+    """
+    from .evaluation.metrics import Alignment, ate, relations_error, rpe
+    from .io.trajectory import read_relations, read_trajectory
+
+    Alignment(align)
+    e = read_trajectory(est)
+    r = _reference(ref, raw_log)
+    return {"ate": ate(e, r, align=align, max_diff=max_diff),
+            "rpe": rpe(e, r, delta=1, unit="frames", max_diff=max_diff),
+            "relations": relations_error(e, read_relations(relations), max_diff=max_diff) if relations else None}
+
+
+def compare_files(ref: str | Path, estimates: dict[str, str | Path], out_dir: str | Path, *, align: str = "se3",
+                  raw_log: str | Path | None = None):
+    """Side-by-side report of the trajectory files ``estimates`` (``{label: path}``) against
+    ``ref``, written into ``out_dir``; returns the
+    :class:`~submapslam.evaluation.report.ComparisonResult`. An unknown ``align`` fails before
+    any file is read."""
+    from .evaluation.metrics import Alignment
+    from .evaluation.report import compare_trajectories
+    from .io.trajectory import read_trajectory
+
+    Alignment(align)
+    r = _reference(ref, raw_log)
+    return compare_trajectories(r, {label: read_trajectory(p) for label, p in estimates.items()}, out_dir, align=align)

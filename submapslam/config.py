@@ -7,7 +7,7 @@ YAML; ``dump_config`` writes the effective configuration back.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -17,6 +17,9 @@ from .errors import ConfigError
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+_M = TypeVar("_M", bound=_Strict)
 
 
 class OdometryConfig(_Strict):
@@ -160,6 +163,107 @@ class MappingConfig(_Strict):
         return self
 
 
+def check_credibility_rates(a: float, b: float) -> None:
+    """The credibility learning rate ``a`` and forgetting rate ``b`` divide the counts: both > 0."""
+    if not a > 0:
+        raise ConfigError(f"credibility learning rate a must be > 0, got {a!r}")
+    if not b > 0:
+        raise ConfigError(f"credibility forgetting rate b must be > 0, got {b!r}")
+
+
+class CredibilityParams(_Strict):
+    """Credibility of EKF features, ``c = 1 - exp(-(n_s/a - n_u/b))`` (seed eq. 5.70); checked on
+    construction (:class:`ConfigError`)."""
+
+    a: float = Field(1.0, description="learning rate (> 0): larger = slower to believe")
+    b: float = Field(2.0, description="forgetting rate (> 0): larger = slower to forget")
+    remove_below: float = Field(0.05, description="remove a feature whose credibility falls below this, in [0, 1]")
+    min_observations: int = Field(1, description="a feature must be seen this often before removal is considered")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _rates(cls, data: Any) -> Any:
+        if isinstance(data, dict):  # raw values, so the message shows what was given
+            a, b, rb = data.get("a", 1.0), data.get("b", 1.0), data.get("remove_below", 0.0)  # only given ones
+            if isinstance(a, int | float) and isinstance(b, int | float):
+                check_credibility_rates(a, b)
+            if isinstance(rb, int | float) and not 0.0 <= rb <= 1.0:
+                raise ConfigError(f"credibility remove_below must be in [0, 1], got {rb!r}")
+        return data
+
+
+class EkfCredibility(CredibilityParams):
+    """:class:`CredibilityParams` with the defaults of ``submapslam ekf``: features are never
+    forgotten nor removed unless told otherwise."""
+
+    b: float = Field(1e9, description="forgetting rate (> 0): larger = slower to forget")
+    remove_below: float = Field(0.0, description="remove a feature whose credibility falls below this, in [0, 1]")
+
+
+class EkfConfig(_Strict):
+    """The stochastic-map (EKF) reference of ``submapslam ekf``."""
+
+    credibility: EkfCredibility = Field(default_factory=EkfCredibility)
+
+
+class GridParams(_Strict):
+    """Evidence (log-odds occupancy) grids: one per submap, fused into the global grid."""
+
+    resolution: float = Field(0.05, gt=0, description="[m] cell size")
+    l_occ: float = Field(0.85, description="log-odds added at a hit")
+    l_free: float = Field(-0.4, description="log-odds added along a ray")
+    l_min: float = -4.0
+    l_max: float = 4.0
+    free_confidence: float = Field(-1.5, description="local log-odds below this count as confidently free")
+    occupied_threshold: float = Field(0.6, description="global log-odds above this are 'occupied'")
+    clear_margin_cells: int = Field(2, ge=0, description="a clearing cell needs this many free cells around it")
+    max_free_range: float = Field(12.0, gt=0, description="[m] free space is carved along at most this much of a ray")
+    free_scan_stride: int = Field(2, ge=1, description="carve free space with every n-th scan of a submap")
+
+
+class LocalizationConfig(_Strict):
+    """Localization in a fixed map (``submapslam localize``).
+
+    ``voxel_size`` / ``inlier_distance`` default (None) to 0.05 / 0.2 m for planar maps and
+    0.4 / 0.8 m for 3D maps.
+    """
+
+    min_range: float = Field(0.1, ge=0, description="[m] drop closer scan points")
+    max_range: float = Field(80.0, gt=0, description="[m] drop farther scan points")
+    voxel_size: float | None = Field(None, gt=0, description="[m] scan (and 3D map) downsampling")
+    inlier_distance: float | None = Field(
+        None, gt=0, description="[m] a scan point is an inlier if a map point is this close")
+    mapped_distance: float | None = Field(
+        None, gt=0, description="[m] 3D: scan points farther than this from any map point are unmapped space, "
+        "left out of fitness_mapped (default 5 x inlier)")
+    see_through: float = Field(
+        0.5, ge=0, description="[m] planar: a beam reaching this far past a mapped wall contradicts the map")
+    beam_width: float = Field(
+        0.0087, gt=0, description="[rad] planar: bearing bins of the map rendered from the pose (0.5 deg)")
+    min_fitness: float = Field(0.75, ge=0, le=1, description="consistency gate on fitness_mapped (inliers among "
+                               "the mapped points)")
+    min_mapped_fraction: float = Field(
+        0.25, ge=0, le=1, description="below this fraction of scan points in the mapped area the gate cannot "
+        "judge: the local fit is kept (looking at unmapped space)")
+    max_correction: float = Field(0.5, gt=0, description="[m] a local fit moving the prediction farther is "
+                                  "inconsistent")
+    max_correction_yaw: float = Field(0.35, gt=0, description="[rad] same for the heading")
+    lost_after: int = Field(5, ge=1, description="consecutive inconsistent scans before 'lost'")
+    local_window: int = Field(
+        20, ge=1, description="recent tracked scans kept as a local target for unmapped space")
+    local_rebuild_every: int = Field(5, ge=1, description="rebuild that local target every this many tracked scans")
+    relocalize_min_fitness: float = Field(0.7, ge=0, le=1, description="a global-search fix must reach this fitness")
+    max_ambiguity: float = Field(
+        0.9, gt=0, le=1, description="planar global search: second place / best place at most this")
+    global_scans: int = Field(10, ge=1, description="scans fused (dead reckoning) into the global-search cloud")
+    relocalize_every: int = Field(
+        5, ge=1, description="while lost, retry the global search at most every this many scans")
+    global_time_budget: float = Field(
+        0.25, ge=0, le=1, description="... and only while global searches took at most this fraction of the "
+        "wall time so far (they never run while tracking)")
+    use_wheel_odometry: bool = Field(True, description="predict from Scan.odometry when the log has it")
+
+
 class PipelineConfig(_Strict):
     """The whole run."""
 
@@ -169,6 +273,9 @@ class PipelineConfig(_Strict):
     backend: BackendConfig = Field(default_factory=BackendConfig)
     mapping: MappingConfig = Field(default_factory=MappingConfig)
     max_scans: int | None = Field(None, ge=1, description="stop after this many scans")
+    localization: LocalizationConfig = Field(
+        default_factory=LocalizationConfig, description="`localize` in a fixed map (not used by `run`)")
+    ekf: EkfConfig = Field(default_factory=EkfConfig, description="the `ekf` command (not used by `run`)")
 
 
 def _format_validation_error(exc: ValidationError, source: str) -> str:
@@ -185,6 +292,21 @@ def config_from_dict(data: dict[str, Any] | None, source: str = "<config>") -> P
         return PipelineConfig.model_validate(data or {})
     except ValidationError as exc:
         raise ConfigError(_format_validation_error(exc, source)) from None
+
+
+def validated(model: type[_M], source: str = "<options>", **values: Any) -> _M:
+    """``model(**values)``, with a validation error as one :class:`ConfigError` line naming the key."""
+    try:
+        return model.model_validate(values)
+    except ValidationError as exc:
+        raise ConfigError(_format_validation_error(exc, source)) from None
+
+
+def with_overrides(section: _M, source: str = "<options>", **values: Any) -> _M:
+    """A copy of the config ``section`` with the ``values`` that are not None (e.g. command-line
+    options given) replacing its own, validated (:class:`ConfigError`)."""
+    given = {k: v for k, v in values.items() if v is not None}
+    return validated(type(section), source, **{**section.model_dump(), **given})
 
 
 def load_config(path: str | Path | None) -> PipelineConfig:

@@ -52,47 +52,15 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .config import LocalizationConfig
 from .errors import InputError, SubmapSlamError
 from .geometry import inverse, matrix_to_se2, se2_to_matrix
-from .io.scan import Scan
 from .registration.point_to_line import first_point_per_cell, line_normals, point_to_line
+from .scan import Scan
 
 log = logging.getLogger(__name__)
 
 PLANAR_Z_TOL = 1e-6  # a map whose |z| never exceeds this is a 2D laser map
-
-
-@dataclass
-class LocalizationConfig:
-    """Parameters of :class:`Localizer` and :func:`localize_log`.
-
-    ``voxel_size`` / ``inlier_distance`` default (None) to 0.05 / 0.2 m for planar maps and
-    0.4 / 0.8 m for 3D maps.
-    """
-
-    min_range: float = 0.1              # [m] drop closer scan points
-    max_range: float = 80.0             # [m] drop farther scan points
-    voxel_size: float | None = None     # [m] scan (and 3D map) downsampling
-    inlier_distance: float | None = None  # [m] a scan point is an inlier if a map point is this close
-    mapped_distance: float | None = None  # [m] 3D: scan points farther than this from any map point are
-    #                                       unmapped space, left out of fitness_mapped (default 5 x inlier)
-    see_through: float = 0.5            # [m] planar: a beam reaching this far past a mapped wall contradicts the map
-    beam_width: float = 0.0087          # [rad] planar: bearing bins of the map rendered from the pose (0.5 deg)
-    min_fitness: float = 0.75           # consistency gate on fitness_mapped (inliers among the mapped points)
-    min_mapped_fraction: float = 0.25   # below this fraction of scan points in the mapped area the gate
-    #                                     cannot judge: the local fit is kept (looking at unmapped space)
-    max_correction: float = 0.5         # [m] a local fit moving the prediction farther is inconsistent
-    max_correction_yaw: float = 0.35    # [rad] same for the heading
-    lost_after: int = 5                 # consecutive inconsistent scans before "lost"
-    local_window: int = 20              # recent tracked scans kept as a local target for unmapped space
-    local_rebuild_every: int = 5        # rebuild that local target every this many tracked scans
-    relocalize_min_fitness: float = 0.7  # a global-search fix must reach this fitness
-    max_ambiguity: float = 0.9          # planar global search: second place / best place at most this
-    global_scans: int = 10              # scans fused (dead reckoning) into the global-search cloud
-    relocalize_every: int = 5           # while lost, retry the global search at most every this many scans
-    global_time_budget: float = 0.25    # ... and only while global searches took at most this fraction of
-    #                                     the wall time so far (they never run while tracking)
-    use_wheel_odometry: bool = True     # predict from Scan.odometry when the log has it
 
 
 @dataclass

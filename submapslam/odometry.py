@@ -14,7 +14,7 @@ import numpy as np
 
 from .config import OdometryConfig
 from .geometry import inverse, matrix_to_se2, se2_to_matrix
-from .io.scan import Scan
+from .scan import Scan
 
 
 class Odometry:

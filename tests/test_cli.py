@@ -122,15 +122,15 @@ def test_truncated_log_writes_results_then_fails(small_log, tmp_path):
 
 
 def test_demo_command(tmp_path, monkeypatch):
-    import submapslam.api as api
+    import submapslam.cli.demo as demo
 
-    real = api.run_demo
+    real = demo.run_demo
 
     def small_demo(out, **kw):
         kw["laps"] = 1
         return real(out, **kw)
 
-    monkeypatch.setattr(api, "run_demo", small_demo)
+    monkeypatch.setattr(demo, "run_demo", small_demo)
     r = runner.invoke(app, ["demo", "--out", str(tmp_path / "d")])
     assert r.exit_code == 0, r.output
     assert "submapslam" in r.output and "wheel odometry" in r.output

@@ -6,7 +6,7 @@ import typer
 from typer.testing import CliRunner
 
 from datasets_synth.landmarks import generate_landmark_log
-from submapslam.cli_ekf import register
+from submapslam.cli.ekf import register
 
 from .cli_errors import assert_one_error_line
 
@@ -86,3 +86,20 @@ def test_ekf_unknown_log_format_is_one_line(tmp_path):
     path = generate_landmark_log(tmp_path / "syn.txt", seed=0, laps=1)
     r = CliRunner().invoke(_app(), ["ekf", str(path), "--out", str(tmp_path / "o"), "--format", "kitti"])
     assert_one_error_line(r, "syn.txt: unknown landmark log format 'kitti'; use mrclam, victoria, synth or cloud")
+
+
+def test_ekf_reads_credibility_from_the_config_and_options_override_it(tmp_path):
+    path = generate_landmark_log(tmp_path / "syn.txt", seed=0, laps=1)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("ekf:\n  credibility:\n    a: -2\n")
+    r = CliRunner().invoke(_app(), ["ekf", str(path), "--out", str(tmp_path / "o"), "--config", str(cfg)])
+    assert_one_error_line(r, "credibility learning rate a must be > 0, got -2")
+    cfg.write_text("ekf:\n  credibility:\n    a: 2.0\n")
+    r = CliRunner().invoke(_app(), ["ekf", str(path), "--out", str(tmp_path / "o"), "--config", str(cfg),
+                                    "--a", "0"])
+    assert_one_error_line(r, "credibility learning rate a must be > 0, got 0.0")  # the option wins
+    r = CliRunner().invoke(_app(), ["ekf", str(path), "--out", str(tmp_path / "o"), "--config", str(cfg)])
+    assert r.exit_code == 0, r.output
+    cfg.write_text("ekf:\n  credibilty: {}\n")
+    r = CliRunner().invoke(_app(), ["ekf", str(path), "--out", str(tmp_path / "o2"), "--config", str(cfg)])
+    assert_one_error_line(r, "c.yaml: unknown config key 'ekf.credibilty'")

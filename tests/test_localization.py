@@ -184,6 +184,10 @@ def test_bad_maps_and_poses_give_one_line_errors(world, tmp_path):
     only_line(loc(text), "notes.ply", "not a PLY point cloud")
     only_line(loc(world["loc_log"] / "groundtruth_tum.txt"), "groundtruth_tum.txt", "not a point cloud")
     only_line(loc(world["map_run"], "--initial-pose", "1 2"), "expected three numbers")
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("localization:\n  min_fitness: 1.5\n")
+    only_line(loc(world["map_run"], "--config", str(cfg)), "c.yaml", "localization.min_fitness")
+    only_line(loc(world["map_run"], "--min-fitness", "-1"), "localize options", "min_fitness")
     assert not (tmp_path / "o").exists()  # nothing written on bad input
     with pytest.raises(InputError, match="no points"):
         load_map(empty)

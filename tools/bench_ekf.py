@@ -26,6 +26,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     from datasets_synth.landmarks import generate_landmark_log
     from submapslam.backend.landmark_graph import solve_landmark_graph
+    from submapslam.cli.ekf import synthetic_nees_trials
     from submapslam.ekf import CredibilityParams
     from submapslam.ekf.runner import landmark_rmse, run_ekf, trajectory_rmse
     from submapslam.errors import DivergenceError
@@ -47,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---|---|---|---|")
     print(f"| {dl:.4f} | {np.hypot(dp[0], dp[1]):.5f} | {abs(np.rad2deg(dp[2])):.4f} | {run.seconds:.3f} | {sol.seconds:.3f} |\n")
     # (2) NEES Monte Carlo
-    study = nees_study(tmp / "mc", runs=args.runs)
+    study = nees_study(synthetic_nees_trials(tmp / "mc", runs=args.runs))
     ekf_nees, fej_nees, fg_nees = study["ekf"], study["ekf_fej"], study["graph"]
     lo, hi = study["band"]
 

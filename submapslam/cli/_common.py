@@ -1,10 +1,11 @@
-"""What every CLI command shares: the one-red-line error exit."""
+"""What every CLI command shares: the consoles and the one-red-line error exit."""
 
 from __future__ import annotations
 
 import typer
 from rich.console import Console
 
+console = Console()
 err_console = Console(stderr=True)
 
 

@@ -2,14 +2,19 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
+import numpy as np
 import typer
 from rich.console import Console
 
-from .cli_common import fail
-from .errors import SubmapSlamError
+from ..errors import SubmapSlamError
+from ._common import fail
+
+if TYPE_CHECKING:
+    from ..landmark_log import LandmarkLog
 
 
 def register(app: typer.Typer) -> None:
@@ -22,30 +27,32 @@ def register(app: typer.Typer) -> None:
         out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
         robot: Annotated[int, typer.Option(help="MR.CLAM robot number.")] = 1,
         format: Annotated[str | None, typer.Option(help="mrclam, victoria, synth or cloud (default: sniffed).")] = None,
-        a: Annotated[float, typer.Option(help="Credibility learning rate a.")] = 1.0,
-        b: Annotated[float, typer.Option(help="Credibility forgetting rate b.")] = 1e9,
-        remove_below: Annotated[float, typer.Option(help="Remove features whose credibility falls below this.")] = 0.0,
+        a: Annotated[float | None, typer.Option(
+            help="Credibility learning rate a [default: 1, or the config's ekf.credibility.a].")] = None,
+        b: Annotated[float | None, typer.Option(
+            help="Credibility forgetting rate b [default: 1e9, or the config's ekf.credibility.b].")] = None,
+        remove_below: Annotated[float | None, typer.Option(
+            help="Remove features whose credibility falls below this [default: 0, or the config's "
+            "ekf.credibility.remove_below].")] = None,
         max_range: Annotated[float | None, typer.Option(help="Sensor range for unobserved predictions [m] "
                                                         "(default: the log's; unlimited for landmark logs).")] = None,
+        config: Annotated[Path | None, typer.Option(
+            "--config", "-c", help="YAML config: its ekf section (see dump-config).")] = None,
         compare: Annotated[bool, typer.Option(help="Also solve the GTSAM landmark graph and compare.")] = False,
         incremental: Annotated[bool, typer.Option(help="With --compare: iSAM2 step by step instead of batch LM.")] = False,
         fej: Annotated[bool, typer.Option(help="First-estimates Jacobians (FEJ-EKF, Huang et al. 2008): consistent "
                                           "longer, but needs roughly right first estimates.")] = False,
     ) -> None:
         """Run the full-covariance EKF (stochastic map with credibility); write poses, landmarks, plot."""
-        from .ekf.runner import run_ekf
-        from .ekf.stochastic_map import CredibilityParams
-        from .evaluation.landmark_compare import ekf_summary, plot_stochastic_map
-        from .io.ekf_results import write_ekf_results
-        from .io.landmark_logs import read_landmark_log
+        from ..api import run_ekf_log
+        from ..config import load_config, with_overrides
 
         try:
-            cred = CredibilityParams(a=a, b=b, remove_below=remove_below)
-            data = read_landmark_log(log, format, robot)
-            run = run_ekf(data, cred, max_range=max_range, first_estimate_jacobians=fej)
-            summary = ekf_summary(data, run, compare=compare, incremental=incremental)
-            write_ekf_results(out, run, summary)
-            plot_stochastic_map(out / "landmarks.png", run, data.truth_landmarks or None, data.truth_poses)
+            cred = with_overrides(load_config(config).ekf.credibility, "ekf options",
+                                  a=a, b=b, remove_below=remove_below)
+            summary = run_ekf_log(log, out, format=format, robot=robot, credibility=cred,
+                                  max_range=max_range, first_estimate_jacobians=fej,
+                                  compare=compare, incremental=incremental)
         except SubmapSlamError as exc:
             raise fail(exc) from None
         Console().print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in summary.items()})
@@ -59,22 +66,37 @@ def register(app: typer.Typer) -> None:
         graph: Annotated[bool, typer.Option(help="Also the factor graph's (smoother) NEES.")] = True,
     ) -> None:
         """NEES of the EKF (and the smoother) over Monte Carlo runs on synthetic landmark worlds."""
-        import json
         import tempfile
 
-        from .evaluation.landmark_compare import nees_study, nees_summary, plot_nees
+        from ..api import nees_report
 
         try:
-            out.mkdir(parents=True, exist_ok=True)
             with tempfile.TemporaryDirectory() as tmp:
-                study = nees_study(tmp, runs=runs, seed=seed, laps=laps, with_graph=graph)
+                study, doc = nees_report(synthetic_nees_trials(tmp, runs=runs, seed=seed, laps=laps), out,
+                                         with_graph=graph)
         except (SubmapSlamError, OSError) as exc:
             raise fail(exc) from None
-        doc = nees_summary(study)
-        (out / "nees.json").write_text(json.dumps(doc, indent=1))
-        plot_nees(out / "nees.png", study)
         lo, hi = doc["band_95"]
         inside = doc["ekf_fraction_inside"]
         Console().print(f"band [{lo:.2f}, {hi:.2f}]; EKF inside for {inside:.0%} of steps; 10-step mean leaves "
                         f"the band at step {study['ekf_left_band_at']} (FEJ-EKF: {study['ekf_fej_left_band_at']}, "
                         f"graph: {study['graph_left_band_at']})")
+
+
+def synthetic_nees_trials(workdir: str | Path, runs: int = 50, seed: int = 100,
+                          laps: int = 2) -> Iterator[tuple[LandmarkLog, np.ndarray]]:
+    """``(log, truth)`` per Monte Carlo run for :func:`~submapslam.evaluation.landmark_compare.nees_study`:
+    synthetic landmark worlds (seeds ``seed``, ``seed + 1``, ...) written under ``workdir``,
+    truth ``(N, 3)`` ``x, y, yaw`` in the log's frame (the log starts at the origin)."""
+    from datasets_synth.landmarks import generate_landmark_log
+
+    from ..io.landmark_logs import read_victoria_park
+
+    for r in range(runs):
+        folder = Path(workdir) / f"mc{r}"
+        log = read_victoria_park(generate_landmark_log(folder / "syn.txt", seed=seed + r, laps=laps,
+                                                       sigma_range=0.05, odo_sigma=(0.03, 0.02, 0.01)))
+        raw = np.loadtxt(folder / "poses_truth.txt")[:, 1:4]
+        c, s = np.cos(-raw[0, 2]), np.sin(-raw[0, 2])
+        rel = raw - raw[0]
+        yield log, np.c_[c * rel[:, 0] - s * rel[:, 1], s * rel[:, 0] + c * rel[:, 1], rel[:, 2]]

@@ -7,13 +7,10 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
-from .cli_common import fail
-from .errors import SubmapSlamError
-
-console = Console()
+from ..errors import SubmapSlamError
+from ._common import console, fail
 
 
 def register(app: typer.Typer) -> None:
@@ -30,18 +27,13 @@ def register(app: typer.Typer) -> None:
         raw_log: Annotated[Path | None, typer.Option(help="Raw CARMEN log, when REF is a corrected CARMEN log.")] = None,
     ) -> None:
         """ATE (RMSE) and RPE of EST against REF; with --relations the relations error."""
-        from .evaluation.metrics import Alignment, ate, relations_error, rpe
-        from .io.trajectory import carmen_reference_trajectory, read_relations, read_trajectory
+        from ..api import evaluate_files
 
         try:
-            Alignment(align)  # an unknown value fails before any file is read
-            e = read_trajectory(est)
-            r = carmen_reference_trajectory(ref, raw_log) if raw_log else read_trajectory(ref)
-            a = ate(e, r, align=align, max_diff=max_diff)
-            p = rpe(e, r, delta=1, unit="frames", max_diff=max_diff)
-            rel = relations_error(e, read_relations(relations), max_diff=max_diff) if relations else None
+            figures = evaluate_files(est, ref, align=align, relations=relations, max_diff=max_diff, raw_log=raw_log)
         except SubmapSlamError as exc:
             raise fail(exc) from None
+        a, p, rel = figures["ate"], figures["rpe"], figures["relations"]
         table = Table(title=f"{est.name} vs {ref.name} ({a['n']} poses, align {align})")
         table.add_column("metric")
         for col in ("rmse", "mean", "median", "std", "max"):
@@ -68,18 +60,14 @@ def register(app: typer.Typer) -> None:
         raw_log: Annotated[Path | None, typer.Option(help="Raw CARMEN log, when REF is a corrected CARMEN log.")] = None,
     ) -> None:
         """Side-by-side report (table + plots) of several trajectories against one reference."""
-        from .evaluation.metrics import Alignment
-        from .evaluation.report import compare_trajectories
-        from .io.trajectory import carmen_reference_trajectory, read_trajectory
+        from ..api import compare_files
 
         labels = list(label or [])
         if labels and len(labels) != len(est):
             raise fail(SubmapSlamError(f"{len(labels)} labels for {len(est)} trajectories"))
         try:
-            Alignment(align)  # an unknown value fails before any file is read
-            r = carmen_reference_trajectory(ref, raw_log) if raw_log else read_trajectory(ref)
-            named = {(labels[k] if labels else p.stem): read_trajectory(p) for k, p in enumerate(est)}
-            report = compare_trajectories(r, named, out, align=align)
+            report = compare_files(ref, {(labels[k] if labels else p.stem): p for k, p in enumerate(est)}, out,
+                                   align=align, raw_log=raw_log)
         except SubmapSlamError as exc:
             raise fail(exc) from None
         console.print(report.markdown)

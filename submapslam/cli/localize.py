@@ -8,8 +8,8 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
-from .cli_common import err_console, fail
-from .errors import SubmapSlamError
+from ..errors import SubmapSlamError
+from ._common import err_console, fail
 
 
 def register(app: typer.Typer) -> None:
@@ -27,36 +27,26 @@ def register(app: typer.Typer) -> None:
         format: Annotated[str | None, typer.Option("--format", "-f", help="Force the log format.")] = None,
         start: Annotated[int, typer.Option("--start", min=0, help="Skip the first N scans of the log.")] = 0,
         max_scans: Annotated[int | None, typer.Option("--max-scans", min=1, help="Stop after N scans.")] = None,
-        min_fitness: Annotated[float, typer.Option(help="Consistency gate: inlier fraction among the scan points "
-                                                   "inside the mapped area below which a scan's fit is not "
-                                                   "believed (points in unmapped space do not count).")] = 0.75,
-        lost_after: Annotated[int, typer.Option(min=1, help="Inconsistent scans in a row before the robot is lost "
-                                                "and the global search runs again.")] = 5,
+        min_fitness: Annotated[float | None, typer.Option(
+            help="Consistency gate: inlier fraction among the scan points inside the mapped area below which a "
+            "scan's fit is not believed (points in unmapped space do not count) [default: 0.75, or the "
+            "config's localization.min_fitness].")] = None,
+        lost_after: Annotated[int | None, typer.Option(
+            min=1, help="Inconsistent scans in a row before the robot is lost and the global search runs again "
+            "[default: 5, or the config's localization.lost_after].")] = None,
+        config: Annotated[Path | None, typer.Option(
+            "--config", "-c", help="YAML config: its localization section (see dump-config).")] = None,
     ) -> None:
         """Localise every scan of LOG in a fixed map; write poses, per-scan fitness and a summary into OUT."""
-        from .api import _progress_bar
-        from .io.localization_results import write_localization
-        from .io.registry import open_log
-        from .localization import LocalizationConfig, load_map, localize_log, parse_initial_pose
+        from ..api import localize_to_folder
+        from ..config import load_config, with_overrides
 
         try:
-            T0 = parse_initial_pose(initial_pose)
-            points = load_map(map)
-            reader = open_log(log, format)
-            try:
-                total = max(0, len(reader) - start)  # type: ignore[arg-type]
-                total = min(total, max_scans) if max_scans else total
-            except TypeError:
-                total = None
-            cfg = LocalizationConfig(min_fitness=min_fitness, lost_after=lost_after)
-            if err_console.is_terminal:
-                with _progress_bar(total) as bar:
-                    task = bar.add_task("localize", total=total)
-                    result = localize_log(reader, points, T0, config=cfg, start=start, max_scans=max_scans,
-                                          on_scan=lambda k: bar.update(task, completed=k + 1))
-            else:  # no bar: its closing newline would break the one-line error
-                result = localize_log(reader, points, T0, config=cfg, start=start, max_scans=max_scans)
-            write_localization(result, out, extra={"log": str(log), "map": str(map), "map_points": len(points)})
+            cfg = with_overrides(load_config(config).localization, "localize options",
+                                 min_fitness=min_fitness, lost_after=lost_after)
+            # a bar only on a terminal: its closing newline would break the one-line error
+            result, _ = localize_to_folder(log, map, out, initial_pose=initial_pose, format=format, start=start,
+                                           max_scans=max_scans, config=cfg, progress=err_console.is_terminal)
         except SubmapSlamError as exc:
             raise fail(exc) from None
         except OSError as exc:

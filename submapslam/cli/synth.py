@@ -8,8 +8,8 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
-from .cli_common import fail
-from .errors import SubmapSlamError
+from ..errors import SubmapSlamError
+from ._common import fail
 
 
 def register(app: typer.Typer) -> None:
@@ -72,9 +72,9 @@ def _kitti(out, path, rings, seed, max_scans, odometry_noise, *, laps, sensor, p
                               "the sensor is set by --rings)")
     if rings not in (16, 64):
         raise SubmapSlamError(f"--rings must be 16 or 64, not {rings}")
-    from .api import _progress_bar
+    from ..api import progress_bar
 
-    with _progress_bar(None) as bar:
+    with progress_bar(None) as bar:
         task = bar.add_task("scans", total=None)
         log = generate_kitti_drive(path, out, rings=rings, seed=seed, max_scans=max_scans,
                                    odometry_noise=odometry_noise,

@@ -28,23 +28,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..config import CredibilityParams, check_credibility_rates
 
 CHI2_2DOF_999 = 13.82   # match gate
 NEW_FEATURE_D2 = 25.0   # an unknown observation founds a new feature only beyond this distance
 
 
-def _check_rates(a: float, b: float) -> None:
-    """The learning rate ``a`` and forgetting rate ``b`` divide the counts: both must be > 0."""
-    if not a > 0:
-        raise ConfigError(f"credibility learning rate a must be > 0, got {a!r}")
-    if not b > 0:
-        raise ConfigError(f"credibility forgetting rate b must be > 0, got {b!r}")
-
-
 def credibility(n_s: float, n_u: float, a: float, b: float) -> float:
     """Seed eq. 5.70, clamped to [0, 1]; ``a`` and ``b`` must be > 0 (else :class:`ConfigError`)."""
-    _check_rates(a, b)
+    check_credibility_rates(a, b)
     return float(np.clip(1.0 - np.exp(-(n_s / a - n_u / b)), 0.0, 1.0))
 
 
@@ -61,21 +53,6 @@ def _jacobians(robot_xy: np.ndarray, feature_xy: np.ndarray) -> tuple[np.ndarray
     Hr = np.array([[-dx / r, -dy / r, 0.0], [dy / q, -dx / q, -1.0]])
     Hf = np.array([[dx / r, dy / r], [-dy / q, dx / q]])
     return Hr, Hf
-
-
-@dataclass
-class CredibilityParams:
-    """Credibility of features (seed eq. 5.70); checked on construction (:class:`ConfigError`)."""
-
-    a: float = 1.0          # learning rate (> 0): larger = slower to believe
-    b: float = 2.0          # forgetting rate (> 0): larger = slower to forget
-    remove_below: float = 0.05  # in [0, 1]
-    min_observations: int = 1  # a feature must be seen this often before removal is considered
-
-    def __post_init__(self) -> None:
-        _check_rates(self.a, self.b)
-        if not 0.0 <= self.remove_below <= 1.0:
-            raise ConfigError(f"credibility remove_below must be in [0, 1], got {self.remove_below!r}")
 
 
 @dataclass

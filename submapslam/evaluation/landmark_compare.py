@@ -9,12 +9,14 @@ determinants' square roots (ellipse areas) and the symmetric KL divergence.
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
 
 from ..backend.landmark_graph import GraphSolution
 from ..ekf.runner import EkfRun, landmark_errors_nearest, landmark_rmse, trajectory_rmse
+from ..errors import SubmapSlamError
 from ..landmark_log import LandmarkLog
 
 
@@ -93,9 +95,12 @@ def nees_series(est: np.ndarray, covs: np.ndarray, truth: np.ndarray) -> np.ndar
     return np.einsum("ni,ni->n", e, np.linalg.solve(P, e[:, :, None])[:, :, 0])
 
 
-def nees_study(workdir: str | Path, runs: int = 50, seed: int = 100, laps: int = 2,
-               with_graph: bool = True) -> dict:
-    """Monte Carlo NEES of the robot pose on synthetic landmark worlds: EKF, FEJ-EKF, smoother.
+def nees_study(trials: Iterable[tuple[LandmarkLog, np.ndarray]], with_graph: bool = True) -> dict:
+    """Monte Carlo NEES of the robot pose: EKF, FEJ-EKF, smoother.
+
+    ``trials``: ``(log, truth)`` per Monte Carlo run, ``truth`` ``(N, 3)`` the true ``x, y, yaw``
+    of every pose in the log's frame (pose ``k`` is where the step with time ``k`` ends), all
+    runs with the same number of steps.
 
     Returns ``{"ekf": (N,), "ekf_fej": (N,), "graph": (N,) or None, "band": (lo, hi), "runs": runs,
     "ekf_left_band_at": step or None, "ekf_fej_left_band_at": ..., "graph_left_band_at": ...}``:
@@ -106,23 +111,13 @@ def nees_study(workdir: str | Path, runs: int = 50, seed: int = 100, laps: int =
     """
     from scipy.stats import chi2
 
-    from datasets_synth.landmarks import generate_landmark_log
-
     from ..backend.landmark_graph import solve_landmark_graph
     from ..ekf.runner import run_ekf
     from ..ekf.stochastic_map import CredibilityParams
-    from ..io.landmark_logs import read_victoria_park
 
     keep = CredibilityParams(b=1e9, remove_below=0.0)
     ekf_all, fej_all, fg_all = [], [], []
-    for r in range(runs):
-        folder = Path(workdir) / f"mc{r}"
-        log = read_victoria_park(generate_landmark_log(folder / "syn.txt", seed=seed + r, laps=laps,
-                                                       sigma_range=0.05, odo_sigma=(0.03, 0.02, 0.01)))
-        raw = np.loadtxt(folder / "poses_truth.txt")[:, 1:4]
-        c, s = np.cos(-raw[0, 2]), np.sin(-raw[0, 2])  # the log starts at the origin
-        rel = raw - raw[0]
-        truth = np.c_[c * rel[:, 0] - s * rel[:, 1], s * rel[:, 0] + c * rel[:, 1], rel[:, 2]]
+    for log, truth in trials:
         run = run_ekf(log, keep)
         at = truth[run.times.astype(int)]  # a step's time is the index of the pose it ends at
         ekf_all.append(nees_series(run.poses, run.pose_covs, at))
@@ -131,6 +126,9 @@ def nees_study(workdir: str | Path, runs: int = 50, seed: int = 100, laps: int =
         if with_graph:
             sol = solve_landmark_graph(log, pose_covariances=True)
             fg_all.append(nees_series(sol.poses[1:], sol.pose_covs[1:], at))
+    runs = len(ekf_all)
+    if runs < 2:
+        raise SubmapSlamError(f"a NEES study needs at least 2 runs, got {runs}")
     lo, hi = chi2.ppf(0.025, 3 * runs) / runs, chi2.ppf(0.975, 3 * runs) / runs
 
     def left(series: np.ndarray) -> int | None:

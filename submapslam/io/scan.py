@@ -1,43 +1,15 @@
-"""The unit every reader yields: one scan, and the sensor mounting readers apply to it."""
+"""The sensor mounting readers apply to a scan; :class:`Scan` itself is a core type (re-exported)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from numpy.typing import NDArray
 
 from ..errors import InputError
+from ..scan import Scan
 
-
-@dataclass
-class Scan:
-    """One range scan.
-
-    Attributes:
-        index: 0-based position of the scan in its log.
-        timestamp: the time the log gives this scan [s] (CARMEN: the line's ``ipc_timestamp``).
-        points: ``(N, 3)`` float64 points [m] in the robot's base frame when the log gives the
-            sensor mounting (``T_base_sensor``: meta.yaml, a bag's /tf_static), else in the
-            sensor frame; planar scans have z = 0.
-        point_times: ``(N,)`` float64 per-point times normalised to [0, 1] over the sweep,
-            or ``None`` when the log does not give them.
-        odometry: ``(4, 4)`` wheel-odometry pose ``T_odom_base`` at the scan time, or ``None``.
-        planar: True for 2D laser scans (all z = 0).
-        source: where the scan came from, e.g. ``"intel.clf.bz2:1234"``, for error messages.
-    """
-
-    index: int
-    timestamp: float
-    points: NDArray[np.float64]
-    point_times: NDArray[np.float64] | None = None
-    odometry: NDArray[np.float64] | None = None
-    planar: bool = False
-    source: str = ""
-
-    def __post_init__(self) -> None:
-        self.points = np.asarray(self.points, dtype=np.float64).reshape(-1, 3)
+__all__ = ["Scan", "apply_mounting", "check_transform"]
 
 
 def check_transform(T, where: Path, what: str = "T_base_sensor") -> np.ndarray:

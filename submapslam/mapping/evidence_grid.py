@@ -9,25 +9,10 @@ walls, which every submap sees occupied, stay. Planar (x, y) only.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
+from ..config import GridParams
 from ..geometry import transform_points
-
-
-@dataclass
-class GridParams:
-    resolution: float = 0.05  # [m] cell size
-    l_occ: float = 0.85       # log-odds added at a hit
-    l_free: float = -0.4      # log-odds added along a ray
-    l_min: float = -4.0
-    l_max: float = 4.0
-    free_confidence: float = -1.5   # local log-odds below this count as confidently free
-    occupied_threshold: float = 0.6  # global log-odds above this are "occupied"
-    clear_margin_cells: int = 2      # a clearing cell needs this many free cells around it
-    max_free_range: float = 12.0     # [m] free space is carved along at most this much of a ray
-    free_scan_stride: int = 2        # carve free space with every n-th scan of a submap
 
 
 class EvidenceGrid:
