@@ -1,4 +1,5 @@
-"""The unit every reader yields and the pipeline, odometry and localization consume: one scan.
+"""The unit every reader yields and the pipeline, odometry and localization consume: one scan;
+and a manual loop hint, two scans taken at the same place.
 
 A core type: readers in :mod:`submapslam.io` build it, nothing here reads files.
 """
@@ -38,3 +39,12 @@ class Scan:
 
     def __post_init__(self) -> None:
         self.points = np.asarray(self.points, dtype=np.float64).reshape(-1, 3)
+
+
+@dataclass(frozen=True)
+class LoopHint:
+    """Two scans at the same place: scan indices when ``by_index``, else timestamps [s]."""
+
+    a: float
+    b: float
+    by_index: bool

@@ -8,19 +8,12 @@ place. ``#`` starts a comment.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import InputError
+from ..scan import LoopHint
 
-
-@dataclass(frozen=True)
-class LoopHint:
-    """Two scans at the same place: scan indices when ``by_index``, else timestamps [s]."""
-
-    a: float
-    b: float
-    by_index: bool
+__all__ = ["LoopHint", "read_hint_file"]
 
 
 def read_hint_file(path: str | Path) -> list[LoopHint]:
