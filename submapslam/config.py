@@ -77,6 +77,10 @@ class LoopConfig(_Strict):
     min_loop_path_m: float | None = Field(
         None, ge=0, description="[m] a cycle needs at least this much odometry path between the two submaps; "
         "closer pairs are odometry, not cycles. None: 0 for planar logs, 4 submap lengths for 3D")
+    max_loop_distance_m: float | None = Field(
+        None, gt=0, description="[m] a closure's anchors may be at most this far apart (as registered); "
+        "None: no limit for planar logs, 2 submap lengths for 3D (farther pairs share only the edges of "
+        "their view and are counted as false closures by the city-scale benchmark)")
     min_structure_overlap: float = Field(
         0.35, ge=0, le=1, description="3D: overlap of the non-ground points (walls, poles, cars) both ways; the "
         "ground of any street matches any other, so overlap over all points does not tell wrong from right")

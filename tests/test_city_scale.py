@@ -231,3 +231,14 @@ def test_identical_blocks_far_apart_offer_a_wrong_closure_that_is_rejected(tmp_p
                                max_inlier_rmse=cfg.max_inlier_rmse, min_overlap=cfg.min_overlap)
     truth = inverse(gt.poses[first[i]]) @ gt.poses[first[j]]
     assert res.accepted and np.linalg.norm(res.T_target_source[:3, 3] - truth[:3, 3]) > 50.0
+
+
+def test_3d_closures_farther_apart_than_two_submap_lengths_are_refused():
+    closer = LoopCloser(LoopConfig(), planar=False, voxel_size=0.4, max_range=80.0, submap_length=12.0)
+    assert closer._near_enough(se2_to_matrix(20.0, 10.0, 0.3))[0]  # 22.4 m
+    ok, why = closer._near_enough(se2_to_matrix(30.0, 0.0, 0.0))
+    assert not ok and "30.0 m apart > 24.0 m" in why
+    planar = LoopCloser(LoopConfig(), planar=True, voxel_size=0.1, max_range=30.0, submap_length=5.0)
+    assert planar._near_enough(se2_to_matrix(30.0, 0.0, 0.0))[0]  # no limit unless configured
+    capped = LoopCloser(LoopConfig(max_loop_distance_m=10.0), planar=True, voxel_size=0.1, max_range=30.0)
+    assert not capped._near_enough(se2_to_matrix(10.5, 0.0, 0.0))[0]

@@ -168,6 +168,16 @@ class LoopCloser:
             yaw_window_deg=c.yaw_window_deg, refine_only=refine_only,
         )
 
+    def _near_enough(self, T_i_j: np.ndarray) -> tuple[bool, str]:
+        """The registered anchors must be within ``max_loop_distance_m`` (3D: 2 submap lengths)."""
+        limit = self.config.max_loop_distance_m
+        if limit is None:
+            limit = float("inf") if self.planar else 2.0 * self.submap_length
+        distance = float(np.linalg.norm(T_i_j[:3, 3]))
+        if round(distance, 4) > limit:
+            return False, f"anchors {distance:.1f} m apart > {limit:.1f} m: too far apart for a closure"
+        return True, "ok"
+
     def _structure_gate(self, res: CorrespondenceResult) -> tuple[bool, str]:
         """3D: the walls, poles and cars must agree, not only the ground (scores to 4 decimals)."""
         c = self.config
@@ -282,6 +292,8 @@ class LoopCloser:
             return LoopRecord(hyp.i, hyp.j, hyp.source, False, 0.0, 0.0, float("inf"), why, None)
         res = self._correspond(submaps[hyp.i], submaps[hyp.j], hyp.initial_guess, hyp.yaw_hint, hyp.search_radius)
         accepted, reason = res.accepted, res.reason
+        if accepted:
+            accepted, reason = self._near_enough(res.T_target_source)
         if accepted and not self.planar:
             accepted, reason = self._structure_gate(res)
         if accepted:
