@@ -8,10 +8,9 @@ from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 import typer
-from rich.console import Console
 
 from ..errors import SubmapSlamError
-from ._common import fail
+from ._common import console, fail
 
 if TYPE_CHECKING:
     from ..landmark_log import LandmarkLog
@@ -55,7 +54,7 @@ def register(app: typer.Typer) -> None:
                                   compare=compare, incremental=incremental)
         except SubmapSlamError as exc:
             raise fail(exc) from None
-        Console().print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in summary.items()})
+        console.print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in summary.items()})
 
     @app.command("ekf-nees")
     def ekf_nees_cmd(
@@ -78,7 +77,7 @@ def register(app: typer.Typer) -> None:
             raise fail(exc) from None
         lo, hi = doc["band_95"]
         inside = doc["ekf_fraction_inside"]
-        Console().print(f"band [{lo:.2f}, {hi:.2f}]; EKF inside for {inside:.0%} of steps; 10-step mean leaves "
+        console.print(f"band [{lo:.2f}, {hi:.2f}]; EKF inside for {inside:.0%} of steps; 10-step mean leaves "
                         f"the band at step {study['ekf_left_band_at']} (FEJ-EKF: {study['ekf_fej_left_band_at']}, "
                         f"graph: {study['graph_left_band_at']})")
 

@@ -6,10 +6,9 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.console import Console
 
 from ..errors import SubmapSlamError
-from ._common import err_console, fail
+from ._common import console, err_console, fail
 
 
 def register(app: typer.Typer) -> None:
@@ -52,6 +51,6 @@ def register(app: typer.Typer) -> None:
         except OSError as exc:
             raise fail(f"{getattr(exc, 'filename', '') or out}: {exc.strerror or exc}") from None
         s = result.summary()
-        Console().print(f"{s['scans']} scans localised, {s['lost_scans']} lost in {len(s['lost_spans'])} spans, "
+        console.print(f"{s['scans']} scans localised, {s['lost_scans']} lost in {len(s['lost_spans'])} spans, "
                         f"{s['relocalisations']} relocalisations; {s['wall_time_s']:.1f} s ({s['scans_per_s']} scans/s)")
-        Console().print(f"results in {out}")
+        console.print(f"results in {out}")

@@ -6,10 +6,9 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.console import Console
 
 from ..errors import SubmapSlamError
-from ._common import fail
+from ._common import console, fail
 
 
 def register(app: typer.Typer) -> None:
@@ -54,7 +53,7 @@ def _world(world, out, seed, laps, sensor, max_scans, odometry_noise, poles) -> 
     path = generate(world, out, seed=seed, laps=laps, sensor=sensor, max_scans=max_scans,
                     odometry_noise=odometry_noise, **extra)
     meta = yaml.safe_load((path / "meta.yaml").read_text())
-    Console().print(f"{meta['n_scans']} scans of {world} ({meta['sensor']['type']}), loop {meta['loop_length_m']:.0f} m "
+    console.print(f"{meta['n_scans']} scans of {world} ({meta['sensor']['type']}), loop {meta['loop_length_m']:.0f} m "
                     f"x {meta['laps']} laps, wheel odometry end drift {meta['odometry_end_drift_m']:.2f} m -> {path}")
 
 
@@ -80,6 +79,6 @@ def _kitti(out, path, rings, seed, max_scans, odometry_noise, *, laps, sensor, p
                                    odometry_noise=odometry_noise,
                                    progress=lambda done, total: bar.update(task, completed=done, total=total))
     meta = yaml.safe_load((log / "meta.yaml").read_text())
-    Console().print(f"{meta['n_scans']} scans along {path.name} ({rings}-ring LiDAR), "
+    console.print(f"{meta['n_scans']} scans along {path.name} ({rings}-ring LiDAR), "
                     f"{meta['path_length_m'] / 1000:.2f} km, {meta['city']['buildings']} buildings, "
                     f"{meta['city']['cars']} parked cars -> {log}")
