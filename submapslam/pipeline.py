@@ -17,11 +17,10 @@ from .config import PipelineConfig
 from .errors import InputError, SubmapSlamError
 from .geometry import blend_poses_many, inverse
 from .graph_builder import GraphBuilder
-from .io.hints import LoopHint
-from .io.scan import Scan
 from .odometry import Odometry
 from .process_stats import current_memory_mb, peak_memory_mb
 from .result import LoopRecord, SlamResult
+from .scan import LoopHint, Scan
 from .submaps import Submap, SubmapBuilder
 
 log = logging.getLogger(__name__)
