@@ -3,7 +3,7 @@ EKF stochastic-map reference.
 
 Public API::
 
-    from submapslam import SubmapSLAM, load_config, open_log, run, write_results
+    from submapslam import SubmapSLAM, build_map_outputs, load_config, open_log, run, write_results
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from .scan import Scan  # noqa: E402
 
 __all__ = [
     "ConfigError", "InputError", "PipelineConfig", "Scan", "SubmapSLAM", "SubmapSlamError",
-    "SlamResult", "dump_config", "load_config", "open_log", "run", "run_log", "write_results",
+    "SlamResult", "dump_config", "load_config", "open_log", "run", "run_log", "write_results", "build_map_outputs",
 ]
 
 
@@ -35,6 +35,10 @@ def __getattr__(name: str):
         from .io.results import write_results
 
         return write_results
+    if name == "build_map_outputs":
+        from .mapping.global_map import build_map_outputs
+
+        return build_map_outputs
     if name == "run_log":
         from .api import run_log
 

@@ -81,8 +81,9 @@ def run_log(
     paths: dict[str, Path] = {}
     if out_dir is not None:
         from .io.results import write_results
+        from .mapping.global_map import build_map_outputs
 
-        paths = write_results(result, out_dir)
+        paths = write_results(result, out_dir, build_map_outputs(result))
     return result, paths
 
 

@@ -242,3 +242,28 @@ def test_3d_closures_farther_apart_than_two_submap_lengths_are_refused():
     assert planar._near_enough(se2_to_matrix(30.0, 0.0, 0.0))[0]  # no limit unless configured
     capped = LoopCloser(LoopConfig(max_loop_distance_m=10.0), planar=True, voxel_size=0.1, max_range=30.0)
     assert not capped._near_enough(se2_to_matrix(10.5, 0.0, 0.0))[0]
+
+
+def test_writers_write_the_maps_they_are_given_and_compute_nothing(tmp_path, monkeypatch):
+    from submapslam import mapping
+    from submapslam.api import run_log
+    from submapslam.io.results import write_results
+    from submapslam.mapping.global_map import build_map_outputs
+
+    log = generate("rectangle", tmp_path / "log", seed=0, laps=1, max_scans=150)
+    result, _ = run_log(log, None)
+    maps = build_map_outputs(result)
+    assert len(maps.points) > 100 and maps.occupancy is not None and maps.seconds > 0
+
+    def no_computing(*_args, **_kwargs):
+        raise AssertionError("a writer computed a map")
+
+    monkeypatch.setattr(mapping.global_map, "fused_map", no_computing)
+    monkeypatch.setattr(mapping.global_map, "build_global_grid", no_computing)
+    paths = write_results(result, tmp_path / "out", maps)
+    header = paths["map.ply"].read_bytes()[:300].decode("ascii", "replace")
+    assert f"element vertex {len(maps.points)}" in header and "property float x" in header
+    assert paths["map.pgm"].exists()
+    summary = json.loads(paths["summary.json"].read_text())
+    assert summary["wall_time_s"]["map_fusion"] == pytest.approx(maps.seconds, abs=1e-3)
+    assert summary["wall_time_total_s"] >= result.wall_time_s + maps.seconds

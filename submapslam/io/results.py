@@ -11,7 +11,7 @@ import numpy as np
 
 from ..config import dump_config
 from ..geometry import matrix_to_se2
-from ..mapping.global_map import fused_map
+from ..mapping.global_map import MapOutputs
 from ..process_stats import peak_memory_mb
 from ..result import SlamResult
 from .g2o import write_g2o
@@ -19,8 +19,9 @@ from .ply import write_ply
 from .trajectory import Trajectory, write_kitti, write_tum
 
 
-def write_results(result: SlamResult, out_dir: str | Path) -> dict[str, Path]:
-    """Write every output file; return ``{name: path}``.
+def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs) -> dict[str, Path]:
+    """Write every output file of a run and its maps (:func:`~submapslam.mapping.global_map.
+    build_map_outputs`); return ``{name: path}``. Nothing is computed here.
 
     Files: ``poses_tum.txt``, ``poses_kitti.txt``, ``odometry_tum.txt``, ``graph.g2o``,
     ``map.ply``, ``config.yaml``, ``summary.json``, ``loops.csv``, ``submaps.csv`` (anchor poses
@@ -38,23 +39,23 @@ def write_results(result: SlamResult, out_dir: str | Path) -> dict[str, Path]:
     write_kitti(paths["poses_kitti.txt"], result.poses)
     write_tum(paths["odometry_tum.txt"], Trajectory(result.timestamps, result.odometry_poses))
     write_g2o(paths["graph.g2o"], result.submap_poses, result.edges)
-    write_ply(paths["map.ply"], fused_map(result))
+    write_ply(paths["map.ply"], maps.points)
     paths["config.yaml"].write_text(dump_config(result.config))
     _write_loops(paths["loops.csv"], result)
     _write_submaps(paths["submaps.csv"], result)
-    if result.config.mapping.write_grid and any(len(p) for scans in result.submap_scan_points for p in scans):
-        from ..mapping.global_map import build_global_grid
+    if maps.occupancy is not None:
         from .grid import write_pgm_yaml
 
-        grid, _cleared = build_global_grid(result)
-        paths["map.pgm"], paths["map.yaml"] = write_pgm_yaml(
-            out / "map", grid.probabilities(), grid.origin, grid.params.resolution)
-    # written last: the run's real wall time and the process's true peak include the writing
+        paths["map.pgm"], paths["map.yaml"] = write_pgm_yaml(out / "map", maps.occupancy, maps.origin, maps.resolution)
+    # written last: the run's real wall time and the process's true peak include the maps and the writing
     summary = result.summary()
     writing = time.perf_counter() - t_start
+    total = result.wall_time_s + maps.seconds + writing
+    summary["wall_time_s"]["map_fusion"] = round(maps.seconds, 3)
     summary["wall_time_s"]["writing"] = round(writing, 3)
-    summary["wall_time_total_s"] = round(result.wall_time_s + writing, 3)
-    summary["scans_per_second"] = round(result.n_scans / max(result.wall_time_s + writing, 1e-9), 2)
+    summary["wall_time_total_s"] = round(total, 3)
+    summary["scans_per_second"] = round(result.n_scans / max(total, 1e-9), 2)
+    summary["cleared_cells"] = maps.cleared_cells
     summary["peak_memory_mb"] = round(peak_memory_mb(), 1)
     paths["summary.json"].write_text(json.dumps(summary, indent=2) + "\n")
     return paths

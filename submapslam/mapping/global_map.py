@@ -3,7 +3,9 @@ lasers, and 3D LiDAR through the obstacle slice of each scan) and the fused poin
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -123,3 +125,32 @@ def fuse_clouds(clouds: Iterable[tuple[np.ndarray, np.ndarray]], voxel: float,
 def fused_map(result: SlamResult, voxel: float | None = None) -> np.ndarray:
     """All submap clouds in the world frame, fused at ``voxel`` (default: the run's map voxel)."""
     return fuse_clouds(zip(result.submap_poses, result.submap_points), voxel or result.map_voxel_size)
+
+
+@dataclass
+class MapOutputs:
+    """The maps of a run, built from its result (what ``write_results`` writes).
+
+    ``points``: ``(M, 3)`` float32 fused cloud in the world frame; ``occupancy``: ``(rows, cols)``
+    occupancy probabilities of the global grid (None when the run has no grid), with the
+    grid's ``origin`` ``(2,)`` [m] and ``resolution`` [m]; ``cleared_cells``: occupied cells later
+    submaps saw free (what moved); ``seconds``: wall time spent building them.
+    """
+
+    points: np.ndarray
+    occupancy: np.ndarray | None = None
+    origin: np.ndarray | None = None
+    resolution: float = 0.0
+    cleared_cells: int = 0
+    seconds: float = 0.0
+
+
+def build_map_outputs(result: SlamResult) -> MapOutputs:
+    """Fuse the map cloud and, when the run keeps grid scans, the occupancy grid."""
+    t0 = time.perf_counter()
+    out = MapOutputs(points=fused_map(result))
+    if result.config.mapping.write_grid and any(len(p) for scans in result.submap_scan_points for p in scans):
+        grid, out.cleared_cells = build_global_grid(result)
+        out.occupancy, out.origin, out.resolution = grid.probabilities(), grid.origin, grid.params.resolution
+    out.seconds = time.perf_counter() - t0
+    return out
