@@ -157,6 +157,12 @@ class MappingConfig(_Strict):
     grid_max_height: float = Field(2.0, description="[m] 3D LiDAR: highest obstacle height above the ground")
     grid_ground_z: float | None = Field(
         None, description="[m] 3D LiDAR: ground height in the sensor frame (e.g. -1.7); null estimates it per scan")
+    grid_max_free_range_3d: float = Field(
+        30.0, gt=0, description="[m] 3D LiDAR: free space is carved along at most this much of a ray")
+    grid: GridParams = Field(
+        default_factory=lambda: GridParams(), description="evidence model of the occupancy grids (log-odds "
+        "per hit and per ray, clearing of what moved); the cell size is grid_resolution / grid_resolution_3d "
+        "and, for 3D LiDAR, the free range grid_max_free_range_3d")
     write_grid: bool = True
 
     @model_validator(mode="after")
@@ -223,6 +229,9 @@ class GridParams(_Strict):
     clear_margin_cells: int = Field(2, ge=0, description="a clearing cell needs this many free cells around it")
     max_free_range: float = Field(12.0, gt=0, description="[m] free space is carved along at most this much of a ray")
     free_scan_stride: int = Field(2, ge=1, description="carve free space with every n-th scan of a submap")
+
+
+MappingConfig.model_rebuild()  # its ``grid`` field refers to GridParams, defined above
 
 
 class LocalizationConfig(_Strict):

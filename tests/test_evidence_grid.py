@@ -73,3 +73,19 @@ def test_pgm_yaml_round_trip(tmp_path):
     assert img[3, 0] == OCCUPIED and img[0, 5] == FREE
     text = yml.read_text()
     assert "image: m.pgm" in text and "resolution: 0.05" in text and "origin: [1.000000, 2.000000, 0.0]" in text
+
+
+def test_the_grid_evidence_model_is_set_from_the_config():
+    from types import SimpleNamespace
+
+    from submapslam.config import config_from_dict
+    from submapslam.mapping.global_map import grid_params
+
+    cfg = config_from_dict({"mapping": {"grid": {"l_occ": 1.2, "free_scan_stride": 3}, "grid_resolution": 0.1,
+                                        "grid_max_free_range_3d": 25.0}})
+    planar = grid_params(SimpleNamespace(config=cfg, planar=True))
+    assert (planar.l_occ, planar.free_scan_stride, planar.resolution, planar.max_free_range) == (1.2, 3, 0.1, 12.0)
+    spatial = grid_params(SimpleNamespace(config=cfg, planar=False))
+    assert (spatial.l_occ, spatial.resolution, spatial.max_free_range) == (1.2, 0.2, 25.0)
+    default = grid_params(SimpleNamespace(config=config_from_dict({}), planar=False))
+    assert (default.l_occ, default.resolution, default.max_free_range) == (0.85, 0.2, 30.0)

@@ -27,11 +27,13 @@ def local_grid(T_anchor_scans: np.ndarray, scan_points: list[np.ndarray], params
 
 
 def grid_params(result: SlamResult) -> GridParams:
-    """Grid parameters for a run: the configured cell size; 3D LiDAR carves free space farther."""
+    """Grid parameters for a run: the config's evidence model (``mapping.grid``) at the cell size
+    for the log's kind; 3D LiDAR carves free space farther."""
     mapping = result.config.mapping
     if result.planar:
-        return GridParams(resolution=mapping.grid_resolution)
-    return GridParams(resolution=mapping.grid_resolution_3d, max_free_range=30.0)
+        return mapping.grid.model_copy(update={"resolution": mapping.grid_resolution})
+    return mapping.grid.model_copy(update={"resolution": mapping.grid_resolution_3d,
+                                           "max_free_range": mapping.grid_max_free_range_3d})
 
 
 def _local_extent(T_anchor_scans: np.ndarray, scan_points: list[np.ndarray]) -> np.ndarray | None:
