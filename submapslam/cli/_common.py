@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Annotated
+
 import typer
 from rich.console import Console
+
+OutFolder = Annotated[Path, typer.Option("--out", "-o", help="Output folder.")]
+"""The ``--out`` option of the commands that write a results folder."""
 
 console = Console()
 err_console = Console(stderr=True)

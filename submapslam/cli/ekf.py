@@ -10,7 +10,7 @@ import numpy as np
 import typer
 
 from ..errors import SubmapSlamError
-from ._common import console, fail
+from ._common import OutFolder, console, fail
 
 if TYPE_CHECKING:
     from ..landmark_log import LandmarkLog
@@ -23,7 +23,7 @@ def register(app: typer.Typer) -> None:
     def ekf_cmd(
         log: Annotated[Path, typer.Argument(help="MR.CLAM folder, a victoria_park-format file (real or synthetic), "
                                             "or a point-cloud log folder (pole features, unknown association).")],
-        out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
+        out: OutFolder,
         robot: Annotated[int, typer.Option(help="MR.CLAM robot number.")] = 1,
         format: Annotated[str | None, typer.Option(help="mrclam, victoria, synth or cloud (default: sniffed).")] = None,
         a: Annotated[float | None, typer.Option(

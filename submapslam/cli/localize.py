@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from ..errors import SubmapSlamError
-from ._common import console, err_console, fail
+from ._common import OutFolder, console, err_console, fail
 
 
 def register(app: typer.Typer) -> None:
@@ -19,7 +19,7 @@ def register(app: typer.Typer) -> None:
         log: Annotated[Path, typer.Argument(help="Log to localise (any format `run` reads).")],
         map: Annotated[Path, typer.Option("--map", "-m", help="A `submapslam run` output folder (its map.ply) "
                                           "or a PLY/PCD point cloud, in the world frame.")],
-        out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
+        out: OutFolder,
         initial_pose: Annotated[str | None, typer.Option(
             "--initial-pose", help="\"x y yaw\" of the first scan in the map frame (yaw in rad); "
             "default: global search in the whole map (can fail where the map repeats itself).")] = None,

@@ -9,7 +9,7 @@ from typing import Annotated
 import typer
 
 from ..errors import SubmapSlamError
-from ._common import console, fail
+from ._common import OutFolder, console, fail
 
 
 def register(app: typer.Typer) -> None:
@@ -19,7 +19,7 @@ def register(app: typer.Typer) -> None:
     def run(
         log: Annotated[Path, typer.Argument(help="Log: CARMEN file, folder of .bin/.ply/.pcd scans, synthetic log folder, "
                                             "ROS bag (.bag, ROS 2 folder, .mcap).")],
-        out: Annotated[Path, typer.Option("--out", "-o", help="Output folder.")],
+        out: OutFolder,
         config: Annotated[Path | None, typer.Option("--config", "-c", help="YAML config (see dump-config).")] = None,
         format: Annotated[str | None, typer.Option("--format", "-f", help="Force the log format.")] = None,
         hints: Annotated[Path | None, typer.Option("--hints", help="Manual loop hints: 'a b' scan indices or timestamps per line.")] = None,
