@@ -134,13 +134,14 @@ class PoseGraph:
         self._estimate = self._isam.calculateEstimate()
         self.n_updates += 1
 
-    def _active_graph(self):
-        """The graph without the factors at indices in ``self._excluded`` (rejected loops)."""
-        if not self._excluded:
+    def _active_graph(self, also_without: int | None = None):
+        """The graph without the factors at indices in ``self._excluded`` (rejected loops) and,
+        when given, the factor at index ``also_without``."""
+        if not self._excluded and also_without is None:
             return self._graph
         graph = self._gtsam.NonlinearFactorGraph()
         for idx in range(self._graph.size()):
-            if idx not in self._excluded:
+            if idx not in self._excluded and idx != also_without:
                 graph.add(self._graph.at(idx))
         return graph
 
@@ -219,14 +220,12 @@ class PoseGraph:
                 symptom = "loop residual above the chi2 bound"
             else:
                 break
-            suspects = list(loops)
-            if not suspects:
+            if not loops:
                 break
-            suspects = sorted(suspects, key=lambda k: (-loops[k], k))[:max_suspects]
-            base = self._active_graph()
+            suspects = sorted(loops, key=lambda k: (-loops[k], k))[:max_suspects]
             best = None
             for k in suspects:
-                trial = self._graph_without(base, index_of[k])
+                trial = self._active_graph(also_without=index_of[k])
                 estimate = gtsam.LevenbergMarquardtOptimizer(trial, self._estimate, self._lm_params(30)).optimize()
                 cost = trial.error(estimate)
                 if best is None or cost < best[1] - 1e-9:
@@ -238,16 +237,6 @@ class PoseGraph:
             dropped.append((e.i, e.j, f"dropped by the final check: {symptom}; its residual chi2 was "
                                       f"{loops[victim]:.1f}, the graph agrees best without it"))
         return dropped
-
-    def _graph_without(self, graph, factor_index: int):
-        """A copy of ``graph`` (a subset of ``self._graph``) without one factor of ``self._graph``."""
-        out = self._gtsam.NonlinearFactorGraph()
-        drop = self._graph.at(factor_index)
-        for idx in range(graph.size()):
-            f = graph.at(idx)
-            if f is not drop and not (f.keys() == drop.keys() and f.equals(drop, 1e-12)):
-                out.add(f)
-        return out
 
     def odometry_chain(self, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
         """Odometry-only ``(T_i_j, Sigma_i_j)`` between nodes ``i < j`` (loop edges ignored)."""

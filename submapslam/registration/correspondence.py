@@ -5,8 +5,10 @@ good initial guess and decides whether the two submaps really show the same plac
 
 * planar submaps (2D laser, z = 0): correlative FFT search + ICP in SE(2)
   (:mod:`.planar`); the 3D point-to-plane / GICP systems are singular on planar data;
-* 3D submaps: FPFH features + RANSAC (open3d) when there is no usable guess, then
-  generalized ICP; information from open3d's ``get_information_matrix_from_point_clouds``.
+* 3D submaps: FPFH features + a seeded RANSAC (:func:`.spatial.feature_ransac`) when there is no
+  usable guess, then generalized ICP; information from open3d's
+  ``get_information_matrix_from_point_clouds``; for tests that are not a refinement, the
+  agreement of the structure (non-ground points, :func:`.spatial.structure_agreement`).
 
 Gates: fitness (source points with a target neighbour within the inlier distance), inlier
 RMSE, overlap (the smaller of the two directed fitnesses) and, for global searches, the
@@ -190,7 +192,9 @@ def _spatial(source: SpatialCloud, target: SpatialCloud, initial_guess, yaw_hint
         info = info / max(rmse, 0.02) ** 2 if np.isfinite(rmse) else np.eye(6) * 1e-6
         return 0.5 * (info + info.T) + np.eye(6) * 1e-6
 
-    structure_overlap, plane_rmse = structure_agreement(source, target, result, inlier)
+    # the structure gates judge cycle hypotheses; refinements (odometry edges, adjacent checks) skip it
+    structure_overlap, plane_rmse = (float("nan"), float("nan")) if refine_only else \
+        structure_agreement(source, target, result, inlier)
     ok, reason = _gate(fitness, rmse, overlap, ambiguity, **gates)
     return CorrespondenceResult(ok, result, information, fitness, rmse, overlap, reason, ambiguity,
                                 structure_overlap, plane_rmse)
