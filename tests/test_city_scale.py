@@ -267,3 +267,47 @@ def test_writers_write_the_maps_they_are_given_and_compute_nothing(tmp_path, mon
     summary = json.loads(paths["summary.json"].read_text())
     assert summary["wall_time_s"]["map_fusion"] == pytest.approx(maps.seconds, abs=1e-3)
     assert summary["wall_time_total_s"] >= result.wall_time_s + maps.seconds
+
+
+def test_ground_normal_recovers_the_tilt_of_the_ground_under_walls():
+    from submapslam.geometry import so3_exp
+    from submapslam.mapping.height_band import ground_normal
+
+    rng = np.random.default_rng(3)
+    ground = np.c_[rng.uniform(-15, 15, (4000, 2)), rng.normal(0.0, 0.02, 4000)]
+    walls = np.c_[rng.uniform(-15, 15, 2000), np.full(2000, 9.0), rng.uniform(0.0, 8.0, 2000)]
+    R = so3_exp(np.deg2rad([3.0, -2.0, 40.0]))  # the sensor tilted on the ground
+    up = ground_normal(np.vstack([ground, walls]) @ R.T - [0.0, 0.0, 1.7])
+    assert np.rad2deg(np.arccos(np.clip(up @ R[:, 2], -1, 1))) < 0.2
+    assert ground_normal(walls[:30]) is None  # too few points near the origin
+
+
+def test_ground_attitude_prior_holds_a_pitching_odometry_level():
+    """Odometry whose every step pitches up 0.3 deg climbs on flat ground; the level-ground prior
+    (each anchor's ground normal points up) brings the chain back to the ground plane."""
+    from submapslam.geometry import so3_exp
+
+    n, step = 40, 12.0
+    truth = [np.eye(4)]
+    for _ in range(n - 1):
+        T = np.eye(4)
+        T[0, 3] = step
+        truth.append(truth[-1] @ T)
+    bias = np.eye(4)
+    bias[:3, :3] = so3_exp(np.deg2rad([0.0, -0.3, 0.0]))  # pitch up
+    heights = {}
+    for sigma in (None, 2.0):
+        config = BackendConfig(robust_kernel="none")
+        g = PoseGraph(config)
+        g.add_node(0, truth[0], np.diag([1e8] * 6))
+        for k in range(1, n):
+            meas = inverse(truth[k - 1]) @ truth[k] @ bias
+            g.add_node(k, g.pose(k - 1) @ meas)
+            g.add_between(k - 1, k, meas, odometry_information(meas, step, False, config), "odometry")
+            if sigma is not None:  # each anchor sees flat ground: up in its own frame is +z
+                g.add_attitude(k, np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0]), np.deg2rad(sigma))
+        g.update()
+        g.optimize_batch()
+        heights[sigma] = abs(g.pose(n - 1)[2, 3])
+    assert heights[None] > 20.0  # 468 m of driving, 0.3 deg more pitch each step
+    assert heights[2.0] < 0.1 * heights[None]

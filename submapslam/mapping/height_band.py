@@ -54,7 +54,7 @@ def ground_normal(points: np.ndarray, radius: float = 15.0, band: float = 0.5,
     The ground is taken as the points within ``radius`` m horizontally whose height is within
     ``band`` m of a low percentile of the heights there; a plane is fitted to them (PCA). None
     when too few points qualify or they do not lie on a plane (standard deviation across it
-    above 0.1 m) — e.g. a planar 2D scan, or a sensor that sees no ground near itself.
+    above 0.1 m), e.g. for a sensor that sees no ground near itself.
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     near = points[np.hypot(points[:, 0], points[:, 1]) <= radius]
