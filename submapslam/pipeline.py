@@ -325,7 +325,7 @@ def run(
                 if n == 0:
                     raise
                 input_error = str(exc)
-                log.warning("stopped reading: %s", exc)
+                log.info("stopped reading: %s", exc)  # the result carries it; the CLI prints it once
                 break
             slam.process_scan(scan)
             n += 1
@@ -333,7 +333,9 @@ def run(
                 progress(n)
             if config.max_scans is not None and n >= config.max_scans:
                 break
-    return slam.finish(input_error=input_error, source=source)
+    result = slam.finish(input_error=input_error, source=source)
+    result.log_info = dict(getattr(scans, "log_info", None) or {})  # the reader's account (record, skips)
+    return result
 
 
 class ReadAhead:

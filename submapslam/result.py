@@ -60,6 +60,8 @@ class SlamResult:
         peak_memory_mb: the process's peak resident set [MiB] (``ru_maxrss``) when the result was made.
         input_error: message of an input error that stopped reading early (results cover
             the scans read before it), else None.
+        log_info: what the reader reports about the log (its ``log_info``: e.g. the CARMEN
+            record read, damaged records skipped), written into ``summary.json``.
     """
 
     timestamps: np.ndarray
@@ -83,6 +85,7 @@ class SlamResult:
     peak_memory_mb: float = 0.0
     input_error: str | None = None
     source: str = ""
+    log_info: dict = field(default_factory=dict)
 
     @property
     def n_scans(self) -> int:
@@ -113,4 +116,5 @@ class SlamResult:
             "peak_memory_mb": round(self.peak_memory_mb, 1),
             "memory_mb_by_km": [[round(km, 4), round(mb, 1)] for km, mb in self.memory_mb_by_km],
             "input_error": self.input_error,
+            **self.log_info,
         }

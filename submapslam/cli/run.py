@@ -31,6 +31,12 @@ def register(app: typer.Typer) -> None:
         base_frame: Annotated[str | None, typer.Option(
             "--base-frame", help="ROS bag: robot frame the points are moved into through /tf_static "
             "(default: the odometry's child_frame_id, else base_link).")] = None,
+        laser: Annotated[str | None, typer.Option(
+            "--laser", help="CARMEN: the laser record to read: flaser, rlaser, robotlaser1, robotlaser2, "
+            "rawlaser1..4 (default: FLASER, else the first kind the log holds).")] = None,
+        skip_bad: Annotated[bool, typer.Option(
+            "--skip-bad", help="Skip damaged records (or scan files) and count them in summary.json "
+            "instead of stopping at the first.")] = False,
     ) -> None:
         """Build a map and trajectory from LOG; write poses, graph, map and summary into OUT."""
         from ..api import run_log
@@ -39,7 +45,8 @@ def register(app: typer.Typer) -> None:
             result, paths = run_log(log, out, config=config, format=format, hints=hints,
                                     max_scans=max_scans, loops=not no_loops, progress=True,
                                     reader_options={"topic": topic, "odometry_topic": odometry_topic,
-                                                    "base_frame": base_frame})
+                                                    "base_frame": base_frame, "laser": laser,
+                                                    "skip_bad": True if skip_bad else None})
         except SubmapSlamError as exc:
             raise fail(exc) from None
         # summary.json is written last: its wall time and peak memory include the writing
@@ -48,6 +55,10 @@ def register(app: typer.Typer) -> None:
             f"{s['scans']} scans, {s['submaps']} submaps, {s['loop_candidates_tested']} loop candidates tested, "
             f"{s['loop_closures_accepted']} accepted; {s['wall_time_total_s']:.1f} s, peak {s['peak_memory_mb']:.0f} MiB"
         )
+        if s.get("skipped_records"):
+            console.print(f"skipped {s['skipped_records']} damaged record(s), the first at line(s) "
+                          f"{', '.join(map(str, s.get('skipped_record_lines', [])[:5]))}")
         console.print(f"results in {out}")
         if result.input_error:
-            raise fail(f"{result.input_error} (results cover the {s['scans']} scans read before it)")
+            more = "" if skip_bad else "; --skip-bad skips damaged records"
+            raise fail(f"{result.input_error} (results cover the {s['scans']} scans read before it{more})")
