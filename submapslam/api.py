@@ -78,6 +78,10 @@ def run_log(
                          progress=lambda n: bar.update(task, completed=n))
     else:
         result = run(reader, cfg, source=str(log_path), hints=hint_pairs)
+    if hint_pairs:
+        from .io.hints import hint_problems
+
+        result.hint_problems = hint_problems(hint_pairs, result.timestamps, result.submap_scan_indices)
     paths: dict[str, Path] = {}
     if out_dir is not None:
         from .io.results import write_results

@@ -62,6 +62,7 @@ class SlamResult:
             the scans read before it), else None.
         log_info: what the reader reports about the log (its ``log_info``: e.g. the CARMEN
             record read, damaged records skipped), written into ``summary.json``.
+        hint_problems: one message per manual loop hint the log could not use.
     """
 
     timestamps: np.ndarray
@@ -86,6 +87,7 @@ class SlamResult:
     input_error: str | None = None
     source: str = ""
     log_info: dict = field(default_factory=dict)
+    hint_problems: list[str] = field(default_factory=list)
 
     @property
     def n_scans(self) -> int:
@@ -117,4 +119,5 @@ class SlamResult:
             "memory_mb_by_km": [[round(km, 4), round(mb, 1)] for km, mb in self.memory_mb_by_km],
             "input_error": self.input_error,
             **self.log_info,
+            "hint_problems": list(self.hint_problems),
         }

@@ -7,9 +7,10 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.markup import escape
 
 from ..errors import SubmapSlamError
-from ._common import OutFolder, console, fail
+from ._common import OutFolder, console, err_console, fail
 
 
 def register(app: typer.Typer) -> None:
@@ -55,6 +56,8 @@ def register(app: typer.Typer) -> None:
             f"{s['scans']} scans, {s['submaps']} submaps, {s['loop_candidates_tested']} loop candidates tested, "
             f"{s['loop_closures_accepted']} accepted; {s['wall_time_total_s']:.1f} s, peak {s['peak_memory_mb']:.0f} MiB"
         )
+        for problem in result.hint_problems:  # shown without -v: the user asked for these loops
+            err_console.print(f"[yellow]warning:[/yellow] {escape(problem)}", highlight=False, soft_wrap=True)
         if s.get("skipped_records"):
             console.print(f"skipped {s['skipped_records']} damaged record(s), the first at line(s) "
                           f"{', '.join(map(str, s.get('skipped_record_lines', [])[:5]))}")
