@@ -20,7 +20,7 @@ from .compression import base_suffix, open_text
 
 __all__ = [
     "Relations", "Trajectory", "carmen_reference_trajectory", "read_carmen_trajectory", "read_kitti",
-    "read_relations", "read_trajectory", "read_tum", "write_kitti", "write_tum",
+    "read_relations", "read_trajectory", "read_tum", "trajectory_format", "write_kitti", "write_tum",
 ]
 
 
@@ -145,19 +145,7 @@ def read_trajectory(path: str | Path, format: str | None = None) -> Trajectory:
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "no such trajectory file")
-    fmt = format
-    if fmt is None:
-        if base_suffix(path) in {".clf", ".log", ".carmen"}:
-            fmt = "carmen"
-        else:
-            with open_text(path) as fh:
-                for line in fh:
-                    tok = line.split()
-                    if tok and not tok[0].startswith("#"):
-                        fmt = {8: "tum", 12: "kitti"}.get(len(tok))
-                        if tok[0] in ("FLASER", "ODOM", "PARAM"):
-                            fmt = "carmen"
-                        break
+    fmt = format or trajectory_format(path)
     if fmt == "tum":
         return read_tum(path)
     if fmt == "kitti":
@@ -165,6 +153,21 @@ def read_trajectory(path: str | Path, format: str | None = None) -> Trajectory:
     if fmt == "carmen":
         return read_carmen_trajectory(path)
     raise InputError(path, "unknown trajectory format (expected TUM: 8 columns, KITTI: 12, or a CARMEN log)")
+
+
+def trajectory_format(path: str | Path) -> str | None:
+    """``"tum"``, ``"kitti"`` or ``"carmen"`` from the suffix and the first line's columns (None: unknown)."""
+    path = Path(path)
+    if base_suffix(path) in {".clf", ".log", ".carmen"}:
+        return "carmen"
+    with open_text(path) as fh:
+        for line in fh:
+            tok = line.split()
+            if tok and not tok[0].startswith("#"):
+                if tok[0] in ("FLASER", "ODOM", "PARAM"):
+                    return "carmen"
+                return {8: "tum", 12: "kitti"}.get(len(tok))
+    return None
 
 
 def read_relations(path: str | Path) -> Relations:
