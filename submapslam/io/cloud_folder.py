@@ -22,6 +22,7 @@ import numpy as np
 import yaml
 
 from ..errors import InputError
+from .cloud_header import check_cloud_file, header_point_count
 from .compression import open_text
 from .registry import register_reader
 from .scan import Scan, apply_mounting, check_transform
@@ -83,6 +84,7 @@ def read_cloud(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     o3d = open3d()
     if path.stat().st_size == 0:
         raise InputError(path, "empty file")
+    check_cloud_file(path)  # a header claiming more points than the file holds would stall open3d
     pcd = o3d.t.io.read_point_cloud(str(path))
     if "positions" not in pcd.point:
         raise InputError(path, "no x/y/z points could be read (not a valid PLY/PCD file?)")
@@ -146,6 +148,8 @@ class CloudFolderReader:
                     values.append(float(tok[0]))
                 except ValueError:
                     raise InputError(path, f"not a timestamp: {tok[0][:30]!r}", lineno) from None
+                if not np.isfinite(values[-1]):
+                    raise InputError(path, f"not a finite timestamp: {tok[0][:30]!r}", lineno)
         times = np.asarray(values)
         if len(times) < len(self.files):
             raise InputError(path, f"{len(times)} timestamps for {len(self.files)} scans")
@@ -179,9 +183,14 @@ class CloudFolderReader:
                 self.skipped_files.append(path.name)
                 log.debug("skipped %s", exc)
                 continue
-            if times is not None and len(times) == len(points):
+            finite = np.all(np.isfinite(points), axis=1)
+            if not finite.all():  # NaN/inf points are no returns
+                if times is not None and len(times) == len(points):
+                    times = times[finite]
+                points = points[finite]
+            if times is not None and len(times) == len(points) and np.all(np.isfinite(times)):
                 span = times.max() - times.min() if len(times) else 0.0
-                times = (times - times.min()) / span if span > 0 else np.zeros_like(times)
+                times = ((times - times.min()) / span if 0 < span < np.inf else np.zeros_like(times))
             else:
                 times = None
             if self._mounted:
@@ -198,30 +207,6 @@ class CloudFolderReader:
             index += 1
         if index == 0 and self.skipped_files:
             raise InputError(self.path, f"none of the {len(self.files)} scan files could be read")
-
-
-def header_point_count(path: Path) -> int | None:
-    """Points a scan file holds, from its size (``.bin``) or its header (PLY ``element vertex``,
-    PCD ``POINTS``); None when the header does not say."""
-    if path.suffix.lower() == ".bin":
-        return path.stat().st_size // 16
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(4096)
-    except OSError:
-        return None
-    for raw in head.split(b"\n"):
-        words = raw.decode("ascii", errors="replace").split()
-        try:
-            if words[:2] == ["element", "vertex"] and len(words) == 3:
-                return int(words[2])
-            if words[:1] == ["POINTS"] and len(words) == 2:
-                return int(words[1])
-        except ValueError:
-            return None
-        if words[:1] in (["end_header"], ["DATA"]):
-            break
-    return None
 
 
 def _refuse_pointless(root: Path, files: list[Path], first: int = 20) -> None:
