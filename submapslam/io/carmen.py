@@ -188,7 +188,7 @@ def _parse_robotlaser(tokens: list[str], path: Path, lineno: int) -> _Reading:
     angles, max_range, k, ranges = _parse_sensor_header(tokens, path, lineno)
     rest = len(tokens) - k - 3  # fields between the ranges and the timestamps
     tail = None
-    if tokens[k].isdigit() and rest - 1 - int(tokens[k]) in (10, 11):
+    if tokens[k].isascii() and tokens[k].isdigit() and rest - 1 - int(tokens[k]) in (10, 11):
         tail = k + 1 + int(tokens[k])  # with the remission block
     elif rest in (10, 11):
         tail = k  # an older writer: no remission block

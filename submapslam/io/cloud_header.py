@@ -7,6 +7,7 @@ minutes. :func:`check_cloud_file` refuses such a file in one line before open3d 
 
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,6 +16,7 @@ from ..errors import InputError
 _PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
               "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
 _HEADER_BYTES = 65536
+_MAX_LZF_RATIO = 100  # LZF, PCD's compression, packs at most ~90:1
 
 
 @dataclass(frozen=True)
@@ -26,6 +28,8 @@ class CloudHeader:
     record_bytes: int | None
     fields: int
     header_bytes: int
+    compressed: tuple[int, int] | None = None  # PCD binary_compressed: (compressed, unpacked) bytes
+    packed_record_bytes: int = 0  # PCD: bytes a point takes once unpacked
 
 
 def read_cloud_header(path: Path) -> CloudHeader | None:
@@ -59,9 +63,8 @@ def _ply_header(head: bytes) -> CloudHeader | None:
             if in_vertex:
                 points = int(words[2])
         elif words[:1] == ["property"] and in_vertex:
-            if words[1] == "list":
-                return None  # variable-size vertex records: no fixed size to check
-            record += _PLY_SIZES[words[1]]
+            # a list holds at least its count (an empty list): the record's smallest size
+            record += _PLY_SIZES[words[2] if words[1] == "list" else words[1]]
             fields += 1
     if points is None:
         return None
@@ -81,16 +84,19 @@ def _pcd_header(head: bytes) -> CloudHeader | None:
             break
     else:
         return None
-    if "POINTS" in values:
-        points = int(values["POINTS"][0])
-    else:
-        points = int(values["WIDTH"][0]) * int(values["HEIGHT"][0])
+    claims = [int(values["POINTS"][0])] if "POINTS" in values else []
+    if "WIDTH" in values and "HEIGHT" in values:
+        claims.append(int(values["WIDTH"][0]) * int(values["HEIGHT"][0]))
+    points = max(claims, key=abs)  # a reader may trust either
     sizes = [int(v) for v in values.get("SIZE", [])]
     counts = [int(v) for v in values.get("COUNT", ["1"] * len(sizes))]
-    record = sum(s * c for s, c in zip(sizes, counts)) if values["DATA"][0] == "binary" else None
-    if values["DATA"][0] == "binary_compressed":
-        return None
-    return CloudHeader(points, record, max(len(sizes), 1), offset)
+    record = sum(s * c for s, c in zip(sizes, counts))
+    data = values["DATA"][0]
+    blocks = None
+    if data == "binary_compressed":  # the body starts with the compressed and unpacked sizes (uint32)
+        blocks = struct.unpack("<II", head[offset: offset + 8]) if len(head) >= offset + 8 else (-1, -1)
+    return CloudHeader(points, record if data == "binary" else None, max(len(sizes), 1), offset,
+                       compressed=blocks, packed_record_bytes=record)
 
 
 def header_point_count(path: Path) -> int | None:
@@ -112,6 +118,13 @@ def check_cloud_file(path: Path) -> None:
     if header.points < 0:
         raise InputError(path, f"header claims {header.points} points")
     body = path.stat().st_size - header.header_bytes
+    if header.compressed is not None:
+        packed, unpacked = header.compressed
+        if header.points and (packed < 0 or packed > body - 8 or unpacked != header.points * header.packed_record_bytes
+                              or unpacked > _MAX_LZF_RATIO * max(packed, 1)):
+            raise InputError(path, f"header claims {header.points} points but the compressed block "
+                             f"({packed} -> {unpacked} bytes) cannot hold them (truncated or damaged file)")
+        return
     per_point = header.record_bytes if header.record_bytes is not None else 2 * header.fields
     if header.points * per_point > max(body, 0):
         raise InputError(path, f"header claims {header.points} points but the file holds at most "
