@@ -137,3 +137,54 @@ def test_damaged_records_stop_with_the_line_or_are_skipped_and_counted(tmp_path,
 def test_a_folder_given_as_carmen_says_so(tmp_path):
     with pytest.raises(InputError, match="is a folder, not a CARMEN log file"):
         open_log(tmp_path, "carmen")
+
+
+def _real_flaser_lines(path, count):
+    from submapslam.io.compression import open_text
+
+    out = []
+    with open_text(path) as fh:
+        for line in fh:
+            if line.startswith("FLASER"):
+                out.append(line.split())
+                if len(out) == count:
+                    break
+    return out
+
+
+@pytest.mark.parametrize("name", ["intel.clf.bz2", "fr079.clf.bz2"])
+def test_real_scans_rewritten_as_robotlaser1_and_rawlaser1_read_the_same(tmp_path, name):
+    """No log in ../shared/data holds these records: the first real FLASER scans of Intel (180
+    beams) and FR079 (360) are rewritten as ROBOTLASER1 (laser 0.1 m ahead of the base) and as
+    RAWLASER1 + ODOM, and must give the FLASER reading's points and odometry."""
+    from submapslam.io.carmen import beam_angles
+
+    from .conftest import shared_data
+
+    rows = _real_flaser_lines(shared_data("carmen", name), 40)
+    robot, raw = [], []
+    for tok in rows:
+        n = int(tok[1])
+        ranges = [float(v) for v in tok[2: 2 + n]]
+        x, y, t = (float(v) for v in tok[2 + n: 5 + n])
+        ts = float(tok[8 + n])
+        a = beam_angles(n)
+        # ROBOTLASER1's laser sits 0.1 m ahead: move it back so the points land where FLASER's do
+        robot.append(robotlaser_line(ranges, robot=(x, y, t), laser_offset=(0.1, 0.0, 0.0), ts=ts, start=a[0],
+                                     res=a[1] - a[0], max_range=81.9)
+                     .replace(f"{len(ranges)} {' '.join(f'{v:.3f}' for v in ranges)}",
+                              f"{len(ranges)} {' '.join(tok[2: 2 + n])}"))
+        raw += [odom_line(x, y, t, ts), rawlaser_line(ranges, ts, start=a[0], res=a[1] - a[0])]
+    flaser_path = tmp_path / "f.clf"
+    flaser_path.write_text("".join(" ".join(tok) + "\n" for tok in rows))
+    reference = list(open_log(flaser_path))
+    robot_scans = list(open_log(write(tmp_path / "r.clf", robot)))
+    raw_scans = list(open_log(write(tmp_path / "w.clf", raw)))
+    assert len(reference) == len(robot_scans) == len(raw_scans) == 40
+    for f, r, w in zip(reference, robot_scans, raw_scans):
+        assert r.timestamp == f.timestamp and w.timestamp == f.timestamp
+        np.testing.assert_allclose(r.odometry, f.odometry, atol=1e-6)
+        np.testing.assert_allclose(w.odometry, f.odometry, atol=1e-6)
+        np.testing.assert_allclose(w.points, f.points, atol=1e-3)  # ranges written with 3 decimals
+        assert len(r.points) == len(f.points)
+        np.testing.assert_allclose(r.points - [0.1, 0.0, 0.0], f.points, atol=1e-4)  # angles, poses: 6 decimals
