@@ -188,3 +188,18 @@ def test_real_scans_rewritten_as_robotlaser1_and_rawlaser1_read_the_same(tmp_pat
         np.testing.assert_allclose(w.points, f.points, atol=1e-3)  # ranges written with 3 decimals
         assert len(r.points) == len(f.points)
         np.testing.assert_allclose(r.points - [0.1, 0.0, 0.0], f.points, atol=1e-4)  # angles, poses: 6 decimals
+
+
+def test_robotlaser1_logs_are_trajectories_too(tmp_path):
+    """eval/compare read a ROBOTLASER1-only log (e.g. a corrected Freiburg log) as the robot poses."""
+    from submapslam.io.trajectory import read_carmen_trajectory, read_trajectory
+
+    lines = [robotlaser_line([2.0] * 5, robot=(0.5 * k, 1.0, 0.1 * k), ts=100.0 + k) for k in range(4)]
+    path = write(tmp_path / "corrected.log", lines)
+    traj = read_trajectory(path)
+    np.testing.assert_allclose(traj.timestamps, 100.0 + np.arange(4))
+    np.testing.assert_allclose(traj.poses[:, 0, 3], 0.5 * np.arange(4), atol=1e-6)
+    np.testing.assert_allclose(read_carmen_trajectory(path, "logger").timestamps, 1.0 + np.arange(4))
+    # where a log holds both, the FLASER poses are the trajectory
+    both = write(tmp_path / "both.log", lines + [flaser_line([2.0] * 5, pose=(9.0, 9.0, 0.0), ts=200.0)])
+    assert read_trajectory(both).poses[:, 0, 3].tolist() == [9.0]

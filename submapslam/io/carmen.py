@@ -90,7 +90,7 @@ def beam_angles(n: int, rear: bool = False) -> np.ndarray:
 
 
 @dataclass
-class _Reading:
+class LaserReading:
     """One parsed laser record: ranges along ``angles`` in the laser frame."""
 
     ranges: np.ndarray  # (n,) [m]
@@ -135,7 +135,7 @@ def _stamp(tokens: list[str], path: Path, lineno: int) -> float:
     return stamp
 
 
-def _parse_flaser(tokens: list[str], path: Path, lineno: int) -> _Reading:
+def _parse_flaser(tokens: list[str], path: Path, lineno: int) -> LaserReading:
     """``FLASER``/``RLASER n r_1..r_n x y theta odom_x odom_y odom_theta ipc_ts host logger_ts``."""
     tag = tokens[0]
     try:
@@ -153,7 +153,7 @@ def _parse_flaser(tokens: list[str], path: Path, lineno: int) -> _Reading:
         raise InputError(path, f"{tag} line has a non-numeric field ({exc})", lineno) from None
     if not np.all(np.isfinite(pose)) or not math.isfinite(stamp):
         raise InputError(path, f"{tag} line has a NaN/inf pose or timestamp", lineno)
-    return _Reading(ranges, beam_angles(n, tag == "RLASER"), math.inf, stamp, pose, None)
+    return LaserReading(ranges, beam_angles(n, tag == "RLASER"), math.inf, stamp, pose, None)
 
 
 def _parse_sensor_header(tokens: list[str], path: Path, lineno: int) -> tuple[np.ndarray, float, int, np.ndarray]:
@@ -172,17 +172,17 @@ def _parse_sensor_header(tokens: list[str], path: Path, lineno: int) -> tuple[np
     return angles, (float(max_range) if max_range > 0 else math.inf), 9 + n, ranges
 
 
-def _parse_rawlaser(tokens: list[str], path: Path, lineno: int) -> _Reading:
+def _parse_rawlaser(tokens: list[str], path: Path, lineno: int) -> LaserReading:
     """``RAWLASERk ... n r_1..r_n m e_1..e_m ipc_ts host logger_ts``: no pose."""
     angles, max_range, k, ranges = _parse_sensor_header(tokens, path, lineno)
     m = _count(tokens[k], tokens[0], "remission count", path, lineno)
     if len(tokens) < k + 1 + m + 3:
         raise InputError(path, f"{tokens[0]} line is truncated: {len(tokens)} fields, expected "
                          f"{k + m + 4} for {len(ranges)} beams and {m} remissions", lineno)
-    return _Reading(ranges, angles, max_range, _stamp(tokens, path, lineno), None, None)
+    return LaserReading(ranges, angles, max_range, _stamp(tokens, path, lineno), None, None)
 
 
-def _parse_robotlaser(tokens: list[str], path: Path, lineno: int) -> _Reading:
+def parse_robotlaser(tokens: list[str], path: Path, lineno: int) -> LaserReading:
     """``ROBOTLASERk ... n r_1..r_n [m e_1..e_m] laser_xyt robot_xyt tv rv fsd ssd [turn_axis] ipc_ts host logger_ts``."""
     tag = tokens[0]
     angles, max_range, k, ranges = _parse_sensor_header(tokens, path, lineno)
@@ -199,11 +199,11 @@ def _parse_robotlaser(tokens: list[str], path: Path, lineno: int) -> _Reading:
     _finite(poses, tag, path, lineno, "pose")
     laser, robot = poses[:3], poses[3:]
     T_base_laser = np.linalg.inv(se2_to_matrix(*robot)) @ se2_to_matrix(*laser)
-    return _Reading(ranges, angles, max_range, _stamp(tokens, path, lineno), robot, T_base_laser)
+    return LaserReading(ranges, angles, max_range, _stamp(tokens, path, lineno), robot, T_base_laser)
 
 
 _PARSERS = {"FLASER": _parse_flaser, "RLASER": _parse_flaser,
-            "ROBOTLASER1": _parse_robotlaser, "ROBOTLASER2": _parse_robotlaser,
+            "ROBOTLASER1": parse_robotlaser, "ROBOTLASER2": parse_robotlaser,
             **{f"RAWLASER{k}": _parse_rawlaser for k in range(1, 5)}}
 
 
@@ -303,7 +303,7 @@ class CarmenReader:
             self.skipped_lines.append(exc.line or 0)
         log.debug("skipped a damaged record: %s", exc)
 
-    def _scan(self, reading: _Reading, index: int, odometry: np.ndarray | None, lineno: int) -> Scan:
+    def _scan(self, reading: LaserReading, index: int, odometry: np.ndarray | None, lineno: int) -> Scan:
         limit = min(self.max_valid_range, reading.max_range)
         valid = np.isfinite(reading.ranges) & (reading.ranges > 0.0) & (reading.ranges < limit)
         r, a = reading.ranges[valid], reading.angles[valid]
@@ -323,7 +323,7 @@ class CarmenReader:
         parse = _PARSERS[self.tag]
         needs_odom = self.tag.startswith("RAWLASER")
         index = 0
-        pending: list[tuple[_Reading, int]] = []  # RAWLASER readings waiting for the next ODOM
+        pending: list[tuple[LaserReading, int]] = []  # RAWLASER readings waiting for the next ODOM
         last_odom: tuple[float, np.ndarray] | None = None
         seen: set[str] = set()  # other laser records the log holds
         try:

@@ -85,12 +85,24 @@ def write_kitti(path: str | Path, poses: np.ndarray) -> None:
 
 
 def _carmen_flaser_rows(path: Path) -> list[tuple[float, float, np.ndarray]]:
-    """(ipc_timestamp, logger_timestamp, (x, y, theta)) of every FLASER line."""
-    out = []
+    """(ipc_timestamp, logger_timestamp, (x, y, theta)) of every FLASER line; of every
+    ROBOTLASER1 line (its robot pose) in a log without FLASER lines."""
+    from .carmen import parse_robotlaser
+
+    out, robotlaser = [], []
     with open_text(path) as fh:
         for lineno, line in enumerate(fh, start=1):
             tok = line.split()
-            if not tok or tok[0] != "FLASER":
+            if not tok or tok[0] not in ("FLASER", "ROBOTLASER1"):
+                continue
+            if tok[0] == "ROBOTLASER1":
+                if not out:  # FLASER lines win where both are present
+                    reading = parse_robotlaser(tok, path, lineno)
+                    try:
+                        logger = float(tok[-1])
+                    except ValueError:
+                        raise InputError(path, "malformed ROBOTLASER1 logger timestamp", lineno) from None
+                    robotlaser.append((reading.stamp, logger, reading.robot_pose))
                 continue
             try:
                 n = int(tok[1])
@@ -101,13 +113,14 @@ def _carmen_flaser_rows(path: Path) -> list[tuple[float, float, np.ndarray]]:
             if len(pose) != 3 or not (np.all(np.isfinite(pose)) and math.isfinite(ipc)):
                 raise InputError(path, "malformed FLASER pose", lineno)
             out.append((ipc, logger, pose))
-    if not out:
-        raise InputError(path, "no FLASER lines: not a CARMEN laser log")
-    return out
+    if not out and not robotlaser:
+        raise InputError(path, "no FLASER or ROBOTLASER1 lines: not a CARMEN laser log")
+    return out or robotlaser
 
 
 def read_carmen_trajectory(path: str | Path, timestamp: Literal["ipc", "logger"] = "ipc") -> Trajectory:
-    """Poses of a CARMEN log's FLASER lines (``x y theta``), stamped with ``ipc`` or ``logger`` time."""
+    """Poses of a CARMEN log's FLASER lines (``x y theta``; without FLASER lines the robot pose of
+    its ROBOTLASER1 lines), stamped with ``ipc`` or ``logger`` time."""
     if timestamp not in ("ipc", "logger"):
         raise ConfigError(f"unknown CARMEN timestamp {timestamp!r}: use ipc or logger")
     rows = _carmen_flaser_rows(Path(path))
@@ -164,7 +177,7 @@ def trajectory_format(path: str | Path) -> str | None:
         for line in fh:
             tok = line.split()
             if tok and not tok[0].startswith("#"):
-                if tok[0] in ("FLASER", "ODOM", "PARAM"):
+                if tok[0] in ("FLASER", "ROBOTLASER1", "ODOM", "PARAM"):
                     return "carmen"
                 return {8: "tum", 12: "kitti"}.get(len(tok))
     return None
