@@ -405,6 +405,6 @@ def _hint_scan(value: float, by_index: bool, stamps: np.ndarray) -> int | None:
     """Scan index of one hint value, or None while that scan has not been read yet."""
     if by_index:
         return int(value) if value < len(stamps) else None
-    if len(stamps) == 0 or value > stamps[-1]:
+    if len(stamps) == 0 or value > stamps[-1] or value < stamps[0] - 1.0:  # before the log: never a scan
         return None
     return int(np.argmin(np.abs(stamps - value)))

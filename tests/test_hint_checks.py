@@ -44,3 +44,13 @@ def test_run_warns_about_unusable_hints_without_verbose(tmp_path):
 
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert summary["hint_problems"] == [w.removeprefix("warning: ") for w in warnings]
+
+
+def test_a_hint_timestamp_before_the_log_is_not_paired_with_the_first_scan():
+    """The hint reported as outside the log is not used either (it used to become scan 0)."""
+    from submapslam.pipeline import _hint_scan
+
+    stamps = 100.0 + 0.1 * np.arange(50)
+    assert _hint_scan(50.0, False, stamps) is None
+    assert _hint_scan(99.5, False, stamps) == 0  # within a second of the first scan: that scan
+    assert _hint_scan(102.04, False, stamps) == 20
