@@ -305,3 +305,36 @@ def test_no_config_number_takes_nan_or_infinity(tmp_path):
                 continue
             accepted.append(f"{section}.{key}: {value}")
     assert accepted == []
+
+
+# ----------------------------------------------------- format sniffing and trajectory files
+@fuzz(40)
+@given(data=st.one_of(st.binary(max_size=200), st.lists(RANDOM_LINE, max_size=4).map(lambda ls: "\n".join(ls).encode())),
+       name=st.sampled_from(["x.clf", "x.log.gz", "x.bag", "x.mcap", "x.txt", "x.ply", "x.pcd", "x", "x.clf.bz2"]))
+def test_any_file_opened_without_a_format_gives_scans_or_one_line(data, name):
+    with workdir() as d:
+        path = Path(d) / name
+        path.write_bytes(data)
+        read_log(path)
+
+
+TRAJECTORY_ROW = st.lists(st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(repr), TOKENS),
+                          min_size=7, max_size=13).map(" ".join)
+
+
+@fuzz(40)
+@given(rows=st.lists(st.one_of(TRAJECTORY_ROW, st.sampled_from(["1 0 0 0 0 0 0 1", "# c", "", "1,2,3"])), max_size=6),
+       name=st.sampled_from(["t.txt", "t.tum", "t.log"]))
+@example(rows=["1 0 0 0 0 0 0 0"], name="t.txt")  # a zero quaternion
+def test_trajectory_files_give_poses_or_one_line(rows, name):
+    from submapslam.io.trajectory import read_trajectory
+
+    with workdir() as d:
+        path = Path(d) / name
+        path.write_text("\n".join(rows) + "\n")
+        try:
+            traj = read_trajectory(path)
+        except SubmapSlamError as exc:
+            one_line(exc)
+            return
+    assert np.isfinite(traj.timestamps).all() and np.isfinite(traj.poses).all()

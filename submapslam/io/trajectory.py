@@ -50,6 +50,10 @@ def read_tum(path: str | Path) -> Trajectory:
     """TUM: ``timestamp tx ty tz qx qy qz qw`` per line, ``#`` comments allowed."""
     path = Path(path)
     rows = _rows(path, (8,))
+    for lineno, r in rows:
+        norm = float(np.linalg.norm(r[4:8]))
+        if not 1e-6 < norm < 1e150:  # normalised below; zero (or overflowing) has no rotation
+            raise InputError(path, f"quaternion qx qy qz qw has length {norm:.3g}: not a rotation", lineno)
     stamps = np.array([r[0] for _, r in rows])
     poses = np.array([pose_from_xyz_quat(r[1:4], r[4:8]) for _, r in rows])
     return Trajectory(stamps, poses)
