@@ -128,3 +128,10 @@ def test_an_input_error_is_printed_once(tmp_path):
     assert r.returncode == 1
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error:") and "x.clf:7" in lines[0], r.stderr
+
+
+def test_one_scan_file_given_as_the_log_names_its_folder(tmp_path):
+    root = bin_folder(tmp_path / "log")
+    one = root / "scans" / "000001.bin"
+    r = runner.invoke(app, ["run", str(one), "--out", str(tmp_path / "o")])
+    assert_one_error_line(r, "000001.bin: is one scan; a log of scans is the folder holding them", str(one.parent))
