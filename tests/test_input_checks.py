@@ -135,3 +135,8 @@ def test_one_scan_file_given_as_the_log_names_its_folder(tmp_path):
     one = root / "scans" / "000001.bin"
     r = runner.invoke(app, ["run", str(one), "--out", str(tmp_path / "o")])
     assert_one_error_line(r, "000001.bin: is one scan; a log of scans is the folder holding them", str(one.parent))
+
+
+def test_ekf_on_a_missing_log_is_one_line(tmp_path):
+    r = runner.invoke(app, ["ekf", str(tmp_path / "nope"), "--out", str(tmp_path / "o")])
+    assert_one_error_line(r, "nope: no such file or directory")

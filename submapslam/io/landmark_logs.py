@@ -225,6 +225,8 @@ def read_landmark_log(path: str | Path, format: str | None = None, robot: int = 
     file ``victoria``. ``robot`` is the MR.CLAM robot number.
     """
     path = Path(path)
+    if not path.exists():
+        raise InputError(path, "no such file or directory")
     if format is None:
         format = ("cloud" if (path / "scans").is_dir() else "mrclam") if path.is_dir() else "victoria"
     if format == "mrclam":
