@@ -82,6 +82,12 @@ def test_rawlaser_odometry_is_interpolated_from_odom_lines(tmp_path):
     np.testing.assert_allclose(scans[1].odometry[:2, 3], [0.9, 0.0], atol=1e-9)
     assert math.atan2(scans[1].odometry[1, 0], scans[1].odometry[0, 0]) == pytest.approx(0.18)
     np.testing.assert_allclose(scans[2].odometry[:2, 3], [1.0, 0.0], atol=1e-9)  # after the last ODOM: held
+    # stamps out of line order (as loggers write them): the pose is found by time
+    lines = [odom_line(0.0, 0, 0, 10.0), odom_line(2.0, 0, 0, 12.0), rawlaser_line([2.0] * 5, 11.5),
+             odom_line(1.0, 0, 0, 11.0), rawlaser_line([2.0] * 5, 10.5), odom_line(3.0, 0, 0, 13.0)]
+    scans = list(open_log(write(tmp_path / "late.log", lines)))
+    assert [s.timestamp for s in scans] == [11.5, 10.5]
+    np.testing.assert_allclose([s.odometry[0, 3] for s in scans], [1.5, 0.5], atol=1e-9)
     # no ODOM lines at all: no odometry, the scans still come
     (scan,) = list(open_log(write(tmp_path / "bare.log", [rawlaser_line([2.0] * 5, 3.0)])))
     assert scan.odometry is None and len(scan.points) == 5
@@ -156,12 +162,13 @@ def _real_flaser_lines(path, count):
 def test_real_scans_rewritten_as_robotlaser1_and_rawlaser1_read_the_same(tmp_path, name):
     """No log in ../shared/data holds these records: the first real FLASER scans of Intel (180
     beams) and FR079 (360) are rewritten as ROBOTLASER1 (laser 0.1 m ahead of the base) and as
-    RAWLASER1 + ODOM, and must give the FLASER reading's points and odometry."""
+    RAWLASER1 + ODOM, and must give the FLASER reading's points and odometry (also where the
+    ipc timestamps run backwards: the ODOM pose is found by time, not by line)."""
     from submapslam.io.carmen import beam_angles
 
     from .conftest import shared_data
 
-    rows = _real_flaser_lines(shared_data("carmen", name), 40)
+    rows = _real_flaser_lines(shared_data("carmen", name), 200)  # Intel's scans 148-156 are stamped out of order
     robot, raw = [], []
     for tok in rows:
         n = int(tok[1])
@@ -180,7 +187,7 @@ def test_real_scans_rewritten_as_robotlaser1_and_rawlaser1_read_the_same(tmp_pat
     reference = list(open_log(flaser_path))
     robot_scans = list(open_log(write(tmp_path / "r.clf", robot)))
     raw_scans = list(open_log(write(tmp_path / "w.clf", raw)))
-    assert len(reference) == len(robot_scans) == len(raw_scans) == 40
+    assert len(reference) == len(robot_scans) == len(raw_scans) == 200
     for f, r, w in zip(reference, robot_scans, raw_scans):
         assert r.timestamp == f.timestamp and w.timestamp == f.timestamp
         np.testing.assert_allclose(r.odometry, f.odometry, atol=1e-6)

@@ -30,6 +30,7 @@ record was read and how many were skipped.
 
 from __future__ import annotations
 
+import bisect
 import bz2
 import gzip
 import logging
@@ -220,14 +221,42 @@ def _parse_odom(tokens: list[str], path: Path, lineno: int) -> tuple[float, np.n
     return values[6], np.array(values[:3])
 
 
-def _interpolate_pose(t: float, a: tuple[float, np.ndarray] | None, b: tuple[float, np.ndarray]) -> np.ndarray:
-    """``(x, y, theta)`` at time ``t`` between the odometry readings ``a`` and ``b`` (held outside)."""
-    if a is None or b[0] <= a[0] or t >= b[0]:
-        return b[1] if a is None or t >= b[0] else a[1]
-    w = min(max((t - a[0]) / (b[0] - a[0]), 0.0), 1.0)
-    d = b[1] - a[1]
-    d[2] = math.atan2(math.sin(d[2]), math.cos(d[2]))
-    return a[1] + w * d
+class OdometryTrack:
+    """ODOM readings kept sorted by time, for poses at any scan time [s].
+
+    Loggers write messages in arrival order and their ``ipc_timestamp``s are not always in
+    order (Intel: 11 % of the scans are stamped before the one above them), so each scan's pose
+    is interpolated by time among the recent readings, not between the two lines around it.
+    """
+
+    def __init__(self, keep: int = 512) -> None:
+        self.times: list[float] = []
+        self.poses: list[np.ndarray] = []
+        self.latest = -math.inf  # the newest time read so far
+        self.keep = keep
+
+    def add(self, t: float, pose: np.ndarray) -> None:
+        k = bisect.bisect_right(self.times, t)
+        self.times.insert(k, t)
+        self.poses.insert(k, pose)
+        self.latest = max(self.latest, t)
+        if len(self.times) > 2 * self.keep:  # forget the oldest half
+            del self.times[: self.keep], self.poses[: self.keep]
+
+    def pose_at(self, t: float) -> np.ndarray | None:
+        """``(x, y, theta)`` at ``t``: interpolated, held before the first and after the last reading."""
+        if not self.times:
+            return None
+        k = bisect.bisect_left(self.times, t)
+        if k < len(self.times) and self.times[k] == t:
+            return self.poses[k]
+        if k == 0 or k == len(self.times):
+            return self.poses[min(k, len(self.times) - 1)]
+        (ta, a), (tb, b) = (self.times[k - 1], self.poses[k - 1]), (self.times[k], self.poses[k])
+        w = (t - ta) / (tb - ta)
+        d = b - a
+        d[2] = math.atan2(math.sin(d[2]), math.cos(d[2]))
+        return a + w * d
 
 
 def detect_records(path: Path, max_lines_after_first: int = _DETECT_LINES) -> list[str]:
@@ -323,8 +352,8 @@ class CarmenReader:
         parse = _PARSERS[self.tag]
         needs_odom = self.tag.startswith("RAWLASER")
         index = 0
-        pending: list[tuple[LaserReading, int]] = []  # RAWLASER readings waiting for the next ODOM
-        last_odom: tuple[float, np.ndarray] | None = None
+        pending: list[tuple[LaserReading, int]] = []  # RAWLASER readings newer than every ODOM yet
+        track = OdometryTrack()
         seen: set[str] = set()  # other laser records the log holds
         try:
             with open_text_prefetched(self.path) as fh:
@@ -337,11 +366,11 @@ class CarmenReader:
                         if tag == "ODOM":
                             odom = _parse_odom(tokens, self.path, lineno)
                             if needs_odom:
-                                while pending and pending[0][0].stamp <= odom[0]:
+                                track.add(*odom)
+                                while pending and pending[0][0].stamp <= track.latest:  # in log order
                                     reading, at = pending.pop(0)
-                                    yield self._scan(reading, index, _interpolate_pose(reading.stamp, last_odom, odom), at)
+                                    yield self._scan(reading, index, track.pose_at(reading.stamp), at)
                                     index += 1
-                                last_odom = odom
                             continue
                         if tag != self.tag:
                             if tag in _LASER_TAGS:
@@ -365,8 +394,8 @@ class CarmenReader:
         finally:
             if self.skipped_records:
                 log.info("%s: skipped %d damaged record(s)", self.path.name, self.skipped_records)
-        for reading, at in pending:  # after the last ODOM: hold its pose
-            yield self._scan(reading, index, None if last_odom is None else last_odom[1], at)
+        for reading, at in pending:  # after the last ODOM: hold its pose (None: no ODOM lines)
+            yield self._scan(reading, index, track.pose_at(reading.stamp), at)
             index += 1
         if index == 0:
             others = [k for k in RECORD_PRIORITY if k in seen]
