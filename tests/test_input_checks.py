@@ -83,6 +83,10 @@ def test_odd_size_bin_names_its_real_size_and_can_be_skipped(tmp_path):
     scans = list(reader)
     assert [s.index for s in scans] == [0, 1, 2]
     assert reader.log_info["skipped_records"] == 1 and reader.log_info["skipped_files"] == ["000002.bin"]
+    r = runner.invoke(app, ["run", str(root), "--out", str(tmp_path / "o"), "--skip-bad", "--no-loops"])
+    assert r.exit_code == 0, r.output
+    assert "skipped 1 damaged record(s): 000002.bin" in r.stdout
+    assert json.loads((tmp_path / "o" / "summary.json").read_text())["skipped_files"] == ["000002.bin"]
 
 
 def test_forced_formats_that_do_not_fit_the_path_say_why(tmp_path):

@@ -59,8 +59,10 @@ def register(app: typer.Typer) -> None:
         for problem in result.hint_problems:  # shown without -v: the user asked for these loops
             err_console.print(f"[yellow]warning:[/yellow] {escape(problem)}", highlight=False, soft_wrap=True)
         if s.get("skipped_records"):
-            console.print(f"skipped {s['skipped_records']} damaged record(s), the first at line(s) "
-                          f"{', '.join(map(str, s.get('skipped_record_lines', [])[:5]))}")
+            lines, files = s.get("skipped_record_lines", []), s.get("skipped_files", [])
+            where = f"line(s) {', '.join(map(str, lines[:5]))}" if lines else f"{', '.join(files[:5])}"
+            console.print(f"skipped {s['skipped_records']} damaged record(s): {where}"
+                          f"{' ...' if s['skipped_records'] > 5 else ''}")
         console.print(f"results in {out}")
         if result.input_error:
             more = "" if skip_bad else "; --skip-bad skips damaged records"
