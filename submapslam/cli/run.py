@@ -36,8 +36,8 @@ def register(app: typer.Typer) -> None:
             "--laser", help="CARMEN: the laser record to read: flaser, rlaser, robotlaser1, robotlaser2, "
             "rawlaser1..4 (default: FLASER, else the first kind the log holds).")] = None,
         skip_bad: Annotated[bool, typer.Option(
-            "--skip-bad", help="Skip damaged records (or scan files) and count them in summary.json "
-            "instead of stopping at the first.")] = False,
+            "--skip-bad", help="CARMEN logs and scan folders: skip damaged records (scan files) and "
+            "count them in summary.json instead of stopping at the first.")] = False,
     ) -> None:
         """Build a map and trajectory from LOG; write poses, graph, map and summary into OUT."""
         from ..api import run_log
