@@ -1,12 +1,14 @@
 """CARMEN records besides FLASER: ROBOTLASER1 (own laser and robot poses), RAWLASER1..4 with ODOM,
 the choice between kinds, and skipping damaged records."""
 
+import itertools
 import math
 
 import numpy as np
 import pytest
 
 from submapslam.errors import ConfigError, InputError
+from submapslam.io.compression import open_text
 from submapslam.io.registry import open_log
 
 
@@ -145,56 +147,45 @@ def test_a_folder_given_as_carmen_says_so(tmp_path):
         open_log(tmp_path, "carmen")
 
 
-def _real_flaser_lines(path, count):
-    from submapslam.io.compression import open_text
+def _rewrite_tool():
+    import importlib.util
 
-    out = []
-    with open_text(path) as fh:
-        for line in fh:
-            if line.startswith("FLASER"):
-                out.append(line.split())
-                if len(out) == count:
-                    break
-    return out
+    from .conftest import REPO
+
+    spec = importlib.util.spec_from_file_location("carmen_rewrite_records", REPO / "tools" / "carmen_rewrite_records.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    return tool
 
 
 @pytest.mark.parametrize("name", ["intel.clf.bz2", "fr079.clf.bz2"])
 def test_real_scans_rewritten_as_robotlaser1_and_rawlaser1_read_the_same(tmp_path, name):
     """No log in ../shared/data holds these records: the first real FLASER scans of Intel (180
-    beams) and FR079 (360) are rewritten as ROBOTLASER1 (laser 0.1 m ahead of the base) and as
-    RAWLASER1 + ODOM, and must give the FLASER reading's points and odometry (also where the
-    ipc timestamps run backwards: the ODOM pose is found by time, not by line)."""
-    from submapslam.io.carmen import beam_angles
-
+    beams) and FR079 (360) are rewritten (tools/carmen_rewrite_records.py) as ROBOTLASER1 (laser
+    0.1 m ahead of the base) and as RAWLASER1 + ODOM, and must give the FLASER reading's points
+    and odometry (also where Intel's ipc timestamps run backwards, scans 148-156: the ODOM pose
+    is found by time, not by line)."""
     from .conftest import shared_data
 
-    rows = _real_flaser_lines(shared_data("carmen", name), 200)  # Intel's scans 148-156 are stamped out of order
-    robot, raw = [], []
-    for tok in rows:
-        n = int(tok[1])
-        ranges = [float(v) for v in tok[2: 2 + n]]
-        x, y, t = (float(v) for v in tok[2 + n: 5 + n])
-        ts = float(tok[8 + n])
-        a = beam_angles(n)
-        # ROBOTLASER1's laser sits 0.1 m ahead: move it back so the points land where FLASER's do
-        robot.append(robotlaser_line(ranges, robot=(x, y, t), laser_offset=(0.1, 0.0, 0.0), ts=ts, start=a[0],
-                                     res=a[1] - a[0], max_range=81.9)
-                     .replace(f"{len(ranges)} {' '.join(f'{v:.3f}' for v in ranges)}",
-                              f"{len(ranges)} {' '.join(tok[2: 2 + n])}"))
-        raw += [odom_line(x, y, t, ts), rawlaser_line(ranges, ts, start=a[0], res=a[1] - a[0])]
-    flaser_path = tmp_path / "f.clf"
-    flaser_path.write_text("".join(" ".join(tok) + "\n" for tok in rows))
-    reference = list(open_log(flaser_path))
-    robot_scans = list(open_log(write(tmp_path / "r.clf", robot)))
-    raw_scans = list(open_log(write(tmp_path / "w.clf", raw)))
-    assert len(reference) == len(robot_scans) == len(raw_scans) == 200
+    src = shared_data("carmen", name)
+    tool = _rewrite_tool()
+    head = tmp_path / "head.clf"
+    head.write_text("".join(itertools.islice(open_text(src), 700)))
+    assert tool.main([str(head), str(tmp_path / "r.clf.gz"), "--record", "robotlaser1", "--laser-offset", "0.1"]) == 0
+    assert tool.main([str(head), str(tmp_path / "w.clf"), "--record", "rawlaser1"]) == 0
+    reference = list(open_log(head))
+    robot_reader, raw_reader = open_log(tmp_path / "r.clf.gz"), open_log(tmp_path / "w.clf")
+    robot_scans, raw_scans = list(robot_reader), list(raw_reader)
+    assert robot_reader.log_info["laser_record"] == "ROBOTLASER1" and raw_reader.log_info["laser_record"] == "RAWLASER1"
+    assert len(reference) > 150 and len(reference) == len(robot_scans) == len(raw_scans)
+    if name.startswith("intel"):  # the slice holds the stamps that run backwards
+        assert np.any(np.diff([s.timestamp for s in reference]) < 0)
     for f, r, w in zip(reference, robot_scans, raw_scans):
         assert r.timestamp == f.timestamp and w.timestamp == f.timestamp
         np.testing.assert_allclose(r.odometry, f.odometry, atol=1e-6)
         np.testing.assert_allclose(w.odometry, f.odometry, atol=1e-6)
-        np.testing.assert_allclose(w.points, f.points, atol=1e-3)  # ranges written with 3 decimals
-        assert len(r.points) == len(f.points)
-        np.testing.assert_allclose(r.points - [0.1, 0.0, 0.0], f.points, atol=1e-4)  # angles, poses: 6 decimals
+        np.testing.assert_allclose(w.points, f.points, atol=1e-6)
+        np.testing.assert_allclose(r.points - [0.1, 0.0, 0.0], f.points, atol=1e-5)
 
 
 def test_robotlaser1_logs_are_trajectories_too(tmp_path):
