@@ -225,7 +225,7 @@ class OdometryTrack:
     """ODOM readings kept sorted by time, for poses at any scan time [s].
 
     Loggers write messages in arrival order and their ``ipc_timestamp``s are not always in
-    order (Intel: 11 % of the scans are stamped before the one above them), so each scan's pose
+    order (Intel: 631 of 13,631 scans are stamped before the one above them), so each scan's pose
     is interpolated by time among the recent readings, not between the two lines around it.
     """
 
