@@ -338,3 +338,37 @@ def test_trajectory_files_give_poses_or_one_line(rows, name):
             one_line(exc)
             return
     assert np.isfinite(traj.timestamps).all() and np.isfinite(traj.poses).all()
+
+
+# ------------------------------------------------------------------ landmark logs (ekf)
+VP_LINE = st.one_of(
+    st.builds(lambda i, vals: f"ODOMETRY {i} {i + 1} " + " ".join(vals), st.integers(-2, 5),
+              st.lists(st.one_of(st.sampled_from(["0.1", "0", "-1", "nan", "inf", "1e-3"]), TOKENS),
+                       min_size=0, max_size=11)),
+    st.builds(lambda i, lid, vals: f"LANDMARK {i} {lid} " + " ".join(vals), st.integers(-2, 5), st.integers(0, 3),
+              st.lists(st.one_of(st.sampled_from(["1.0", "0", "-1", "nan", "inf", "0.01"]), TOKENS),
+                       min_size=0, max_size=8)),
+    RANDOM_LINE,
+)
+GOOD_VP = ["ODOMETRY 0 1 0.1 0.0 0.01 0.01 0 0 0.01 0 0.001", "LANDMARK 1 0 5.0 1.0 0.01 0 0.01"]
+
+
+@fuzz(60)
+@given(lines=st.lists(st.one_of(st.sampled_from(GOOD_VP), VP_LINE), max_size=8))
+@example(lines=["ODOMETRY 0 1 nan 0.0 0.01 0.01 0 0 0.01 0 0.001"])
+def test_victoria_park_format_gives_a_landmark_log_or_one_line(lines):
+    from submapslam.io.landmark_logs import read_landmark_log
+
+    with workdir() as d:
+        path = Path(d) / "vp.txt"
+        path.write_text("\n".join(lines) + "\n")
+        try:
+            log = read_landmark_log(path)
+        except SubmapSlamError as exc:
+            one_line(exc)
+            return
+    assert np.isfinite(log.measurement_cov).all() and np.all(np.diag(log.measurement_cov) >= 0)
+    for step in log.steps:
+        assert np.isfinite(step.motion).all() and np.isfinite(step.motion_cov).all()
+        assert np.isfinite(step.ranges_bearings).all()
+        assert np.linalg.eigvalsh(step.motion_cov).min() >= -1e-12
