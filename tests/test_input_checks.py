@@ -144,3 +144,23 @@ def test_one_scan_file_given_as_the_log_names_its_folder(tmp_path):
 def test_ekf_on_a_missing_log_is_one_line(tmp_path):
     r = runner.invoke(app, ["ekf", str(tmp_path / "nope"), "--out", str(tmp_path / "o")])
     assert_one_error_line(r, "nope: no such file or directory")
+
+
+def test_a_nan_in_an_mrclam_table_is_one_line(tmp_path):
+    import shutil
+
+    from submapslam.io.landmark_logs import read_landmark_log
+
+    from .conftest import shared_data
+
+    src = shared_data("landmarks", "utias_mrclam7")
+    folder = tmp_path / "mrclam"
+    shutil.copytree(src, folder)
+    measurements = folder / "Robot1_Measurement.dat"
+    lines = measurements.read_text().splitlines(keepends=True)
+    k = next(i for i, ln in enumerate(lines) if ln.strip() and not ln.startswith("#")) + 3
+    fields = lines[k].split()
+    lines[k] = " ".join([fields[0], fields[1], "nan", *fields[3:]]) + "\n"
+    measurements.write_text("".join(lines))
+    with pytest.raises(InputError, match=rf"Robot1_Measurement\.dat:{k + 1}: NaN/inf value"):
+        read_landmark_log(folder)

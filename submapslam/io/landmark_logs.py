@@ -9,6 +9,7 @@ observations made at the step's end (with known landmark ids when the log gives 
 from __future__ import annotations
 
 import lzma
+import math
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +37,8 @@ def _numeric_table(path: Path, ncols: int) -> np.ndarray:
                     rows.append([float(v) for v in tok[:ncols]])
                 except ValueError:
                     raise InputError(path, f"non-numeric value in {body[:40]!r}", lineno) from None
+                if not all(math.isfinite(v) for v in rows[-1]):
+                    raise InputError(path, f"NaN/inf value in {body[:40]!r}", lineno)
     except (lzma.LZMAError, EOFError, OSError) as exc:
         raise InputError(path, f"cannot read past line {lineno} ({exc}); truncated or corrupt?") from None
     if not rows:
