@@ -125,6 +125,10 @@ def run_log(
             result = run(reader, cfg, progress=lambda n: bar.update(task, completed=n), **options)
     else:
         result = run(reader, cfg, **options)
+    if hint_pairs:
+        from .io.hints import hint_problems
+
+        result.hint_problems = hint_problems(hint_pairs, result.timestamps, result.submap_scan_indices)
     paths: dict[str, Path] = {}
     if out_dir is not None:
         from .io.output_folder import staged_folder
@@ -269,7 +273,8 @@ def evaluate_files(est: str | Path, ref: str | Path, *, align: str = "se3", rela
     CARMEN log when ``ref`` is a corrected one), RPE over consecutive frames, and with
     ``relations`` the relations error (Kümmerle et al. 2009).
 
-    Returns ``{"ate": ate(...), "rpe": rpe(...), "relations": ... or None}``. An unknown
+    Returns ``{"ate": ate(...), "rpe": rpe(...), "relations": ... or None, "warnings": [...]}``
+    (how the poses were paired, when it is doubtful: KITTI files of different lengths). An unknown
     ``align`` fails before any file is read.
     """
     from .evaluation.metrics import Alignment, ate, relations_error, rpe
@@ -278,9 +283,46 @@ def evaluate_files(est: str | Path, ref: str | Path, *, align: str = "se3", rela
     Alignment(align)
     e = read_trajectory(est)
     r = _reference(ref, raw_log)
+    warnings = _pairing_warnings(Path(est), Path(ref), e, r, raw_log, max_diff)
     return {"ate": ate(e, r, align=align, max_diff=max_diff),
             "rpe": rpe(e, r, delta=1, unit="frames", max_diff=max_diff),
-            "relations": relations_error(e, read_relations(relations), max_diff=max_diff) if relations else None}
+            "relations": relations_error(e, read_relations(relations), max_diff=max_diff) if relations else None,
+            "warnings": warnings}
+
+
+def _raw_log_hint(ref: Path, raw_log) -> str | None:
+    """What to say when a CARMEN reference matches the estimate badly and no raw log was given."""
+    from .io.trajectory import trajectory_format
+
+    if raw_log is not None or trajectory_format(ref) != "carmen":
+        return None
+    return (f"if {ref.name} is a corrected log, its timestamps are the raw log's logger time: "
+            "give the raw log with --raw-log (raw_log=)")
+
+
+def _pairing_warnings(est: Path, ref: Path, e, r, raw_log, max_diff: float) -> list[str]:
+    """Warnings about how EST and REF were paired: KITTI files of different lengths (paired by
+    line), a CARMEN reference whose timestamps match few of the estimate's (none: an error that
+    suggests the raw log)."""
+    from .evaluation.metrics import associate
+    from .io.trajectory import trajectory_format
+
+    warnings = []
+    kitti = [p.name for p in (est, ref) if trajectory_format(p) == "kitti"]
+    if kitti and len(e.timestamps) != len(r.timestamps):
+        warnings.append(f"{est.name} has {len(e.timestamps)} poses and {ref.name} {len(r.timestamps)}: "
+                        f"KITTI files ({', '.join(kitti)}) have no timestamps, so poses are paired by line "
+                        f"and only the first {min(len(e.timestamps), len(r.timestamps))} are compared")
+    hint = _raw_log_hint(ref, raw_log)
+    if hint:
+        try:
+            matched = len(associate(e, r, max_diff)[0])
+        except SubmapSlamError as exc:
+            raise SubmapSlamError(f"{exc}; {hint}") from None
+        if matched < 0.5 * len(r.timestamps):
+            warnings.append(f"only {matched} of the {len(r.timestamps)} reference poses match a timestamp "
+                            f"of the estimate; {hint}")
+    return warnings
 
 
 def compare_files(ref: str | Path, estimates: dict[str, str | Path], out_dir: str | Path, *, align: str = "se3",

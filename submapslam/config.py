@@ -16,7 +16,7 @@ from .errors import ConfigError
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 _M = TypeVar("_M", bound=_Strict)
@@ -389,16 +389,45 @@ def load_config(path: str | Path | None) -> PipelineConfig:
         return PipelineConfig()
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        text = path.read_text()
+        data = yaml.safe_load(text)
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such config file") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: cannot read the config file (it is a folder)") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: cannot read the config file ({exc.__class__.__name__})") from None
     except yaml.YAMLError as exc:
-        raise ConfigError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})") from None
+        mark = getattr(exc, "problem_mark", None) or getattr(exc, "context_mark", None)
+        where = f"{path}:{mark.line + 1}" if mark is not None else f"{path}"
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError(f"{where}: not valid YAML ({problem})") from None
     if data is not None and not isinstance(data, dict):
         raise ConfigError(f"{path}: a config file must be a YAML mapping")
-    return config_from_dict(data, str(path))
+    try:
+        return PipelineConfig.model_validate(data or {})
+    except ValidationError as exc:
+        line = _yaml_line(text, exc.errors()[0]["loc"])
+        raise ConfigError(_format_validation_error(exc, f"{path}:{line}" if line else str(path))) from None
+
+
+def _yaml_line(text: str, loc: tuple) -> int | None:
+    """1-based line of the deepest key along ``loc`` (a validation error's path) in YAML ``text``."""
+    try:
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError:
+        return None
+    line = None
+    for part in loc:
+        if not isinstance(node, yaml.MappingNode):
+            break
+        for key, value in node.value:
+            if isinstance(key, yaml.ScalarNode) and key.value == str(part):
+                line, node = key.start_mark.line + 1, value
+                break
+        else:
+            break
+    return line
 
 
 def dump_config(config: PipelineConfig) -> str:

@@ -387,7 +387,7 @@ def run(
                 if n == 0:
                     raise
                 input_error = str(exc)
-                log.warning("stopped reading: %s", exc)
+                log.info("stopped reading: %s", exc)  # the result carries it; the CLI prints it once
                 break
             slam.process_scan(scan)
             n += 1
@@ -405,7 +405,9 @@ def run(
         raise InputError(source or "log", f"holds {n} scans, fewer than the {resume_from.n_scans} of the checkpoint")
     if interrupted and on_checkpoint is not None:
         on_checkpoint(slam.checkpoint(source))
-    return slam.finish(input_error=input_error, source=source, interrupted=interrupted)
+    result = slam.finish(input_error=input_error, source=source, interrupted=interrupted)
+    result.log_info = dict(getattr(scans, "log_info", None) or {})  # the reader's account (record, skips)
+    return result
 
 
 class ReadAhead:
@@ -474,6 +476,6 @@ def _hint_scan(value: float, by_index: bool, stamps: np.ndarray) -> int | None:
     """Scan index of one hint value, or None while that scan has not been read yet."""
     if by_index:
         return int(value) if value < len(stamps) else None
-    if len(stamps) == 0 or value > stamps[-1]:
+    if len(stamps) == 0 or value > stamps[-1] or value < stamps[0] - 1.0:  # before the log: never a scan
         return None
     return int(np.argmin(np.abs(stamps - value)))

@@ -63,6 +63,9 @@ class SlamResult:
         source: the log the scans came from.
         interrupted: the run was stopped (Ctrl-C, SIGTERM) before the end of the log; the
             result covers the scans read until then.
+        log_info: what the reader reports about the log (its ``log_info``: e.g. the CARMEN
+            record read, damaged records skipped), written into ``summary.json``.
+        hint_problems: one message per manual loop hint the log could not use.
     """
 
     timestamps: np.ndarray
@@ -87,6 +90,8 @@ class SlamResult:
     input_error: str | None = None
     source: str = ""
     interrupted: bool = False
+    log_info: dict = field(default_factory=dict)
+    hint_problems: list[str] = field(default_factory=list)
 
     @property
     def n_scans(self) -> int:
@@ -120,4 +125,6 @@ class SlamResult:
             "memory_mb_by_km": [[round(km, 4), round(mb, 1)] for km, mb in self.memory_mb_by_km],
             "input_error": self.input_error,
             "interrupted": self.interrupted,
+            **self.log_info,
+            "hint_problems": list(self.hint_problems),
         }

@@ -6,7 +6,7 @@ A core type: readers in :mod:`submapslam.io` build it, nothing here reads files.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,8 +43,10 @@ class Scan:
 
 @dataclass(frozen=True)
 class LoopHint:
-    """Two scans at the same place: scan indices when ``by_index``, else timestamps [s]."""
+    """Two scans at the same place: scan indices when ``by_index``, else timestamps [s];
+    ``line``: where the hint was given (1-based line of its file), for messages."""
 
     a: float
     b: float
     by_index: bool
+    line: int | None = field(default=None, compare=False)

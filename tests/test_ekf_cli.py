@@ -102,4 +102,4 @@ def test_ekf_reads_credibility_from_the_config_and_options_override_it(tmp_path)
     assert r.exit_code == 0, r.output
     cfg.write_text("ekf:\n  credibilty: {}\n")
     r = CliRunner().invoke(_app(), ["ekf", str(path), "--out", str(tmp_path / "o2"), "--config", str(cfg)])
-    assert_one_error_line(r, "c.yaml: unknown config key 'ekf.credibilty'")
+    assert_one_error_line(r, "c.yaml:2: unknown config key 'ekf.credibilty'")  # with its line

@@ -167,7 +167,8 @@ def test_carmen_laser_choice_is_checked(tmp_path):
     for laser in ("Front", "back", ""):
         with pytest.raises(ConfigError) as err:
             CarmenReader(path, laser=laser)
-        assert str(err.value) == f"unknown CARMEN laser {laser!r}: use front (FLASER lines) or rear (RLASER lines)"
+        assert str(err.value) == (f"unknown CARMEN laser {laser!r}: use one of front, rear, flaser, robotlaser1, "
+                                  "rawlaser1, rlaser, robotlaser2, rawlaser2, rawlaser3, rawlaser4")
     with pytest.raises(ConfigError, match="unknown CARMEN laser 'Front'"):
         open_log(path, "carmen", laser="Front")
     # the two known lasers read their own lines: the rear one starts at +90 degrees

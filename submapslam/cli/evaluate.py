@@ -7,10 +7,11 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from ..errors import SubmapSlamError
-from ._common import Overwrite, console, fail
+from ._common import Overwrite, console, err_console, fail
 
 
 def register(app: typer.Typer) -> None:
@@ -36,6 +37,8 @@ def register(app: typer.Typer) -> None:
             figures = evaluate_files(est, ref, align=align, relations=relations, max_diff=max_diff, raw_log=raw_log)
         except SubmapSlamError as exc:
             raise fail(exc) from None
+        for warning in figures.get("warnings", []):
+            err_console.print(f"[yellow]warning:[/yellow] {escape(warning)}", highlight=False, soft_wrap=True)
         a, p, rel = figures["ate"], figures["rpe"], figures["relations"]
         table = Table(title=f"{est.name} vs {ref.name} ({a['n']} poses, align {align})")
         table.add_column("metric")
@@ -45,7 +48,8 @@ def register(app: typer.Typer) -> None:
         table.add_row("RPE trans [m/frame]", *(f"{p[k]:.4f}" for k in ("rmse", "mean", "median", "std", "max")))
         table.add_row("RPE rot [deg/frame]", *(f"{p['rotation_' + k]:.4f}" for k in ("rmse", "mean", "median", "std", "max")))
         console.print(table)
-        out = {"ate": {k: v for k, v in a.items() if k not in ("errors", "timestamps")}, "rpe": p}
+        out = {"ate": {k: v for k, v in a.items() if k not in ("errors", "timestamps")}, "rpe": p,
+               "warnings": figures.get("warnings", [])}
         if rel is not None:
             console.print(f"relations ({rel['n']}): translation {rel['trans_mean']:.4f} ± {rel['trans_std']:.4f} m, "
                           f"rotation {rel['rot_mean_deg']:.4f} ± {rel['rot_std_deg']:.4f} deg")

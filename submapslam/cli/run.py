@@ -7,9 +7,10 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.markup import escape
 
 from ..errors import SubmapSlamError
-from ._common import Overwrite, console, fail
+from ._common import Overwrite, console, err_console, fail
 from ._interrupt import EXIT_INTERRUPTED, quit_now, stop_requests
 
 
@@ -37,6 +38,12 @@ def register(app: typer.Typer) -> None:
             "--base-frame", help="ROS bag: robot frame the points are moved into through /tf_static "
             "(default: the odometry's child_frame_id, else base_link).")] = None,
         overwrite: Overwrite = False,
+        laser: Annotated[str | None, typer.Option(
+            "--laser", help="CARMEN: the laser record to read: flaser, rlaser, robotlaser1, robotlaser2, "
+            "rawlaser1..4 (default: FLASER, else the first kind the log holds).")] = None,
+        skip_bad: Annotated[bool, typer.Option(
+            "--skip-bad", help="CARMEN logs and scan folders: skip damaged records (scan files) and "
+            "count them in summary.json instead of stopping at the first.")] = False,
     ) -> None:
         """Build a map and trajectory from LOG; write poses, graph, map and summary into OUT.
 
@@ -64,7 +71,8 @@ def register(app: typer.Typer) -> None:
                 result, paths = run_log(log, out, config=config, format=format, hints=hints,
                                         max_scans=max_scans, loops=not no_loops, progress=True,
                                         reader_options={"topic": topic, "odometry_topic": odometry_topic,
-                                                        "base_frame": base_frame},
+                                                        "base_frame": base_frame, "laser": laser,
+                                                        "skip_bad": True if skip_bad else None},
                                         overwrite=overwrite, stop=stop, resume=resume is not None)
         except SubmapSlamError as exc:
             raise fail(exc) from None
@@ -76,10 +84,18 @@ def register(app: typer.Typer) -> None:
             f"{s['scans']} scans, {s['submaps']} submaps, {s['loop_candidates_tested']} loop candidates tested, "
             f"{s['loop_closures_accepted']} accepted; {s['wall_time_total_s']:.1f} s, peak {s['peak_memory_mb']:.0f} MiB"
         )
+        for problem in result.hint_problems:  # shown without -v: the user asked for these loops
+            err_console.print(f"[yellow]warning:[/yellow] {escape(problem)}", highlight=False, soft_wrap=True)
+        if s.get("skipped_records"):
+            lines, files = s.get("skipped_record_lines", []), s.get("skipped_files", [])
+            where = f"line(s) {', '.join(map(str, lines[:5]))}" if lines else f"{', '.join(files[:5])}"
+            console.print(f"skipped {s['skipped_records']} damaged record(s): {where}"
+                          f"{' ...' if s['skipped_records'] > 5 else ''}")
         console.print(f"results in {out}")
         if result.interrupted:
             console.print(f"interrupted: the results cover the first {s['scans']} scans of the log; "
                           f"`submapslam run --resume {out}` continues the run")
             raise typer.Exit(EXIT_INTERRUPTED)
         if result.input_error:
-            raise fail(f"{result.input_error} (results cover the {s['scans']} scans read before it)")
+            more = "" if skip_bad else "; --skip-bad skips damaged records"
+            raise fail(f"{result.input_error} (results cover the {s['scans']} scans read before it{more})")

@@ -14,6 +14,7 @@ Scans are sorted by file name. Per-point times come from a PLY/PCD ``time``/``t`
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -21,9 +22,12 @@ import numpy as np
 import yaml
 
 from ..errors import InputError
+from .cloud_header import check_cloud_file, header_point_count
 from .compression import open_text
 from .registry import register_reader
 from .scan import Scan, apply_mounting, check_transform
+
+log = logging.getLogger(__name__)
 
 SCAN_SUFFIXES = (".bin", ".ply", ".pcd")
 _SUBFOLDERS = ("scans", "Scans", "velodyne", "points", "clouds")
@@ -34,16 +38,25 @@ def _scan_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in SCAN_SUFFIXES and p.is_file())
 
 
-def _find_scans(root: Path) -> tuple[Path, list[Path]]:
-    files = _scan_files(root)
-    if files:
-        return root, files
-    for sub in _SUBFOLDERS:
-        if (root / sub).is_dir():
-            files = _scan_files(root / sub)
-            if files:
-                return root / sub, files
-    raise InputError(root, f"no {'/'.join(SCAN_SUFFIXES)} scans in the folder or its scans/ subfolder")
+def _find_scans(root: Path, warn: bool = True) -> tuple[Path, list[Path]]:
+    """The folder holding the scans (``root`` or a scans subfolder) and its scan files, sorted.
+
+    Where both hold scan files, the one with more wins: a stray ``preview.ply`` beside a
+    ``scans/`` folder does not make a one-scan log.
+    """
+    if not root.is_dir():
+        raise InputError(root, "is a file, not a folder of scans (a CARMEN log is read as --format carmen)")
+    candidates = [(root, _scan_files(root))]
+    candidates += [(root / sub, _scan_files(root / sub)) for sub in _SUBFOLDERS if (root / sub).is_dir()]
+    candidates = [(folder, files) for folder, files in candidates if files]
+    if not candidates:
+        raise InputError(root, f"no {'/'.join(SCAN_SUFFIXES)} scans in the folder or its scans/ subfolder")
+    folder, files = max(candidates, key=lambda c: len(c[1]))  # ties: the first, the folder itself
+    ignored = [f"{len(fs)} in {f.name or f}" for f, fs in candidates if f != folder]
+    if ignored and warn:
+        log.warning("%s: reading the %d scans in %s; ignoring the scan files elsewhere (%s)",
+                    root, len(files), folder.name or folder, ", ".join(ignored))
+    return folder, files
 
 
 def _find_file(names: tuple[str, ...], folders: tuple[Path, ...]) -> Path | None:
@@ -56,9 +69,11 @@ def _find_file(names: tuple[str, ...], folders: tuple[Path, ...]) -> Path | None
 
 def read_bin(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     """KITTI velodyne ``.bin``: float32 ``(x, y, z, intensity)`` records -> ``(N, 3)`` points."""
+    size = path.stat().st_size
+    if size % 16 != 0:
+        raise InputError(path, f"size {size} bytes is not a whole number of 16-byte (float32 x, y, z, "
+                         "intensity) records")
     raw = np.fromfile(path, dtype=np.float32)
-    if raw.size % 4 != 0:
-        raise InputError(path, f"size {raw.size * 4} bytes is not a whole number of float32 x4 records")
     return raw.reshape(-1, 4)[:, :3].astype(np.float64), None
 
 
@@ -69,6 +84,7 @@ def read_cloud(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     o3d = open3d()
     if path.stat().st_size == 0:
         raise InputError(path, "empty file")
+    check_cloud_file(path)  # a header claiming more points than the file holds would stall open3d
     pcd = o3d.t.io.read_point_cloud(str(path))
     if "positions" not in pcd.point:
         raise InputError(path, "no x/y/z points could be read (not a valid PLY/PCD file?)")
@@ -86,11 +102,16 @@ class CloudFolderReader:
 
     name = "cloud_folder"
 
-    def __init__(self, path: Path, sensor_frame: bool = False) -> None:
+    def __init__(self, path: Path, sensor_frame: bool = False, skip_bad: bool = False) -> None:
         """``sensor_frame=True`` leaves the points in the sensor frame (``T_base_sensor`` is
-        still read, e.g. for a converter that stores the mounting separately)."""
+        still read, e.g. for a converter that stores the mounting separately).
+        ``skip_bad=True`` skips unreadable scan files (counted in :attr:`log_info`) instead of
+        stopping at the first with an :class:`InputError`."""
         self.path = Path(path)
         self.scan_dir, self.files = _find_scans(self.path)
+        _refuse_pointless(self.path, self.files)
+        self.skip_bad = skip_bad
+        self.skipped_files: list[str] = []
         folders = (self.path, self.scan_dir)
         self.meta = self._read_meta(_find_file(("meta.yaml",), folders))
         self.planar = bool(self.meta.get("planar", False))
@@ -127,6 +148,8 @@ class CloudFolderReader:
                     values.append(float(tok[0]))
                 except ValueError:
                     raise InputError(path, f"not a timestamp: {tok[0][:30]!r}", lineno) from None
+                if not np.isfinite(values[-1]):
+                    raise InputError(path, f"not a finite timestamp: {tok[0][:30]!r}", lineno)
         times = np.asarray(values)
         if len(times) < len(self.files):
             raise InputError(path, f"{len(times)} timestamps for {len(self.files)} scans")
@@ -142,35 +165,64 @@ class CloudFolderReader:
             raise InputError(path, f"{len(traj.poses)} odometry poses for {len(self.files)} scans")
         return traj.poses[: len(self.files)]
 
+    @property
+    def log_info(self) -> dict:
+        """What ``summary.json`` reports about the reading: the format, scan files skipped."""
+        return {"log_format": self.name, "skipped_records": len(self.skipped_files),
+                "skipped_files": self.skipped_files[:20]}
+
     def __iter__(self) -> Iterator[Scan]:
-        for index, path in enumerate(self.files):
-            if path.suffix.lower() == ".bin":
-                points, times = read_bin(path)
-            else:
-                points, times = read_cloud(path)
-            if times is not None and len(times) == len(points):
+        self.skipped_files = []
+        index = 0
+        for k, path in enumerate(self.files):
+            try:
+                points, times = read_bin(path) if path.suffix.lower() == ".bin" else read_cloud(path)
+            except InputError as exc:
+                if not self.skip_bad:
+                    raise
+                self.skipped_files.append(path.name)
+                log.debug("skipped %s", exc)
+                continue
+            finite = np.all(np.isfinite(points), axis=1)
+            if not finite.all():  # NaN/inf points are no returns
+                if times is not None and len(times) == len(points):
+                    times = times[finite]
+                points = points[finite]
+            if times is not None and len(times) == len(points) and np.all(np.isfinite(times)):
                 span = times.max() - times.min() if len(times) else 0.0
-                times = (times - times.min()) / span if span > 0 else np.zeros_like(times)
+                times = ((times - times.min()) / span if 0 < span < np.inf else np.zeros_like(times))
             else:
                 times = None
             if self._mounted:
                 points = apply_mounting(points, self.T_base_sensor, self.planar)
             yield Scan(
                 index=index,
-                timestamp=float(self.timestamps[index]),
+                timestamp=float(self.timestamps[k]),
                 points=points,
                 point_times=times,
-                odometry=None if self.odometry is None else self.odometry[index],
+                odometry=None if self.odometry is None else self.odometry[k],
                 planar=self.planar,
                 source=str(path.name),
             )
+            index += 1
+        if index == 0 and self.skipped_files:
+            raise InputError(self.path, f"none of the {len(self.files)} scan files could be read")
+
+
+def _refuse_pointless(root: Path, files: list[Path], first: int = 20) -> None:
+    """An :class:`InputError` when no scan file holds a point (header-only files): such a log
+    would make an empty map. Reads the first ``first`` headers, all of them only if those are empty."""
+    for subset in (files[:first], files[first:]):
+        if any(header_point_count(p) != 0 for p in subset):
+            return
+    raise InputError(root, f"none of the {len(files)} scan files holds a point (header-only or empty files)")
 
 
 def _sniff(path: Path) -> bool:
     if not path.is_dir():
         return False
     try:
-        _find_scans(path)
+        _find_scans(path, warn=False)
     except InputError:
         return False
     return True

@@ -9,6 +9,7 @@ observations made at the step's end (with known landmark ids when the log gives 
 from __future__ import annotations
 
 import lzma
+import math
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +37,8 @@ def _numeric_table(path: Path, ncols: int) -> np.ndarray:
                     rows.append([float(v) for v in tok[:ncols]])
                 except ValueError:
                     raise InputError(path, f"non-numeric value in {body[:40]!r}", lineno) from None
+                if not all(math.isfinite(v) for v in rows[-1]):
+                    raise InputError(path, f"NaN/inf value in {body[:40]!r}", lineno)
     except (lzma.LZMAError, EOFError, OSError) as exc:
         raise InputError(path, f"cannot read past line {lineno} ({exc}); truncated or corrupt?") from None
     if not rows:
@@ -154,10 +157,16 @@ def read_victoria_park(path: str | Path) -> LandmarkLog:
                         j = int(tok[2])
                         dx, dy, dth, c11, c12, c13, c22, c23, c33 = map(float, tok[3:12])
                         cov = np.array([[c11, c12, c13], [c12, c22, c23], [c13, c23, c33]])
+                        if not (np.isfinite([dx, dy, dth]).all() and np.isfinite(cov).all()):
+                            raise ValueError("NaN/inf motion or covariance")
+                        if np.linalg.eigvalsh(cov).min() < -1e-12:
+                            raise ValueError("the motion covariance is not positive semi-definite")
                         steps[j] = Step(float(j), np.array([dx, dy, dth]), cov, np.zeros((0, 2)), [])
                     elif tok[0] == "LANDMARK":
                         i, lid = int(tok[1]), int(tok[2])
                         lx, ly, v1 = float(tok[3]), float(tok[4]), float(tok[5])
+                        if not (np.isfinite([lx, ly, v1]).all() and v1 >= 0):
+                            raise ValueError("NaN/inf landmark or a negative variance")
                         step = steps.setdefault(i, Step(float(i), np.zeros(3), np.eye(3) * 1e-12, np.zeros((0, 2)), []))
                         step.ranges_bearings = np.vstack([step.ranges_bearings, [np.hypot(lx, ly), np.arctan2(ly, lx)]])
                         step.ids.append(lid)
@@ -225,6 +234,8 @@ def read_landmark_log(path: str | Path, format: str | None = None, robot: int = 
     file ``victoria``. ``robot`` is the MR.CLAM robot number.
     """
     path = Path(path)
+    if not path.exists():
+        raise InputError(path, "no such file or directory")
     if format is None:
         format = ("cloud" if (path / "scans").is_dir() else "mrclam") if path.is_dir() else "victoria"
     if format == "mrclam":

@@ -56,6 +56,10 @@ def open_log(path: str | Path, format: str | None = None, **options: object) -> 
     for name, (sniff, factory) in _READERS.items():
         if sniff(path):
             return _make(name, factory, path, options)
+    from .cloud_folder import SCAN_SUFFIXES
+
+    if path.is_file() and path.suffix.lower() in SCAN_SUFFIXES:
+        raise UnknownFormatError(path, f"is one scan; a log of scans is the folder holding them ({path.parent})")
     raise UnknownFormatError(
         path,
         "cannot tell the log format from the path; use --format with one of: "

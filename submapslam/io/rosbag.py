@@ -449,8 +449,9 @@ class RosbagReader:
         finally:
             bag.close()
         if self.partial:
-            log.warning("%s: MCAP file without summary/footer (cut off while recording?): "
-                        "reading its data linearly up to the damage", self.path)
+            # info, not a warning: the reading ends in an InputError saying the same, printed once
+            log.info("%s: MCAP file without summary/footer (cut off while recording?): "
+                     "reading its data linearly up to the damage", self.path)
         self.odometry = self._read_odometry() if self.odometry_topic else None
         self.frame_id = self._first_scan_frame()
         self.base_frame = frame_name(base_frame or self.odometry_frame or DEFAULT_BASE_FRAME)

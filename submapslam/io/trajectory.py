@@ -20,7 +20,7 @@ from .compression import base_suffix, open_text
 
 __all__ = [
     "Relations", "Trajectory", "carmen_reference_trajectory", "read_carmen_trajectory", "read_kitti",
-    "read_relations", "read_trajectory", "read_tum", "write_kitti", "write_tum",
+    "read_relations", "read_trajectory", "read_tum", "trajectory_format", "write_kitti", "write_tum",
 ]
 
 
@@ -50,6 +50,10 @@ def read_tum(path: str | Path) -> Trajectory:
     """TUM: ``timestamp tx ty tz qx qy qz qw`` per line, ``#`` comments allowed."""
     path = Path(path)
     rows = _rows(path, (8,))
+    for lineno, r in rows:
+        norm = float(np.linalg.norm(r[4:8]))
+        if not 1e-6 < norm < 1e150:  # normalised below; zero (or overflowing) has no rotation
+            raise InputError(path, f"quaternion qx qy qz qw has length {norm:.3g}: not a rotation", lineno)
     stamps = np.array([r[0] for _, r in rows])
     poses = np.array([pose_from_xyz_quat(r[1:4], r[4:8]) for _, r in rows])
     return Trajectory(stamps, poses)
@@ -85,12 +89,24 @@ def write_kitti(path: str | Path, poses: np.ndarray) -> None:
 
 
 def _carmen_flaser_rows(path: Path) -> list[tuple[float, float, np.ndarray]]:
-    """(ipc_timestamp, logger_timestamp, (x, y, theta)) of every FLASER line."""
-    out = []
+    """(ipc_timestamp, logger_timestamp, (x, y, theta)) of every FLASER line; of every
+    ROBOTLASER1 line (its robot pose) in a log without FLASER lines."""
+    from .carmen import parse_robotlaser
+
+    out, robotlaser = [], []
     with open_text(path) as fh:
         for lineno, line in enumerate(fh, start=1):
             tok = line.split()
-            if not tok or tok[0] != "FLASER":
+            if not tok or tok[0] not in ("FLASER", "ROBOTLASER1"):
+                continue
+            if tok[0] == "ROBOTLASER1":
+                if not out:  # FLASER lines win where both are present
+                    reading = parse_robotlaser(tok, path, lineno)
+                    try:
+                        logger = float(tok[-1])
+                    except ValueError:
+                        raise InputError(path, "malformed ROBOTLASER1 logger timestamp", lineno) from None
+                    robotlaser.append((reading.stamp, logger, reading.robot_pose))
                 continue
             try:
                 n = int(tok[1])
@@ -101,13 +117,14 @@ def _carmen_flaser_rows(path: Path) -> list[tuple[float, float, np.ndarray]]:
             if len(pose) != 3 or not (np.all(np.isfinite(pose)) and math.isfinite(ipc)):
                 raise InputError(path, "malformed FLASER pose", lineno)
             out.append((ipc, logger, pose))
-    if not out:
-        raise InputError(path, "no FLASER lines: not a CARMEN laser log")
-    return out
+    if not out and not robotlaser:
+        raise InputError(path, "no FLASER or ROBOTLASER1 lines: not a CARMEN laser log")
+    return out or robotlaser
 
 
 def read_carmen_trajectory(path: str | Path, timestamp: Literal["ipc", "logger"] = "ipc") -> Trajectory:
-    """Poses of a CARMEN log's FLASER lines (``x y theta``), stamped with ``ipc`` or ``logger`` time."""
+    """Poses of a CARMEN log's FLASER lines (``x y theta``; without FLASER lines the robot pose of
+    its ROBOTLASER1 lines), stamped with ``ipc`` or ``logger`` time."""
     if timestamp not in ("ipc", "logger"):
         raise ConfigError(f"unknown CARMEN timestamp {timestamp!r}: use ipc or logger")
     rows = _carmen_flaser_rows(Path(path))
@@ -145,19 +162,7 @@ def read_trajectory(path: str | Path, format: str | None = None) -> Trajectory:
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "no such trajectory file")
-    fmt = format
-    if fmt is None:
-        if base_suffix(path) in {".clf", ".log", ".carmen"}:
-            fmt = "carmen"
-        else:
-            with open_text(path) as fh:
-                for line in fh:
-                    tok = line.split()
-                    if tok and not tok[0].startswith("#"):
-                        fmt = {8: "tum", 12: "kitti"}.get(len(tok))
-                        if tok[0] in ("FLASER", "ODOM", "PARAM"):
-                            fmt = "carmen"
-                        break
+    fmt = format or trajectory_format(path)
     if fmt == "tum":
         return read_tum(path)
     if fmt == "kitti":
@@ -165,6 +170,21 @@ def read_trajectory(path: str | Path, format: str | None = None) -> Trajectory:
     if fmt == "carmen":
         return read_carmen_trajectory(path)
     raise InputError(path, "unknown trajectory format (expected TUM: 8 columns, KITTI: 12, or a CARMEN log)")
+
+
+def trajectory_format(path: str | Path) -> str | None:
+    """``"tum"``, ``"kitti"`` or ``"carmen"`` from the suffix and the first line's columns (None: unknown)."""
+    path = Path(path)
+    if base_suffix(path) in {".clf", ".log", ".carmen"}:
+        return "carmen"
+    with open_text(path) as fh:
+        for line in fh:
+            tok = line.split()
+            if tok and not tok[0].startswith("#"):
+                if tok[0] in ("FLASER", "ROBOTLASER1", "ODOM", "PARAM"):
+                    return "carmen"
+                return {8: "tum", 12: "kitti"}.get(len(tok))
+    return None
 
 
 def read_relations(path: str | Path) -> Relations:
