@@ -376,6 +376,8 @@ class CarmenReader:
                             if tag in _LASER_TAGS:
                                 seen.add(tag)
                             elif tag not in _KNOWN_TAGS and not tag.isupper():
+                                if "\ufffd" in line or "\x00" in line:  # undecodable bytes
+                                    raise InputError(self.path, "binary data, not a text CARMEN log", lineno)
                                 raise InputError(self.path, f"garbled line starting {tag[:20]!r}", lineno)
                             continue
                         reading = parse(tokens, self.path, lineno)
