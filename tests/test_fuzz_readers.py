@@ -112,6 +112,7 @@ def _replaced(line: str, index: int, token: str) -> str:
 @fuzz(250)
 @given(lines=CARMEN_LINES, laser=st.sampled_from([None, *laser_choices()]), skip_bad=st.booleans())
 @example(lines=[_replaced(GOOD_LINES[1], 14, "²")], laser=None, skip_bad=False)  # a digit int() refuses
+@example(lines=["FLASER 1 2.00 1.0 2.0 0.5 1.0 2.0 0.5 100.000000 host 1.000000"], laser=None, skip_bad=False)
 def test_carmen_reader_gives_scans_or_one_line(lines, laser, skip_bad):
     with workdir() as d:
         path = Path(d) / "log.clf"

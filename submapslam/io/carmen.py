@@ -85,7 +85,7 @@ def beam_angles(n: int, rear: bool = False) -> np.ndarray:
 
     Odd counts (181, 361) include both ends; even counts (180, 360) step 180/n degrees.
     """
-    step = math.pi / (n - 1) if n % 2 == 1 else math.pi / n
+    step = math.pi / (n - 1) if n % 2 == 1 and n > 1 else math.pi / n  # one beam: straight at the start
     start = math.pi / 2 if rear else -math.pi / 2
     return start + step * np.arange(n)
 
