@@ -97,6 +97,9 @@ def test_forced_formats_that_do_not_fit_the_path_say_why(tmp_path):
     r = runner.invoke(app, ["run", str(folder), "--format", "carmen", "--out", str(tmp_path / "o")])
     line = assert_one_error_line(r, "is a folder, not a CARMEN log file")
     assert "compressed" not in line
+    scan = folder / "scans" / "000000.bin"
+    r = runner.invoke(app, ["run", str(scan), "--format", "carmen", "--out", str(tmp_path / "o")])
+    assert_one_error_line(r, "000000.bin:1: binary data, not a text CARMEN log")
 
 
 def test_run_reports_the_record_read_and_takes_laser_and_skip_bad(tmp_path):

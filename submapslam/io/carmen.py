@@ -85,7 +85,7 @@ def beam_angles(n: int, rear: bool = False) -> np.ndarray:
 
     Odd counts (181, 361) include both ends; even counts (180, 360) step 180/n degrees.
     """
-    step = math.pi / (n - 1) if n % 2 == 1 else math.pi / n
+    step = math.pi / (n - 1) if n % 2 == 1 and n > 1 else math.pi / n  # one beam: straight at the start
     start = math.pi / 2 if rear else -math.pi / 2
     return start + step * np.arange(n)
 
@@ -376,6 +376,8 @@ class CarmenReader:
                             if tag in _LASER_TAGS:
                                 seen.add(tag)
                             elif tag not in _KNOWN_TAGS and not tag.isupper():
+                                if "\ufffd" in line or "\x00" in line:  # undecodable bytes
+                                    raise InputError(self.path, "binary data, not a text CARMEN log", lineno)
                                 raise InputError(self.path, f"garbled line starting {tag[:20]!r}", lineno)
                             continue
                         reading = parse(tokens, self.path, lineno)

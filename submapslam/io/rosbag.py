@@ -91,8 +91,8 @@ def _rosbags_errors() -> tuple[type[BaseException], ...]:
     Besides its own error types, its readers hit plain Python errors on damaged bytes: a bare
     ``assert`` on a record's time, ``ord()`` of an empty read (TypeError), a lookup of a corrupt
     connection id (KeyError), an undecodable name (UnicodeDecodeError), a huge corrupt length
-    (OverflowError). They are caught only around calls into rosbags, never around this module's
-    own code, and become :class:`_BagReadError`.
+    (OverflowError, or MemoryError when it asks for petabytes). They are caught only around
+    calls into rosbags, never around this module's own code, and become :class:`_BagReadError`.
     """
     import sqlite3
 
@@ -104,7 +104,7 @@ def _rosbags_errors() -> tuple[type[BaseException], ...]:
 
     return (AnyReaderError, ReaderError1, ReaderError2, SerdeError, TypesysError, sqlite3.Error,
             OSError, EOFError, struct.error, ValueError, KeyError, IndexError, TypeError,
-            AssertionError, OverflowError)
+            AssertionError, OverflowError, MemoryError)
 
 
 def stamp_ns(header) -> int:
