@@ -17,6 +17,7 @@ if TYPE_CHECKING:
     from .ekf.stochastic_map import CredibilityParams
     from .landmark_log import LandmarkLog
     from .localization import LocalizationConfig, LocalizationResult
+    from .observer import RunObserver
 
 log = logging.getLogger(__name__)
 
@@ -41,10 +42,12 @@ def run_log(
     loops: bool = True,
     progress: bool = False,
     reader_options: dict | None = None,
+    observer: RunObserver | None = None,
 ) -> tuple[SlamResult, dict[str, Path]]:
     """Open ``log_path``, run the pipeline, write results to ``out_dir`` (if given).
 
-    ``reader_options`` go to the log reader (ROS bags: ``topic``, ``odometry_topic``).
+    ``reader_options`` go to the log reader (ROS bags: ``topic``, ``odometry_topic``);
+    ``observer`` watches the run (:mod:`submapslam.observer`, e.g. the Rerun live view).
 
     Returns the result and the written paths. Input errors found mid-log keep what was
     computed: results are written and ``result.input_error`` says what stopped the reading.
@@ -75,15 +78,17 @@ def run_log(
         with progress_bar(total) as bar:
             task = bar.add_task("run", total=total)
             result = run(reader, cfg, source=str(log_path), hints=hint_pairs,
-                         progress=lambda n: bar.update(task, completed=n))
+                         progress=lambda n: bar.update(task, completed=n), observer=observer)
     else:
-        result = run(reader, cfg, source=str(log_path), hints=hint_pairs)
+        result = run(reader, cfg, source=str(log_path), hints=hint_pairs, observer=observer)
     paths: dict[str, Path] = {}
     if out_dir is not None:
+        from .io.provenance import input_provenance, write_provenance
         from .io.results import write_results
         from .mapping.global_map import build_map_outputs
 
         paths = write_results(result, out_dir, build_map_outputs(result))
+        paths["input.json"] = write_provenance(out_dir, input_provenance(log_path, result.timestamps))
     return result, paths
 
 
@@ -216,3 +221,33 @@ def compare_files(ref: str | Path, estimates: dict[str, str | Path], out_dir: st
     Alignment(align)
     r = _reference(ref, raw_log)
     return compare_trajectories(r, {label: read_trajectory(p) for label, p in estimates.items()}, out_dir, align=align)
+
+
+def report_run(run_dir: str | Path, out_path: str | Path | None = None, *, ref: str | Path | None = None,
+               raw_log: str | Path | None = None, align: str = "se3") -> Path:
+    """Write the self-contained HTML report of the results folder ``run_dir`` (default
+    ``run_dir/report.html``); with ``ref`` (``raw_log``: the raw CARMEN log when ``ref`` is a
+    corrected one) the error against it. Returns the page's path.
+
+    An existing file at ``out_path`` is replaced only when it is a report this function wrote;
+    anything else is an error, so no file of the user's is overwritten.
+    """
+    from .errors import InputError
+    from .evaluation.html_page import is_report
+    from .evaluation.html_report import write_run_report
+    from .evaluation.metrics import Alignment
+    from .io.run_folder import read_run_folder
+
+    mode = Alignment(align)
+    out = Path(out_path) if out_path is not None else Path(run_dir) / "report.html"
+    if out.exists():
+        if out.is_dir():
+            raise InputError(out, "is a folder; --out takes the path of the .html file to write")
+        with open(out, "rb") as fh:
+            if not is_report(fh.read(2048)):
+                raise InputError(out, "exists and is not a submapslam report; not overwriting it (choose another --out)")
+    if not out.parent.is_dir():
+        raise InputError(out.parent, "no such folder for the report")
+    record = read_run_folder(run_dir)
+    reference = _reference(ref, raw_log) if ref is not None else None
+    return write_run_report(record, out, reference, align=mode, reference_name=Path(ref).name if ref else "reference")

@@ -17,6 +17,7 @@ from .config import PipelineConfig
 from .errors import InputError, SubmapSlamError
 from .geometry import blend_poses_many, inverse
 from .graph_builder import GraphBuilder
+from .observer import RunObserver, notify_closed_submap
 from .odometry import Odometry
 from .process_stats import current_memory_mb, peak_memory_mb
 from .result import LoopRecord, SlamResult
@@ -47,12 +48,15 @@ class SubmapSLAM:
     Frames: the world frame is the pose of the first scan (its odometry pose is identity).
     """
 
-    def __init__(self, config: PipelineConfig | None = None, hints: list[LoopHint] | None = None) -> None:
+    def __init__(self, config: PipelineConfig | None = None, hints: list[LoopHint] | None = None,
+                 observer: RunObserver | None = None) -> None:
         self.config = config or PipelineConfig()
+        self._observer = observer  # optional viewer/logger (observer.py), told about scans, submaps, loops
         self.timer = StageTimer()
         self._t_start = time.perf_counter()
         self._travelled = 0.0  # odometry path length so far [m]
         self.memory_mb_by_km: list[tuple[float, float]] = []  # (km travelled, resident MiB) per closed submap
+        self.scans_by_wall_time: list[tuple[float, int]] = []  # (seconds since start, scans done) per closed submap
         self.planar: bool | None = None
         self._fuse_thinned = False  # 3D: fuse the odometry's thinned scans into submaps (set at the first scan)
         self.map_voxel = self.config.mapping.map_voxel_size or 0.1  # resolved for the log's kind at the first scan
@@ -105,6 +109,8 @@ class SubmapSLAM:
                                            full_scan=frame)
             else:
                 submap = self._builder.add(len(self.timestamps) - 1, T_odom_base, frame)
+        if self._observer is not None:
+            self._observer.on_scan(len(self.timestamps) - 1, scan.timestamp, T_odom_base, scan.points)
         if submap is not None:
             self._close_submap(submap)
 
@@ -156,6 +162,7 @@ class SubmapSLAM:
     def _close_submap(self, submap: Submap, background: bool = True) -> None:
         self._settle()
         self.memory_mb_by_km.append((self._travelled / 1000.0, current_memory_mb()))
+        self.scans_by_wall_time.append((time.perf_counter() - self._t_start, len(self.timestamps)))
         self.submaps.append(submap)
         for idx in submap.scan_indices:
             self._scan_submap[idx] = submap.id
@@ -180,6 +187,9 @@ class SubmapSLAM:
             records = self._loop_closer.process(submap, self.submaps, self._graph_builder.estimate(), hint_pairs)
             self.loops.extend(records)
             self._graph_builder.add_loops(records)
+        if self._observer is not None:
+            notify_closed_submap(self._observer, submap.id, submap.T_odom_anchor, submap.points,
+                                 records if self._loop_closer is not None else [], self._graph_builder.graph.pose)
 
     def _hint_pairs(self) -> list[tuple[int, int]]:
         """Submap pairs of the manual hints whose scans are both in closed submaps."""
@@ -291,6 +301,7 @@ class SubmapSLAM:
             map_voxel_size=self.map_voxel,
             path_length_m=self._travelled,
             memory_mb_by_km=list(self.memory_mb_by_km),
+            scans_by_wall_time=list(self.scans_by_wall_time),
             peak_memory_mb=peak_memory_mb(),
             input_error=input_error,
             source=source,
@@ -304,6 +315,7 @@ def run(
     source: str = "",
     progress: Callable[[int], None] | None = None,
     hints: list[LoopHint] | None = None,
+    observer: RunObserver | None = None,
 ) -> SlamResult:
     """Run the whole pipeline on an iterable of scans (e.g. ``open_log(path)``).
 
@@ -311,7 +323,7 @@ def run(
     the result covers them and carries the message in ``input_error``.
     """
     config = config or PipelineConfig()
-    slam = SubmapSLAM(config, hints)
+    slam = SubmapSLAM(config, hints, observer)
     input_error = None
     n = 0
     with ReadAhead(scans) as iterator:
