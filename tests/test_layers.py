@@ -24,6 +24,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("pipeline", "localization"),
     ("evaluation",),
     ("io",),
+    ("viz",),  # live views (observers), above the engine and evaluation, below the CLI
     ("api", ""),  # "": the package's __init__, the public facade over api/io/pipeline
     ("cli", "__main__"),
 ]

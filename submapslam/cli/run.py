@@ -31,17 +31,28 @@ def register(app: typer.Typer) -> None:
         base_frame: Annotated[str | None, typer.Option(
             "--base-frame", help="ROS bag: robot frame the points are moved into through /tf_static "
             "(default: the odometry's child_frame_id, else base_link).")] = None,
+        view: Annotated[bool, typer.Option("--view", help="Stream the run live to a Rerun viewer (needs submapslam[view]).")] = False,
+        record: Annotated[Path | None, typer.Option(
+            "--record", help="Save the live view as a Rerun .rrd recording (works headless).")] = None,
     ) -> None:
         """Build a map and trajectory from LOG; write poses, graph, map and summary into OUT."""
         from ..api import run_log
+        from ._live_view import open_live_view
 
         try:
-            result, paths = run_log(log, out, config=config, format=format, hints=hints,
-                                    max_scans=max_scans, loops=not no_loops, progress=True,
-                                    reader_options={"topic": topic, "odometry_topic": odometry_topic,
-                                                    "base_frame": base_frame})
+            observer = open_live_view(view, record)
+            try:
+                result, paths = run_log(log, out, config=config, format=format, hints=hints,
+                                        max_scans=max_scans, loops=not no_loops, progress=True,
+                                        reader_options={"topic": topic, "odometry_topic": odometry_topic,
+                                                        "base_frame": base_frame}, observer=observer)
+            finally:
+                if observer is not None:
+                    observer.close()
         except SubmapSlamError as exc:
             raise fail(exc) from None
+        if record is not None:
+            console.print(f"live view recorded in {record} (open it with: rerun {record})")
         # summary.json is written last: its wall time and peak memory include the writing
         s = json.loads(paths["summary.json"].read_text()) if "summary.json" in paths else result.summary()
         console.print(

@@ -14,7 +14,7 @@ from typing import Literal
 import numpy as np
 
 from ..errors import ConfigError, InputError
-from ..geometry import matrix_to_quat, pose_from_xyz_quat, se2_to_matrix
+from ..geometry import matrix_to_quat, poses_from_xyz_quats, se2_to_matrix
 from ..trajectory import Relations, Trajectory
 from .compression import base_suffix, open_text
 
@@ -50,9 +50,8 @@ def read_tum(path: str | Path) -> Trajectory:
     """TUM: ``timestamp tx ty tz qx qy qz qw`` per line, ``#`` comments allowed."""
     path = Path(path)
     rows = _rows(path, (8,))
-    stamps = np.array([r[0] for _, r in rows])
-    poses = np.array([pose_from_xyz_quat(r[1:4], r[4:8]) for _, r in rows])
-    return Trajectory(stamps, poses)
+    values = np.array([r for _, r in rows])
+    return Trajectory(values[:, 0], poses_from_xyz_quats(values[:, 1:4], values[:, 4:8]))
 
 
 def write_tum(path: str | Path, traj: Trajectory) -> None:
