@@ -38,6 +38,12 @@ def test_two_poses_files_from_two_runs_both_get_a_row(tmp_path):
     assert list(rows) == ["runA/poses", "runB/poses", "runA/odometry"]
     # each row is its own file's figures, not the last one written under a shared name
     assert rows["runA/poses"]["ate_rmse"] < rows["runB/poses"]["ate_rmse"] < rows["runA/odometry"]["ate_rmse"]
+    # and the page: one sortable table row per estimate, named the same, with the same ATE
+    html = (out / "report.html").read_text()
+    body = html.split('<table id="compare" class="sortable">')[1].split("</table>")[0]
+    for name, row in rows.items():
+        assert f'<td class="t">{name}</td><td>{row["ate_rmse"]:.4g}</td>' in body
+    assert body.count("<tr ") == 3
 
 
 def test_labels_are_unique_and_readable(tmp_path):
