@@ -162,6 +162,16 @@ def run_ekf_log(
     summary = ekf_summary(data, run, compare=compare, incremental=incremental)
     write_ekf_results(out_dir, run, summary)
     plot_stochastic_map(Path(out_dir) / "landmarks.png", run, data.truth_landmarks or None, data.truth_poses)
+    from .io.provenance import input_provenance, write_provenance
+
+    write_provenance(out_dir, input_provenance(log_path, run.times))
+    if data.truth_poses is not None and len(data.truth_poses) > 1:  # NEES where truth is known (report)
+        from .evaluation.ekf_nees import pose_nees_against_truth
+        from .io.nees_csv import write_nees_csv
+
+        t, nees = pose_nees_against_truth(run.times, run.poses, run.pose_covs, data.truth_times, data.truth_poses)
+        if len(t):
+            write_nees_csv(Path(out_dir) / "nees.csv", t, nees)
     return summary
 
 

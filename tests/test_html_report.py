@@ -133,3 +133,30 @@ def test_report_never_overwrites_a_file_of_the_users(reported_run, tmp_path):
     assert r.exit_code == 0, r.output
     r = runner.invoke(app, ["report", str(tmp_path)])
     assert_one_error_line(r, "not a results folder")
+
+
+def test_pose_nees_against_interpolated_truth():
+    from submapslam.evaluation.ekf_nees import pose_nees_against_truth
+
+    truth_t = np.arange(0.0, 10.0, 1.0)
+    truth = np.stack([truth_t, 2 * truth_t, np.full_like(truth_t, np.pi - 0.05)], axis=1)
+    t = np.array([-1.0, 0.5, 4.25, 9.0, 12.0])  # the first and last lie outside the truth
+    err = np.array([0.1, -0.2, 0.1])  # yaw error across the +-pi seam
+    est = np.stack([t, 2 * t, np.full_like(t, np.pi - 0.05)], axis=1) + err
+    est[:, 2] = (est[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    covs = np.tile(np.diag([0.01, 0.04, 0.0025]), (len(t), 1, 1))
+    times, nees = pose_nees_against_truth(t, est, covs, truth_t, truth)
+    assert np.allclose(times, [0.5, 4.25, 9.0])
+    assert np.allclose(nees, 0.1**2 / 0.01 + 0.2**2 / 0.04 + 0.1**2 / 0.0025)
+
+
+def test_ekf_run_report_shows_landmarks_and_provenance(tmp_path):
+    from datasets_synth.landmarks import generate_landmark_log
+    from submapslam.api import run_ekf_log
+
+    log = generate_landmark_log(tmp_path / "syn.txt", seed=0, laps=1)
+    run_ekf_log(log, tmp_path / "ekf")
+    html = report_run(tmp_path / "ekf").read_text()
+    assert "Stochastic map: landmarks" in html and "Loop hypotheses" not in html
+    assert hashlib.sha256(log.read_bytes()).hexdigest() in html  # a log file is hashed whole
+    assert _map_png(html).std() > 0.05

@@ -115,6 +115,14 @@ def build_run_report(rec: RunRecord, reference: Trajectory | None = None, *, ali
         sections.append(("Stochastic map: landmarks",
                          hp.figure(rf.landmarks_figure(rec), "Features with 3σ ellipses coloured by credibility "
                                    "(red: about to be removed, green: confirmed)", "map")))
+        if rec.pose_nees is not None:
+            t, nees = rec.pose_nees
+            sections.append(("NEES of the robot pose against the truth", hp.figure(
+                rf.pose_nees_figure(t, nees), "NEES per step of this run (3 DOF: a consistent filter averages 3; "
+                "grey: the 95 % band of one step)") + hp.key_values([
+                    ("steps with truth", len(nees)), ("mean NEES", float(np.mean(nees))),
+                    ("median NEES", float(np.median(nees))),
+                    ("share inside the 95 % band", float(np.mean((nees >= 0.2158) & (nees <= 9.348))))])))
         if rec.nees:
             sections.append(("NEES", hp.figure(rf.nees_figure(rec.nees), "Mean NEES of the robot pose per step")
                              + hp.key_values([(k, v) for k, v in rec.nees.items() if not isinstance(v, list)])))

@@ -254,3 +254,18 @@ def nees_figure(nees: dict, dpi: int = 100) -> str:
     ax.set_ylabel("mean NEES")
     ax.legend(fontsize=8)
     return png_data_uri(fig, dpi)
+
+
+def pose_nees_figure(times: np.ndarray, nees: np.ndarray, dpi: int = 100) -> str:
+    """NEES per step of one run (log scale) with the single-step 95 % chi-square band (3 DOF)."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(9, 3.6))
+    t = np.asarray(times) - times[0]
+    ax.axhspan(0.2158, 9.348, color="0.88", label="95 % band (χ², 3 DOF)")
+    ax.plot(t, np.clip(nees, 1e-3, None), lw=0.7, color="#1f5fd0", label="NEES")
+    ax.axhline(3.0, color="k", lw=0.6, ls="--")
+    ax.set_yscale("log")
+    ax.set_xlabel("time since start [s]")
+    ax.set_ylabel("NEES")
+    ax.legend(fontsize=8)
+    return png_data_uri(fig, dpi)

@@ -45,6 +45,7 @@ class RunRecord:
         grid: ``map.pgm`` + ``map.yaml``; cloud: ``map.ply`` ``(M, 3)`` world frame (3D runs).
         landmarks: ``landmarks.csv`` rows (EKF runs: ``id, x, y, var_xx, var_xy, var_yy, credibility``).
         nees: ``nees.json`` (``ekf-nees``) when present.
+        pose_nees: ``nees.csv`` ``(times (K,), NEES (K,))`` of an EKF run against its truth.
     """
 
     folder: str
@@ -59,6 +60,7 @@ class RunRecord:
     cloud: np.ndarray | None = None
     landmarks: list[dict[str, float]] | None = None
     nees: dict | None = None
+    pose_nees: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def kind(self) -> str:

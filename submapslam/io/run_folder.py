@@ -100,6 +100,10 @@ def read_run_folder(folder: str | Path, *, with_cloud: bool = True) -> RunRecord
         rec.loops = _csv_rows(root / "loops.csv")
     if (root / "landmarks.csv").is_file():
         rec.landmarks = [{k: float(v) for k, v in r.items()} for r in _csv_rows(root / "landmarks.csv")]
+    if (root / "nees.csv").is_file():
+        from .nees_csv import read_nees_csv
+
+        rec.pose_nees = read_nees_csv(root / "nees.csv")
     if (root / "map.pgm").is_file() and (root / "map.yaml").is_file():
         meta = yaml.safe_load((root / "map.yaml").read_text())
         rec.grid = GridImage(read_pgm(root / "map.pgm"), np.asarray(meta["origin"][:2], dtype=np.float64),
