@@ -29,14 +29,16 @@ def test_anchor_ellipse_turns_with_the_anchor():
     np.testing.assert_allclose(C[1], np.diag([0.01, 0.09]), atol=1e-12)
 
 
-def test_top_down_image_is_mean_height_per_cell_top_row_up():
+def test_top_down_image_is_the_highest_point_per_cell_top_row_up():
     pts = np.array([[0.05, 0.05, 1.0], [0.06, 0.04, 3.0], [0.95, 0.75, 5.0]])
     img, (x0, x1, y0, y1), cell = top_down_image(pts, max_pixels=10, min_cell=0.1)
     assert cell == 0.1 and np.isclose((x1 - x0) / cell, img.shape[1]) and np.isclose((y1 - y0) / cell, img.shape[0])
     assert img.shape[1] > img.shape[0]  # wider than tall, like the points
-    assert img[-1, 0] == 2.0  # the two low points share the bottom-left cell: their mean height
+    assert img[-1, 0] == 3.0  # the two low points share the bottom-left cell: the higher one
     assert img[0, -1] == 5.0  # the highest-y point is in the top row
     assert np.isfinite(img).sum() == 2
+    cropped, extent, _ = top_down_image(pts, max_pixels=10, min_cell=0.1, bounds=(0.0, 0.5, 0.0, 0.5))
+    assert np.nanmax(cropped) == 3.0 and extent[1] < 0.5  # the far point is cut away
 
 
 def test_ply_points_read_back(tmp_path):

@@ -127,7 +127,8 @@ def build_run_report(rec: RunRecord, reference: Trajectory | None = None, *, ali
             sections.append(("NEES", hp.figure(rf.nees_figure(rec.nees), "Mean NEES of the robot pose per step")
                              + hp.key_values([(k, v) for k, v in rec.nees.items() if not isinstance(v, list)])))
     else:
-        what = "occupancy grid" if rec.grid is not None and rec.cloud is None else "top-down render of map.ply"
+        what = ("occupancy grid" if rec.grid is not None and rec.cloud is None
+                else "map.ply from above (grey: ground, colour: height)")
         sections.append(("Map, trajectory, submaps and loops", hp.figure(
             rf.map_figure(rec), f"The {what}; blue: trajectory, dashed grey: odometry before loop closure, "
             "purple: submap anchors with 3σ ellipses, green: accepted loops, red: rejected hypotheses "

@@ -51,24 +51,53 @@ def _ellipses(ax, centers: np.ndarray, covs: np.ndarray, n_sigma: float, **kw) -
                                         facecolors="none", **kw))
 
 
-def top_down_image(points: np.ndarray, max_pixels: int = 1400, min_cell: float = 0.1
+def top_down_image(points: np.ndarray, max_pixels: int = 1400, min_cell: float = 0.1,
+                   bounds: tuple[float, float, float, float] | None = None
                    ) -> tuple[np.ndarray, tuple[float, float, float, float], float]:
-    """Top-down render of a ``(M, 3)`` cloud: mean height per cell (NaN where empty), row 0 = top.
+    """Top-down render of a ``(M, 3)`` cloud: the highest point's z per cell (NaN where empty),
+    row 0 = top.
 
-    Returns ``(image (rows, cols), extent (x0, x1, y0, y1) [m], cell [m])``; the cell is chosen so
-    the longer side has at most ``max_pixels`` cells.
+    ``bounds`` ``(x0, x1, y0, y1)`` [m] crops the cloud first. Returns ``(image (rows, cols),
+    extent (x0, x1, y0, y1) [m], cell [m])``; the cell is chosen so the longer side has at most
+    ``max_pixels`` cells.
     """
     P = np.asarray(points, dtype=np.float64)
+    if bounds is not None:
+        x0, x1, y0, y1 = bounds
+        P = P[(P[:, 0] >= x0) & (P[:, 0] <= x1) & (P[:, 1] >= y0) & (P[:, 1] <= y1)]
+    if len(P) == 0:
+        return np.full((1, 1), np.nan), (0.0, 1.0, 0.0, 1.0), 1.0
     lo, hi = P[:, :2].min(axis=0), P[:, :2].max(axis=0)
     cell = max(min_cell, float((hi - lo).max()) / max_pixels)
     ij = np.floor((P[:, :2] - lo) / cell).astype(np.int64)
     cols, rows = int(ij[:, 0].max()) + 1, int(ij[:, 1].max()) + 1
     flat = ij[:, 1] * cols + ij[:, 0]
-    count = np.bincount(flat, minlength=rows * cols)
-    zsum = np.bincount(flat, weights=P[:, 2], minlength=rows * cols)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        height = np.where(count > 0, zsum / count, np.nan).reshape(rows, cols)
-    return height[::-1], (lo[0], lo[0] + cols * cell, lo[1], lo[1] + rows * cell), cell
+    order = np.argsort(flat, kind="stable")
+    flat, z = flat[order], P[order, 2]
+    starts = np.flatnonzero(np.r_[True, np.diff(flat) != 0])
+    height = np.full(rows * cols, np.nan)
+    height[flat[starts]] = np.maximum.reduceat(z, starts)
+    return height.reshape(rows, cols)[::-1], (lo[0], lo[0] + cols * cell, lo[1], lo[1] + rows * cell), cell
+
+
+def _draw_cloud(fig, ax, cloud: np.ndarray, path_xy: np.ndarray | None) -> None:
+    """The 3D map from above: cells whose highest point stands < 0.3 m over the ground in grey,
+    the rest coloured by that height; cropped to 20 m around the path when it is known."""
+    bounds = None
+    if path_xy is not None and len(path_xy):
+        (x0, y0), (x1, y1) = path_xy.min(axis=0) - 20.0, path_xy.max(axis=0) + 20.0
+        bounds = (x0, x1, y0, y1)
+    img, extent, _ = top_down_image(cloud, max_pixels=700, min_cell=0.2, bounds=bounds)
+    finite = img[np.isfinite(img)]
+    if not finite.size:
+        return
+    ground = float(np.percentile(finite, 10))
+    rel = img - ground
+    ax.imshow(np.where(rel < 0.3, 0.8, np.nan), extent=extent, cmap="gray", vmin=0, vmax=1, interpolation="nearest")
+    top = max(float(np.percentile(rel[np.isfinite(rel)], 99)), 1.0)
+    im = ax.imshow(np.where(rel >= 0.3, rel, np.nan), extent=extent, cmap="viridis", vmin=0.3, vmax=top,
+                   interpolation="nearest")
+    fig.colorbar(im, ax=ax, shrink=0.6, label="height over the ground of the highest map point [m]")
 
 
 def map_figure(rec: RunRecord, dpi: int = 100) -> str:
@@ -80,11 +109,7 @@ def map_figure(rec: RunRecord, dpi: int = 100) -> str:
     if rec.grid is not None and (rec.cloud is None or len(rec.cloud) == 0):
         _draw_grid(ax, rec.grid)
     elif rec.cloud is not None and len(rec.cloud):
-        img, extent, _ = top_down_image(rec.cloud)
-        finite = img[np.isfinite(img)]
-        lo, hi = (np.percentile(finite, [2, 98]) if finite.size else (0.0, 1.0))
-        im = ax.imshow(img, extent=extent, cmap="viridis", vmin=lo, vmax=max(hi, lo + 1e-3), interpolation="nearest")
-        fig.colorbar(im, ax=ax, shrink=0.6, label="mean height of the map points [m]")
+        _draw_cloud(fig, ax, rec.cloud, rec.poses.positions[:, :2] if rec.poses is not None else None)
     if rec.odometry is not None:
         ax.plot(rec.odometry.positions[:, 0], rec.odometry.positions[:, 1], color="0.55", lw=0.7, ls="--",
                 label="odometry (before loop closure)")
