@@ -13,6 +13,7 @@ when a view is made, and its absence is a :class:`~submapslam.errors.ConfigError
 
 from __future__ import annotations
 
+import logging
 import threading
 from pathlib import Path
 
@@ -23,6 +24,8 @@ from ..geometry import transform_points
 from ..observer import RunObserver
 from ..result import LoopRecord
 
+log = logging.getLogger(__name__)
+
 
 def _rerun():
     try:
@@ -30,6 +33,22 @@ def _rerun():
     except ImportError:
         raise ConfigError("the live view needs rerun-sdk: pip install 'submapslam[view]' (or rerun-sdk)") from None
     return rerun
+
+
+def _spawn_viewer(stream) -> None:
+    """Start the Rerun viewer (the ``rerun`` executable the SDK installs beside this Python,
+    found even when the venv is not activated)."""
+    import os
+    import sys
+
+    bindir = str(Path(sys.executable).parent)
+    if bindir not in os.environ.get("PATH", "").split(os.pathsep):
+        os.environ["PATH"] = bindir + os.pathsep + os.environ.get("PATH", "")
+    try:
+        stream.spawn(connect=False)
+    except RuntimeError as exc:
+        raise ConfigError(f"could not start the Rerun viewer ({str(exc).splitlines()[0]}); "
+                          "on a machine without a display use --record FILE.rrd instead") from None
 
 
 class RerunView(RunObserver):
@@ -44,10 +63,14 @@ class RerunView(RunObserver):
         rr = _rerun()
         self._rr = rr
         self.stream = rr.RecordingStream(application_id)
-        if record is not None:
-            self.stream.save(str(record))
         if spawn:
-            self.stream.spawn(connect=True) if record is None else self.stream.spawn(connect=False)
+            _spawn_viewer(self.stream)
+            if record is not None:  # both: send to the viewer and to the file
+                self.stream.set_sinks(rr.GrpcSink(), rr.FileSink(str(record)))
+            else:
+                self.stream.connect_grpc()
+        else:
+            self.stream.save(str(record))
         self.max_scan_points = max_scan_points
         self.trajectory_every = 25  # scans between re-sends of the whole trajectory line
         self.scan_every = max(1, int(scan_every))
@@ -113,5 +136,8 @@ class RerunView(RunObserver):
         """Send the last trajectory, flush and close the stream (the ``.rrd`` is complete after this)."""
         with self._lock:
             self._log_trajectory()
-        self.stream.flush()
+        try:
+            self.stream.flush()
+        except RuntimeError as exc:  # a viewer that went away (closed, or no display) loses nothing of the run
+            log.warning("live view: %s", str(exc).splitlines()[0])
         self.stream.disconnect()
