@@ -25,8 +25,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def timed(cmd: list[str]) -> tuple[float, float]:
-    """Run ``cmd`` in a child process; return (wall seconds, its peak resident MiB)."""
+def timed(cmd: list[str]) -> tuple[float, float, float]:
+    """Run ``cmd`` in a child process; return (wall seconds, CPU seconds user + system, its peak
+    resident MiB)."""
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
@@ -34,7 +35,7 @@ def timed(cmd: list[str]) -> tuple[float, float]:
     wall = time.perf_counter() - t0
     if os.waitstatus_to_exitcode(status) != 0:
         raise SystemExit(f"failed: {' '.join(cmd)}\n{proc.stderr.read().decode()[-2000:]}")
-    return wall, usage.ru_maxrss / 1024.0
+    return wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024.0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -52,8 +53,8 @@ def main(argv: list[str] | None = None) -> int:
     run_cmd = [*cli, "run", str(args.log), "--out", str(run_dir)]
     if args.max_scans:
         run_cmd += ["--max-scans", str(args.max_scans)]
-    run_wall, run_mem = timed(run_cmd)
-    rows = [("run", run_wall, run_mem, None)]
+    run_wall, run_cpu, run_mem = timed(run_cmd)
+    rows = [("run", run_wall, run_cpu, run_mem, None)]
     variants = [("report", [])]
     if args.reference:
         ref = ["--ref", str(args.reference)] + (["--raw-log", str(args.raw)] if args.raw else [])
@@ -62,20 +63,24 @@ def main(argv: list[str] | None = None) -> int:
         page = args.out / f"{name.replace(' ', '').replace('--', '_')}.html"
         if page.exists():
             page.unlink()
-        times, mems = [], []
+        times, cpus, mems = [], [], []
         for _ in range(max(1, args.repeat)):
-            wall, mem = timed([*cli, "report", str(run_dir), "--out", str(page), *extra])
+            wall, cpu, mem = timed([*cli, "report", str(run_dir), "--out", str(page), *extra])
             times.append(wall)
+            cpus.append(cpu)
             mems.append(mem)
-        rows.append((name, statistics.median(times), max(mems), page.stat().st_size))
+        rows.append((name, statistics.median(times), statistics.median(cpus), max(mems), page.stat().st_size))
     summary = json.loads((run_dir / "summary.json").read_text())
     print(f"{summary['scans']} scans, {summary['submaps']} submaps, {summary['loop_candidates_tested']} hypotheses; "
           f"report times: median of {args.repeat}; this process's children peak {resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024:.0f} MiB")
-    print("| step | wall time [s] | share of the run | peak memory [MiB] | file size [MB] |")
-    print("|---|---|---|---|---|")
-    for name, wall, mem, size in rows:
+    print("| step | wall time [s] | share of the run's wall time | CPU time [s] | share of the run's CPU time "
+          "| peak memory [MiB] | file size [MB] |")
+    print("|---|---|---|---|---|---|---|")
+    for name, wall, cpu, mem, size in rows:
         share = "–" if name == "run" else f"{100 * wall / run_wall:.1f} %"
-        print(f"| {name} | {wall:.2f} | {share} | {mem:.0f} | {'–' if size is None else f'{size / 1e6:.2f}'} |")
+        cpu_share = "–" if name == "run" else f"{100 * cpu / run_cpu:.1f} %"
+        print(f"| {name} | {wall:.2f} | {share} | {cpu:.2f} | {cpu_share} | {mem:.0f} | "
+              f"{'–' if size is None else f'{size / 1e6:.2f}'} |")
     return 0
 
 
