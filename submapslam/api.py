@@ -258,6 +258,16 @@ def report_run(run_dir: str | Path, out_path: str | Path | None = None, *, ref: 
                 raise InputError(out, "exists and is not a submapslam report; not overwriting it (choose another --out)")
     if not out.parent.is_dir():
         raise InputError(out.parent, "no such folder for the report")
-    record = read_run_folder(run_dir)
-    reference = _reference(ref, raw_log) if ref is not None else None
-    return write_run_report(record, out, reference, align=mode, reference_name=Path(ref).name if ref else "reference")
+    if ref is None:
+        return write_run_report(read_run_folder(run_dir), out, None, align=mode)
+    from concurrent.futures import ThreadPoolExecutor
+
+    # the reference is read (decompressed: bz2/gzip release the GIL) while the map is drawn
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="reference") as pool:
+        reference = pool.submit(_reference, ref, raw_log)
+        try:
+            record = read_run_folder(run_dir)
+        except BaseException:
+            reference.cancel()
+            raise
+        return write_run_report(record, out, reference.result, align=mode, reference_name=Path(ref).name)

@@ -133,6 +133,12 @@ def test_report_never_overwrites_a_file_of_the_users(reported_run, tmp_path):
     assert r.exit_code == 0, r.output
     r = runner.invoke(app, ["report", str(tmp_path)])
     assert_one_error_line(r, "not a results folder")
+    bad = tmp_path / "bad_tum.txt"
+    bad.write_text("1.0 2.0 3.0\n")
+    before = page.read_bytes()
+    r = runner.invoke(app, ["report", str(run), "--ref", str(bad), "--out", str(page)])
+    assert_one_error_line(r, "bad_tum.txt")
+    assert page.read_bytes() == before  # nothing written when the reference is unreadable
 
 
 def test_pose_nees_against_interpolated_truth():

@@ -9,6 +9,7 @@ Takes a :class:`~submapslam.evaluation.run_record.RunRecord` (read by
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -106,9 +107,13 @@ def _provenance(rec: RunRecord) -> str:
         ("first / last timestamp", f"{p.get('first_timestamp')} / {p.get('last_timestamp')}")])
 
 
-def build_run_report(rec: RunRecord, reference: Trajectory | None = None, *, align: AlignMode = Alignment.SE3,
-                     reference_name: str = "reference") -> str:
-    """The report page of ``rec`` as HTML text; with ``reference`` the error sections too."""
+def build_run_report(rec: RunRecord, reference: Trajectory | Callable[[], Trajectory] | None = None, *,
+                     align: AlignMode = Alignment.SE3, reference_name: str = "reference") -> str:
+    """The report page of ``rec`` as HTML text; with ``reference`` the error sections too.
+
+    ``reference`` may be a callable that returns it (e.g. a future's ``result``): it is called
+    only after the map is drawn, so a reference read in a background thread overlaps the drawing.
+    """
     mode = Alignment(align)
     sections: list[tuple[str, str]] = [("Overview", _overview(rec))]
     if rec.kind == "ekf":
@@ -133,6 +138,8 @@ def build_run_report(rec: RunRecord, reference: Trajectory | None = None, *, ali
             rf.map_figure(rec), f"The {what}; blue: trajectory, dashed grey: odometry before loop closure, "
             "purple: submap anchors with 3σ ellipses, green: accepted loops, red: rejected hypotheses "
             "(reasons in the table below)", "map")))
+    if callable(reference):
+        reference = reference()
     if reference is not None and rec.poses is not None:
         series = {"submapslam" if rec.kind != "ekf" else "EKF": rec.poses}
         if rec.odometry is not None:
@@ -164,7 +171,8 @@ def build_run_report(rec: RunRecord, reference: Trajectory | None = None, *, ali
     return hp.page(title, subtitle, sections)
 
 
-def write_run_report(rec: RunRecord, out_path: str | Path, reference: Trajectory | None = None, *,
+def write_run_report(rec: RunRecord, out_path: str | Path,
+                     reference: Trajectory | Callable[[], Trajectory] | None = None, *,
                      align: AlignMode = Alignment.SE3, reference_name: str = "reference") -> Path:
     """Write :func:`build_run_report`'s page to ``out_path``; return the path."""
     out = Path(out_path)
