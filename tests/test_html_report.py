@@ -9,6 +9,7 @@ import json
 import re
 import shutil
 import subprocess
+from html import escape as html_escape
 
 import numpy as np
 import pytest
@@ -60,7 +61,7 @@ def test_page_holds_what_the_run_wrote(reported_run):
     assert len(rows) == len(loops)
     for row, lp in zip(rows, loops):  # same order, same pair, same reason
         cells = re.findall(r"<td[^>]*>(.*?)</td>", row)
-        assert cells[0] == lp["submap_i"] and cells[1] == lp["submap_j"] and cells[7] == lp["reason"].replace("<", "&lt;").replace(">", "&gt;")
+        assert cells[0] == lp["submap_i"] and cells[1] == lp["submap_j"] and cells[7] == html_escape(lp["reason"])
     if kind == "2d":
         assert len(loops) > 0, "the 2D lap must test loop hypotheses"
     # the error table carries the ATE the eval command computes, for the run and its odometry
