@@ -230,7 +230,8 @@ def compare_files(ref: str | Path, estimates: dict[str, str | Path], out_dir: st
 
     Alignment(align)
     r = _reference(ref, raw_log)
-    return compare_trajectories(r, {label: read_trajectory(p) for label, p in estimates.items()}, out_dir, align=align)
+    return compare_trajectories(r, {label: read_trajectory(p) for label, p in estimates.items()}, out_dir, align=align,
+                                reference_name=Path(ref).name)
 
 
 def report_run(run_dir: str | Path, out_path: str | Path | None = None, *, ref: str | Path | None = None,

@@ -43,6 +43,7 @@ def test_two_poses_files_from_two_runs_both_get_a_row(tmp_path):
     body = html.split('<table id="compare" class="sortable">')[1].split("</table>")[0]
     for name, row in rows.items():
         assert f'<td class="t">{name}</td><td>{row["ate_rmse"]:.4g}</td>' in body
+    assert "<th>ATE RMSE [m]</th>" in body and "reference: truth_tum.txt" in html
     assert body.count("<tr ") == 3
 
 

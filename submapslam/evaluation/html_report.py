@@ -192,7 +192,10 @@ def build_comparison_report(reference: Trajectory, estimates: dict[str, Trajecto
     from .metrics import associate
 
     mode = Alignment(mode)
-    header = ["trajectory", *next(iter(rows.values()))] if rows else ["trajectory"]
+    names = {"ate_rmse": "ATE RMSE [m]", "ate_mean": "ATE mean [m]", "ate_max": "ATE max [m]",
+             "rpe_trans_rmse": "RPE [m/frame]", "rpe_rot_rmse_deg": "RPE [deg/frame]",
+             "segment_trans_percent": "segment [%]", "segment_rot_deg_per_m": "segment [deg/m]"}
+    header = ["trajectory", *(names.get(k, k) for k in next(iter(rows.values())))] if rows else ["trajectory"]
     table = hp.table(header, [[name, *row.values()] for name, row in rows.items()], ident="compare")
     fig, ax = plt.subplots(figsize=(9, 9))
     ax.plot(reference.positions[:, 0], reference.positions[:, 1], "k-", lw=1.2, label=reference_name)
@@ -233,5 +236,5 @@ def build_comparison_report(reference: Trajectory, estimates: dict[str, Trajecto
     sections = [("Figures (click a column to sort)", table), ("Trajectories", f'<div class="figs">{overlay}</div>'),
                 ("Side by side", side), ("Error along the path", along)]
     return hp.page(f"Trajectory comparison ({len(estimates)} estimates)",
-                   f"reference {reference_name}; {mode} alignment; made {time.strftime('%Y-%m-%d %H:%M:%S')}",
+                   f"reference: {reference_name}; {mode} alignment; made {time.strftime('%Y-%m-%d %H:%M:%S')}",
                    sections)

@@ -27,7 +27,7 @@ class ComparisonResult:
 
 
 def compare_trajectories(reference: Trajectory, estimates: dict[str, Trajectory], out_dir: str | Path,
-                         align: AlignMode = Alignment.SE3) -> ComparisonResult:
+                         align: AlignMode = Alignment.SE3, reference_name: str = "reference") -> ComparisonResult:
     """Write ``report.md``, ``report.json``, ``trajectories.png``, ``ate.png`` and ``report.html``
     (one self-contained page: sortable table, every estimate side by side and overlaid) into ``out_dir``.
 
@@ -91,5 +91,6 @@ def compare_trajectories(reference: Trajectory, estimates: dict[str, Trajectory]
     from .html_report import build_comparison_report
 
     files["report.html"] = out / "report.html"
-    files["report.html"].write_text(build_comparison_report(reference, estimates, rows, align), encoding="utf-8")
+    files["report.html"].write_text(build_comparison_report(reference, estimates, rows, align, reference_name),
+                                     encoding="utf-8")
     return ComparisonResult(rows, markdown, files)
