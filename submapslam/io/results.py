@@ -25,9 +25,9 @@ def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs) -> 
 
     Files: ``poses_tum.txt``, ``poses_kitti.txt``, ``odometry_tum.txt``, ``graph.g2o``,
     ``map.ply``, ``config.yaml``, ``summary.json``, ``loops.csv``, ``submaps.csv`` (anchor poses,
-    marginal standard deviations and the x-y covariance in the anchor frame, for ellipses), and for planar runs ``map.pgm`` + ``map.yaml`` (occupancy
-    grid in the ROS map_server format, moving objects cleared; for 3D LiDAR from the
-    obstacle slice of each scan).
+    marginal standard deviations and the x-y covariance in the anchor frame, for ellipses), and
+    for planar runs ``map.pgm`` + ``map.yaml`` (occupancy grid in the ROS map_server format,
+    moving objects cleared; for 3D LiDAR from the obstacle slice of each scan).
     """
     t_start = time.perf_counter()
     out = Path(out_dir)
