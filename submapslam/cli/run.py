@@ -31,7 +31,7 @@ def register(app: typer.Typer) -> None:
         base_frame: Annotated[str | None, typer.Option(
             "--base-frame", help="ROS bag: robot frame the points are moved into through /tf_static "
             "(default: the odometry's child_frame_id, else base_link).")] = None,
-        view: Annotated[bool, typer.Option("--view", help="Stream the run live to a Rerun viewer (needs submapslam[view]).")] = False,
+        view: Annotated[bool, typer.Option("--view", help="Stream the run live to a Rerun viewer (needs rerun-sdk: the view extra).")] = False,
         record: Annotated[Path | None, typer.Option(
             "--record", help="Save the live view as a Rerun .rrd recording (works headless).")] = None,
     ) -> None:

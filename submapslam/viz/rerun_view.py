@@ -35,7 +35,7 @@ def _rerun():
     return rerun
 
 
-def _spawn_viewer(stream) -> None:
+def _spawn_viewer(stream, port: int = 9876, wait_s: float = 10.0) -> None:
     """Start the Rerun viewer (the ``rerun`` executable the SDK installs beside this Python,
     found even when the venv is not activated)."""
     import os
@@ -45,10 +45,24 @@ def _spawn_viewer(stream) -> None:
     if bindir not in os.environ.get("PATH", "").split(os.pathsep):
         os.environ["PATH"] = bindir + os.pathsep + os.environ.get("PATH", "")
     try:
-        stream.spawn(connect=False)
+        stream.spawn(port=port, connect=False)
     except RuntimeError as exc:
         raise ConfigError(f"could not start the Rerun viewer ({str(exc).splitlines()[0]}); "
                           "on a machine without a display use --record FILE.rrd instead") from None
+    # a viewer that dies at once (no display) would leave the stream waiting for it: check it listens
+    import socket
+    import time
+
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.5):
+                return
+        except OSError:
+            if time.monotonic() > deadline:
+                raise ConfigError(f"the Rerun viewer did not start listening on port {port} within {wait_s:.0f} s "
+                                  "(no display?); use --record FILE.rrd and open it with `rerun FILE.rrd`") from None
+            time.sleep(0.2)
 
 
 class RerunView(RunObserver):
