@@ -60,3 +60,17 @@ def test_provenance_of_a_file_and_a_folder(tmp_path):
     (folder / "sub" / "0.bin").write_bytes(b"12345")  # a size change changes the listing hash
     assert input_provenance(folder, np.array([0.0]))["sha256"] != first["sha256"] and first["files"] == 1
     assert json.loads(write_provenance(tmp_path, doc).read_text()) == doc
+
+
+def test_svg_chart_places_points_on_its_axes():
+    import re
+
+    from submapslam.evaluation.html_page import _ticks, svg_line_chart
+
+    assert _ticks(0.0, 10.0) == [0.0, 2.0, 4.0, 6.0, 8.0, 10.0]
+    svg = svg_line_chart([0.0, 10.0], [0.0, 100.0], xlabel="t [s]", ylabel="n", width=200, height=160)
+    pts = re.search(r'<polyline points="([^"]+)"', svg).group(1).split()
+    (ax, ay), (bx, by) = (tuple(map(float, p.split(","))) for p in pts)
+    assert ax == 58 and bx == 200 - 12  # first point on the left axis, last on the right edge
+    assert ay == 160 - 42 and by < ay  # y grows upwards
+    assert "t [s]" in svg and svg.count("<text") >= 6

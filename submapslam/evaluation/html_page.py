@@ -113,3 +113,72 @@ def page(title: str, subtitle: str, sections: Iterable[tuple[str, str]]) -> str:
 def is_report(head: bytes) -> bool:
     """Whether a file starting with ``head`` (its first kilobyte or so) is a page this module wrote."""
     return f'content="{GENERATOR}"'.encode() in head
+
+
+def _ticks(lo: float, hi: float, n: int = 5) -> list[float]:
+    """About ``n`` round tick values covering ``[lo, hi]``."""
+    import math
+
+    span = max(hi - lo, 1e-12)
+    raw = span / n
+    step = 10 ** math.floor(math.log10(raw))
+    for m in (1, 2, 2.5, 5, 10):
+        if raw <= m * step:
+            step *= m
+            break
+    first = math.ceil(lo / step) * step
+    return [first + k * step for k in range(int((hi - first) / step + 1e-9) + 1)]
+
+
+def svg_line_chart(x: Sequence[float], y: Sequence[float], *, xlabel: str, ylabel: str, color: str = "#d65f00",
+                   step: bool = False, hline: float | None = None, width: int = 440, height: int = 260) -> str:
+    """A small line chart as inline SVG (no plotting library): axes with round ticks, the line
+    (``step``: held until the next x), an optional dashed horizontal line (e.g. a peak)."""
+    import numpy as np
+
+    X, Y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    left, right, top, bottom = 58, 12, 10, 42
+    w, h = width - left - right, height - top - bottom
+    x0, x1 = float(X.min()), float(X.max()) if X.max() > X.min() else float(X.min()) + 1.0
+    y_hi = max(float(Y.max()), hline or -np.inf)
+    y0, y1 = min(0.0, float(Y.min())), y_hi * 1.05 if y_hi > 0 else 1.0
+
+    def px(v):
+        return left + (v - x0) / (x1 - x0) * w
+
+    def py(v):
+        return top + h - (v - y0) / (y1 - y0) * h
+
+    if step and len(X) > 1:
+        pts = [(X[0], Y[0])]
+        for k in range(1, len(X)):
+            pts += [(X[k], Y[k - 1]), (X[k], Y[k])]
+    else:
+        pts = list(zip(X, Y))
+    line = " ".join(f"{px(a):.1f},{py(b):.1f}" for a, b in pts)
+    parts = [f'<svg width="{width}" height="{height}" font-size="11" '
+             f'font-family="sans-serif"><rect x="{left}" y="{top}" width="{w}" height="{h}" fill="none" stroke="#444"/>']
+    for t in _ticks(x0, x1):
+        parts.append(f'<line x1="{px(t):.1f}" x2="{px(t):.1f}" y1="{top + h}" y2="{top + h + 4}" stroke="#444"/>'
+                     f'<text x="{px(t):.1f}" y="{top + h + 16}" text-anchor="middle">{t:g}</text>')
+    for t in _ticks(y0, y1):
+        parts.append(f'<line x1="{left}" x2="{left + w}" y1="{py(t):.1f}" y2="{py(t):.1f}" stroke="#e4e4e4"/>'
+                     f'<text x="{left - 6}" y="{py(t) + 4:.1f}" text-anchor="end">{t:g}</text>')
+    if hline is not None:
+        parts.append(f'<line x1="{left}" x2="{left + w}" y1="{py(hline):.1f}" y2="{py(hline):.1f}" stroke="#777" '
+                     f'stroke-dasharray="5,3"/><text x="{left + w - 4}" y="{py(hline) - 4:.1f}" text-anchor="end">'
+                     f"peak {hline:g}</text>")
+    parts.append(f'<polyline points="{line}" fill="none" stroke="{color}" stroke-width="1.5"/>')
+    parts.append(f'<text x="{left + w / 2}" y="{height - 6}" text-anchor="middle">{esc(xlabel)}</text>'
+                 f'<text transform="translate(14,{top + h / 2}) rotate(-90)" text-anchor="middle">{esc(ylabel)}</text>')
+    return "".join(parts) + "</svg>"
+
+
+def bar_rows(items: Sequence[tuple[str, float]], unit: str) -> str:
+    """A table of names and values with a CSS bar proportional to each value (no image)."""
+    top = max((v for _, v in items), default=0.0) or 1.0
+    rows = "".join(f'<tr><td class="t">{esc(k)}</td><td>{v:.3g}</td><td class="t" style="width:320px">'
+                   f'<div style="background:#4878cf;height:11px;width:{100 * v / top:.1f}%"></div></td></tr>'
+                   for k, v in items)
+    return (f'<table class="sortable"><thead><tr><th class="t">stage</th><th>{esc(unit)}</th><th class="t"></th>'
+            f"</tr></thead><tbody>{rows}</tbody></table>")

@@ -91,6 +91,32 @@ def _loop_table(rec: RunRecord) -> str:
     return filters + hp.table(header, rows, ident="loops", text_columns=(2, 3, 7), row_attrs=attrs)
 
 
+def _performance(summary: dict) -> str:
+    """Stage wall times as bars, scans/s along the run and memory along the path as inline SVG
+    charts (drawn without matplotlib: a third of a second less per report)."""
+    stages = summary.get("wall_time_s") or {}
+    html = hp.bar_rows(sorted(stages.items(), key=lambda kv: -kv[1]), "wall time [s]")
+    html += ('<p class="sub">Stages overlap: a closed submap\'s graph work (odometry edge, loop tests, iSAM2) '
+             "runs beside the next scans' registration, so they add up to more than the wall time "
+             f"({hp.fmt(summary.get('wall_time_total_s'))} s).</p>")
+    charts = []
+    progress = np.asarray(summary.get("scans_by_wall_time_s") or [], dtype=np.float64).reshape(-1, 2)
+    if len(progress) > 1:
+        t, n = progress[:, 0], progress[:, 1]
+        rate = np.diff(n) / np.maximum(np.diff(t), 1e-9)
+        charts.append(hp.svg_line_chart(np.r_[t[0], t[1:]], np.r_[rate[0], rate], xlabel="time since start [s]",
+                                        ylabel="scans/s (per submap)", step=True))
+    else:
+        charts.append("<p>scans/s along the run: not recorded (a run made before it was written)</p>")
+    memory = np.asarray(summary.get("memory_mb_by_km") or [], dtype=np.float64).reshape(-1, 2)
+    if len(memory) > 1:
+        charts.append(hp.svg_line_chart(memory[:, 0] * 1000.0, memory[:, 1], xlabel="distance travelled [m]",
+                                        ylabel="resident memory [MiB]", color="#6a3d9a",
+                                        hline=summary.get("peak_memory_mb")))
+    figs = "".join(f"<figure>{c}</figure>" for c in charts)
+    return f'<div class="figs">{figs}</div>' + html
+
+
 def _provenance(rec: RunRecord) -> str:
     p = rec.provenance
     if p is None:
@@ -157,12 +183,7 @@ def build_run_report(rec: RunRecord, reference: Trajectory | Callable[[], Trajec
     if rec.kind != "ekf":
         n_ok = sum(r.get("accepted") == "1" for r in rec.loops)
         sections.append((f"Loop hypotheses ({len(rec.loops)} tested, {n_ok} accepted)", _loop_table(rec)))
-        perf = rf.performance_figure(rec.summary)
-        stages = rec.summary.get("wall_time_s") or {}
-        perf_html = (hp.figure(perf, "Stage wall times (stages overlap: the graph work runs beside registration), "
-                               "scans/s along the run, resident memory along the path") if perf else "")
-        perf_html += hp.table(("stage", "wall time [s]"), sorted(stages.items(), key=lambda kv: -kv[1]))
-        sections.append(("Time and memory", perf_html))
+        sections.append(("Time and memory", _performance(rec.summary)))
     if rec.config_text is not None:
         sections.append(("Effective configuration (config.yaml)", f"<pre>{hp.esc(rec.config_text)}</pre>"))
     sections.append(("Input", _provenance(rec)))

@@ -211,41 +211,6 @@ def error_figures(reference: Trajectory, series: dict[str, tuple[Trajectory, dic
     return out
 
 
-def performance_figure(summary: dict, dpi: int = 100) -> str | None:
-    """Stage timings, scans/s along the run and memory along the path, from ``summary.json``."""
-    stages = summary.get("wall_time_s") or {}
-    if not stages:
-        return None
-    plt = _plt()
-    fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
-    names = list(stages)
-    axes[0].barh(names, [stages[n] for n in names], color="#4878cf")
-    axes[0].invert_yaxis()
-    axes[0].set_xlabel("wall time [s] (stages overlap)")
-    progress = np.asarray(summary.get("scans_by_wall_time_s") or [], dtype=np.float64).reshape(-1, 2)
-    if len(progress) > 1:
-        t, n = progress[:, 0], progress[:, 1]
-        rate = np.diff(n) / np.maximum(np.diff(t), 1e-9)
-        axes[1].step(t[1:], rate, where="pre", color="#d65f00")
-        axes[1].set_xlabel("time since start [s]")
-        axes[1].set_ylabel("scans/s (per submap)")
-    else:
-        axes[1].text(0.5, 0.5, "scans/s along the run not recorded\n(run made before it was written)",
-                     ha="center", va="center", transform=axes[1].transAxes, fontsize=9)
-    memory = np.asarray(summary.get("memory_mb_by_km") or [], dtype=np.float64).reshape(-1, 2)
-    if len(memory):
-        axes[2].plot(memory[:, 0] * 1000.0, memory[:, 1], color="#6a3d9a")
-        axes[2].set_xlabel("distance travelled [m]")
-        axes[2].set_ylabel("resident memory [MiB]")
-        if summary.get("peak_memory_mb"):
-            axes[2].axhline(summary["peak_memory_mb"], color="0.5", ls="--", lw=0.8, label="peak")
-            axes[2].legend(fontsize=8)
-    for axx in axes[1:]:
-        axx.grid(alpha=0.3)
-    fig.tight_layout()
-    return png_data_uri(fig, dpi)
-
-
 def landmarks_figure(rec: RunRecord, dpi: int = 100) -> str:
     """EKF runs: the robot path and every feature with its 3σ ellipse, coloured by credibility."""
     plt = _plt()
