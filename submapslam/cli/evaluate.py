@@ -61,7 +61,7 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Side-by-side report (table + plots) of several trajectories against one reference."""
         from ..api import compare_files
-        from ..io.labels import trajectory_labels
+        from ..io.trajectory_names import trajectory_labels
 
         labels = list(label or [])
         if labels and len(labels) != len(est):
