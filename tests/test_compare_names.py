@@ -7,8 +7,8 @@ from typer.testing import CliRunner
 
 from submapslam.cli import app
 from submapslam.geometry import se2_to_matrix
-from submapslam.io.trajectory_names import trajectory_labels, trajectory_stem
 from submapslam.io.trajectory import Trajectory, write_tum
+from submapslam.io.trajectory_names import trajectory_labels, trajectory_stem
 
 from .cli_errors import assert_one_error_line
 
