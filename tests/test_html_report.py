@@ -18,6 +18,7 @@ from typer.testing import CliRunner
 from datasets_synth import generate
 from submapslam.api import evaluate_files, report_run, run_log
 from submapslam.cli import app
+from submapslam.observer import RunObserver
 
 from .cli_errors import assert_one_error_line
 
@@ -35,9 +36,41 @@ def reported_run(request, tmp_path_factory):
         log = generate("rectangle", root / "log", seed=0, laps=1, speed=2.0)
     else:
         log = generate("outdoor", root / "log", seed=0, laps=1, blocks=(1, 1), max_scans=80)
-    run_log(log, root / "run")
+    watcher = CountingObserver()
+    result, _ = run_log(log, root / "run", observer=watcher)
+    watcher.result = result
     page = report_run(root / "run", ref=log / "groundtruth_tum.txt")
+    _WATCHERS[request.param] = watcher
     return root / "run", page, log, request.param
+
+
+class CountingObserver(RunObserver):
+    """What the engine told its observer, for comparison with the result."""
+
+    def __init__(self):
+        self.scans, self.submaps, self.loops, self.result = [], [], [], None
+
+    def on_scan(self, index, timestamp, T_odom_base, points):
+        self.scans.append((index, timestamp))
+
+    def on_submap(self, submap_id, T_world_submaps, points, T_world_odom):
+        self.submaps.append((submap_id, len(T_world_submaps)))
+
+    def on_loop(self, record, T_world_i, T_world_j):
+        self.loops.append((record.i, record.j, record.source))
+
+
+_WATCHERS: dict[str, CountingObserver] = {}
+
+
+def test_the_observer_hears_every_scan_submap_and_hypothesis(reported_run):
+    _, _, _, kind = reported_run
+    w = _WATCHERS[kind]
+    r = w.result
+    assert [i for i, _ in w.scans] == list(range(r.n_scans))
+    np.testing.assert_allclose([t for _, t in w.scans], r.timestamps)
+    assert w.submaps == [(k, k + 1) for k in range(r.n_submaps)]  # in order, with every anchor so far
+    assert sorted(w.loops) == sorted((lp.i, lp.j, lp.source) for lp in r.loops)
 
 
 def _loops_csv(run):
