@@ -3,14 +3,17 @@
 from __future__ import annotations
 
 import logging
+import threading
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .config import PipelineConfig, load_config
+from .config import PipelineConfig, load_config, with_updates
+from .errors import SubmapSlamError
 from .result import SlamResult
 
 if TYPE_CHECKING:
-    from collections.abc import Iterable
+    from collections.abc import Callable, Iterable, Iterator
 
     import numpy as np
 
@@ -32,7 +35,7 @@ def progress_bar(total: int | None):
 
 
 def run_log(
-    log_path: str | Path,
+    log_path: str | Path | None,
     out_dir: str | Path | None,
     *,
     config: str | Path | PipelineConfig | None = None,
@@ -42,53 +45,105 @@ def run_log(
     loops: bool = True,
     progress: bool = False,
     reader_options: dict | None = None,
+    overwrite: bool = False,
+    stop: threading.Event | None = None,
+    resume: bool = False,
     observer: RunObserver | None = None,
 ) -> tuple[SlamResult, dict[str, Path]]:
     """Open ``log_path``, run the pipeline, write results to ``out_dir`` (if given).
 
     ``reader_options`` go to the log reader (ROS bags: ``topic``, ``odometry_topic``);
     ``observer`` watches the run (:mod:`submapslam.observer`, e.g. the Rerun live view).
+    Every option and ``out_dir`` are checked before the log is read
+    (:func:`~submapslam.io.output_folder.check_out_folder`: an earlier result in ``out_dir`` is
+    replaced only with ``overwrite``); the files are written into a staging folder swapped in at
+    the end. Setting ``stop`` ends the run after the current scan with a complete result set
+    marked ``interrupted``.
+
+    With ``out_dir``, a checkpoint is kept beside it (:mod:`.io.checkpoint`) every
+    ``config.checkpoint_every_submaps`` submaps and when stopped, and removed when the run
+    completes; ``resume=True`` continues the run that wrote ``out_dir`` from its checkpoint
+    (its log, options and config; ``log_path`` may be None) to the result an uninterrupted run gives.
 
     Returns the result and the written paths. Input errors found mid-log keep what was
     computed: results are written and ``result.input_error`` says what stopped the reading.
     """
     from .io.hints import read_hint_file
+    from .io.output_folder import check_out_folder
     from .io.registry import open_log
     from .pipeline import run
 
+    t_start = time.perf_counter()
+    checkpoint = None
+    if resume:
+        from .io.checkpoint import read_checkpoint
+
+        if out_dir is None:
+            raise SubmapSlamError("resuming needs the output folder of the interrupted run")
+        checkpoint, config, started = read_checkpoint(out_dir)
+        if log_path is not None and Path(log_path).resolve() != Path(started["log"]).resolve():
+            raise SubmapSlamError(f"{out_dir} was started on {started['log']}, not {log_path}")
+        log_path, format = started["log"], format or started.get("format")
+        reader_options = reader_options or started.get("reader_options")
+        hints, max_scans = None, None  # the checkpoint's config holds them
+        overwrite = True  # OUT holds this run's own interrupted result, or nothing
+    elif log_path is None:
+        raise SubmapSlamError("no log given")
     cfg = config if isinstance(config, PipelineConfig) else load_config(config)
-    updates = {}
+    updates: dict = {}
     if max_scans is not None:
         updates["max_scans"] = max_scans
     if not loops:
-        cfg = cfg.model_copy(update={"loops": cfg.loops.model_copy(update={"enabled": False})})
+        updates["loops"] = {"enabled": False}
     if hints is not None:
-        cfg = cfg.model_copy(update={"loops": cfg.loops.model_copy(update={"hints_file": Path(hints)})})
+        updates["loops"] = {**updates.get("loops", {}), "hints_file": str(hints)}
     if updates:
-        cfg = cfg.model_copy(update=updates)
+        cfg = with_updates(cfg, updates, "run options")
+    inputs = [log_path, hints, cfg.loops.hints_file, config if not isinstance(config, PipelineConfig) else None]
+    if out_dir is not None:
+        check_out_folder(out_dir, inputs=inputs, overwrite=overwrite)
     hint_pairs = read_hint_file(cfg.loops.hints_file) if cfg.loops.hints_file else None
     reader = open_log(log_path, format, **(reader_options or {}))
     try:
         total = len(reader)  # type: ignore[arg-type]
     except TypeError:
         total = None
-    if max_scans is not None and total is not None:
-        total = min(total, max_scans)
+    if cfg.max_scans is not None and total is not None:
+        total = min(total, cfg.max_scans)
+    source = str(log_path)
+    keep = None
+    if out_dir is not None and cfg.checkpoint_every_submaps:
+        from .io.checkpoint import write_checkpoint
+
+        started = {"log": str(Path(log_path).resolve()), "format": format, "reader_options": reader_options or {}}
+
+        def keep(ckpt) -> None:
+            write_checkpoint(out_dir, ckpt, cfg, started)
+
+    options = dict(source=source, hints=hint_pairs, stop=stop, resume_from=checkpoint,
+                   checkpoint_every=cfg.checkpoint_every_submaps, on_checkpoint=keep, observer=observer)
     if progress:
         with progress_bar(total) as bar:
             task = bar.add_task("run", total=total)
-            result = run(reader, cfg, source=str(log_path), hints=hint_pairs,
-                         progress=lambda n: bar.update(task, completed=n), observer=observer)
+            result = run(reader, cfg, progress=lambda n: bar.update(task, completed=n), **options)
     else:
-        result = run(reader, cfg, source=str(log_path), hints=hint_pairs, observer=observer)
+        result = run(reader, cfg, **options)
     paths: dict[str, Path] = {}
     if out_dir is not None:
+        from .io.output_folder import staged_folder
         from .io.provenance import input_provenance, write_provenance
         from .io.results import write_results
         from .mapping.global_map import build_map_outputs
 
-        paths = write_results(result, out_dir, build_map_outputs(result))
-        paths["input.json"] = write_provenance(out_dir, input_provenance(log_path, result.timestamps))
+        maps = build_map_outputs(result)
+        with staged_folder(out_dir, "run", overwrite=overwrite, inputs=inputs) as staging:
+            written = write_results(result, staging, maps, run_started=t_start)
+            written["input.json"] = write_provenance(staging, input_provenance(log_path, result.timestamps))
+        paths = {name: Path(out_dir) / p.name for name, p in written.items()}
+        if not result.interrupted:
+            from .io.checkpoint import remove_checkpoint
+
+            remove_checkpoint(out_dir)
     return result, paths
 
 
@@ -103,18 +158,22 @@ def localize_to_folder(
     max_scans: int | None = None,
     config: LocalizationConfig | None = None,
     progress: bool = False,
+    overwrite: bool = False,
 ) -> tuple[LocalizationResult, dict[str, Path]]:
     """Localise every scan of the log at ``log_path`` in the fixed map at ``map_path`` (a run
     folder or a PLY/PCD cloud, world frame) and write the results into ``out_dir``.
 
     ``initial_pose``: ``"x y yaw"`` of the first localised scan in the map frame (None: global
-    search). ``start`` skips that many scans, ``max_scans`` stops after that many. Returns the
-    :class:`~submapslam.localization.LocalizationResult` and the written paths.
+    search). ``start`` skips that many scans, ``max_scans`` stops after that many. ``out_dir``
+    is checked first and written through a staging folder (``overwrite``: replace an earlier
+    result). Returns the :class:`~submapslam.localization.LocalizationResult` and the written paths.
     """
     from .io.localization_results import write_localization
+    from .io.output_folder import check_out_folder, staged_folder
     from .io.registry import open_log
     from .localization import load_map, localize_log, parse_initial_pose
 
+    check_out_folder(out_dir, inputs=[log_path, map_path], overwrite=overwrite)
     T0 = parse_initial_pose(initial_pose)
     points = load_map(map_path)
     reader = open_log(log_path, format)
@@ -130,9 +189,10 @@ def localize_to_folder(
                                   on_scan=lambda k: bar.update(task, completed=k + 1))
     else:
         result = localize_log(reader, points, T0, config=config, start=start, max_scans=max_scans)
-    paths = write_localization(result, out_dir,
-                               extra={"log": str(log_path), "map": str(map_path), "map_points": len(points)})
-    return result, paths
+    with staged_folder(out_dir, "localize", overwrite=overwrite, inputs=[log_path, map_path]) as staging:
+        written = write_localization(result, staging,
+                                     extra={"log": str(log_path), "map": str(map_path), "map_points": len(points)})
+    return result, {name: Path(out_dir) / p.name for name, p in written.items()}
 
 
 def run_ekf_log(
@@ -146,50 +206,71 @@ def run_ekf_log(
     first_estimate_jacobians: bool = False,
     compare: bool = False,
     incremental: bool = False,
+    overwrite: bool = False,
 ) -> dict:
     """Read a landmark log, run the stochastic map (EKF) on it, write ``poses_tum.txt``,
     ``landmarks.csv``, ``summary.json`` and ``landmarks.png`` into ``out_dir``; return the summary.
 
     ``compare`` also solves the landmark factor graph (``incremental``: iSAM2 step by step).
+    ``out_dir`` is checked first and written through a staging folder (``overwrite``: replace an
+    earlier result).
     """
     from .ekf.runner import run_ekf
     from .evaluation.landmark_compare import ekf_summary, plot_stochastic_map
     from .io.ekf_results import write_ekf_results
     from .io.landmark_logs import read_landmark_log
+    from .io.output_folder import check_out_folder, staged_folder
 
+    check_out_folder(out_dir, inputs=[log_path], overwrite=overwrite)
     data = read_landmark_log(log_path, format, robot)
     run = run_ekf(data, credibility, max_range=max_range, first_estimate_jacobians=first_estimate_jacobians)
     summary = ekf_summary(data, run, compare=compare, incremental=incremental)
-    write_ekf_results(out_dir, run, summary)
-    plot_stochastic_map(Path(out_dir) / "landmarks.png", run, data.truth_landmarks or None, data.truth_poses)
-    from .io.provenance import input_provenance, write_provenance
+    with staged_folder(out_dir, "ekf", overwrite=overwrite, inputs=[log_path]) as staging:
+        write_ekf_results(staging, run, summary)
+        plot_stochastic_map(staging / "landmarks.png", run, data.truth_landmarks or None, data.truth_poses)
+        from .io.provenance import input_provenance, write_provenance
 
-    write_provenance(out_dir, input_provenance(log_path, run.times))
-    if data.truth_poses is not None and len(data.truth_poses) > 1:  # NEES where truth is known (report)
-        from .evaluation.ekf_nees import pose_nees_against_truth
-        from .io.nees_csv import write_nees_csv
+        write_provenance(staging, input_provenance(log_path, run.times))
+        if data.truth_poses is not None and len(data.truth_poses) > 1:  # NEES where truth is known (report)
+            from .evaluation.ekf_nees import pose_nees_against_truth
+            from .io.nees_csv import write_nees_csv
 
-        t, nees = pose_nees_against_truth(run.times, run.poses, run.pose_covs, data.truth_times, data.truth_poses)
-        if len(t):
-            write_nees_csv(Path(out_dir) / "nees.csv", t, nees)
+            t, nees = pose_nees_against_truth(run.times, run.poses, run.pose_covs, data.truth_times,
+                                              data.truth_poses)
+            if len(t):
+                write_nees_csv(staging / "nees.csv", t, nees)
     return summary
 
 
 def nees_report(trials: Iterable[tuple[LandmarkLog, np.ndarray]], out_dir: str | Path,
-                with_graph: bool = True) -> tuple[dict, dict]:
+                with_graph: bool = True, overwrite: bool = False,
+                progress: Callable[[int], None] | None = None) -> tuple[dict, dict]:
     """Run :func:`~submapslam.evaluation.landmark_compare.nees_study` on ``trials`` and write
-    ``nees.json`` and ``nees.png`` into ``out_dir`` (created); return ``(study, nees.json's dict)``."""
+    ``nees.json`` and ``nees.png`` into ``out_dir`` (checked first, written through a staging
+    folder); return ``(study, nees.json's dict)``. ``progress(k)`` after the k-th trial."""
     import json
 
     from .evaluation.landmark_compare import nees_study, nees_summary, plot_nees
+    from .io.output_folder import check_out_folder, staged_folder
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    check_out_folder(out_dir, overwrite=overwrite)
+    if progress is not None:
+        trials = _counted(trials, progress)
     study = nees_study(trials, with_graph=with_graph)
     doc = nees_summary(study)
-    (out / "nees.json").write_text(json.dumps(doc, indent=1))
-    plot_nees(out / "nees.png", study)
+    with staged_folder(out_dir, "ekf-nees", overwrite=overwrite) as staging:
+        (staging / "nees.json").write_text(json.dumps(doc, indent=1))
+        plot_nees(staging / "nees.png", study)
     return study, doc
+
+
+def _counted(items: Iterable, progress: Callable[[int], None]) -> Iterator:
+    """Yield ``items``, calling ``progress(k)`` once the k-th has been used (asked for the next)."""
+    k = 0
+    for item in items:
+        yield item
+        k += 1
+        progress(k)
 
 
 def _reference(ref: str | Path, raw_log: str | Path | None):
@@ -219,19 +300,25 @@ def evaluate_files(est: str | Path, ref: str | Path, *, align: str = "se3", rela
 
 
 def compare_files(ref: str | Path, estimates: dict[str, str | Path], out_dir: str | Path, *, align: str = "se3",
-                  raw_log: str | Path | None = None):
+                  raw_log: str | Path | None = None, overwrite: bool = False):
     """Side-by-side report of the trajectory files ``estimates`` (``{label: path}``) against
-    ``ref``, written into ``out_dir``; returns the
-    :class:`~submapslam.evaluation.report.ComparisonResult`. An unknown ``align`` fails before
-    any file is read."""
+    ``ref``, written into ``out_dir`` (checked first, written through a staging folder);
+    returns the :class:`~submapslam.evaluation.report.ComparisonResult`. An unknown ``align``
+    fails before any file is read."""
     from .evaluation.metrics import Alignment
     from .evaluation.report import compare_trajectories
+    from .io.output_folder import check_out_folder, staged_folder
     from .io.trajectory import read_trajectory
 
+    inputs = [ref, raw_log, *estimates.values()]
     Alignment(align)
+    check_out_folder(out_dir, inputs=inputs, overwrite=overwrite)
     r = _reference(ref, raw_log)
-    return compare_trajectories(r, {label: read_trajectory(p) for label, p in estimates.items()}, out_dir, align=align,
-                                reference_name=Path(ref).name)
+    trajectories = {label: read_trajectory(p) for label, p in estimates.items()}
+    with staged_folder(out_dir, "compare", overwrite=overwrite, inputs=inputs) as staging:
+        report = compare_trajectories(r, trajectories, staging, align=align, reference_name=Path(ref).name)
+    report.files = {name: Path(out_dir) / p.name for name, p in report.files.items()}
+    return report
 
 
 def report_run(run_dir: str | Path, out_path: str | Path | None = None, *, ref: str | Path | None = None,

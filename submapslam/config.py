@@ -22,6 +22,12 @@ class _Strict(BaseModel):
 _M = TypeVar("_M", bound=_Strict)
 
 
+def _require_order(low_name: str, low: float | None, high_name: str, high: float | None) -> None:
+    """Raise a ValueError naming both keys unless ``low < high`` (skipped when either is None)."""
+    if low is not None and high is not None and not low < high:
+        raise ValueError(f"{low_name} ({low}) must be less than {high_name} ({high})")
+
+
 class OdometryConfig(_Strict):
     """KISS-ICP scan-to-map registration, seeded by wheel odometry when the log has it."""
 
@@ -46,6 +52,13 @@ class OdometryConfig(_Strict):
     convergence_criterion: float | None = Field(
         None, gt=0, description="ICP stops below this pose change; None: 1e-4 for planar logs, 1e-3 for 3D"
     )
+
+    @model_validator(mode="after")
+    def _range_order(self) -> OdometryConfig:
+        _require_order("min_range", self.min_range, "max_range", self.max_range)
+        if self.voxel_size is not None and self.voxel_size >= self.max_range:
+            raise ValueError(f"voxel_size ({self.voxel_size}) must be less than max_range ({self.max_range})")
+        return self
 
 
 class SubmapConfig(_Strict):
@@ -96,6 +109,16 @@ class LoopConfig(_Strict):
     consistency_tolerance_m: float = Field(0.6, gt=0)
     consistency_tolerance_deg: float = Field(4.0, gt=0)
     hints_file: Path | None = None
+
+    @model_validator(mode="after")
+    def _window_order(self) -> LoopConfig:
+        if self.min_search_window > self.max_search_window:
+            raise ValueError(f"min_search_window ({self.min_search_window}) must not exceed max_search_window "
+                             f"({self.max_search_window})")
+        if self.spatial_min_radius is not None and self.spatial_min_radius > self.spatial_max_radius:
+            raise ValueError(f"spatial_min_radius ({self.spatial_min_radius}) must not exceed spatial_max_radius "
+                             f"({self.spatial_max_radius})")
+        return self
 
 
 class BackendConfig(_Strict):
@@ -230,6 +253,15 @@ class GridParams(_Strict):
     max_free_range: float = Field(12.0, gt=0, description="[m] free space is carved along at most this much of a ray")
     free_scan_stride: int = Field(2, ge=1, description="carve free space with every n-th scan of a submap")
 
+    @model_validator(mode="after")
+    def _evidence_signs(self) -> GridParams:
+        if self.l_occ <= 0:
+            raise ValueError(f"l_occ ({self.l_occ}) must be positive: a hit is evidence of an obstacle")
+        if self.l_free >= 0:
+            raise ValueError(f"l_free ({self.l_free}) must be negative: a ray is evidence of free space")
+        _require_order("l_min", self.l_min, "l_max", self.l_max)
+        return self
+
 
 MappingConfig.model_rebuild()  # its ``grid`` field refers to GridParams, defined above
 
@@ -270,11 +302,20 @@ class LocalizationConfig(_Strict):
         0.9, gt=0, le=1, description="planar global search: second place / best place at most this")
     global_scans: int = Field(10, ge=1, description="scans fused (dead reckoning) into the global-search cloud")
     relocalize_every: int = Field(
-        5, ge=1, description="while lost, retry the global search at most every this many scans")
+        5, ge=1, description="before the first fix (after the first global_scans scans) and while lost, retry the "
+        "global search at most every this many scans")
     global_time_budget: float = Field(
         0.25, ge=0, le=1, description="... and only while global searches took at most this fraction of the "
         "wall time so far (they never run while tracking)")
     use_wheel_odometry: bool = Field(True, description="predict from Scan.odometry when the log has it")
+    min_consistent_fraction: float = Field(
+        0.5, ge=0, le=1, description="the log counts as localised in the map when at least this share of its "
+        "scans is tracked with the mapped area explained (fitness_mapped >= min_fitness); else 'not localised'")
+
+    @model_validator(mode="after")
+    def _range_order(self) -> LocalizationConfig:
+        _require_order("min_range", self.min_range, "max_range", self.max_range)
+        return self
 
 
 class PipelineConfig(_Strict):
@@ -286,6 +327,9 @@ class PipelineConfig(_Strict):
     backend: BackendConfig = Field(default_factory=BackendConfig)
     mapping: MappingConfig = Field(default_factory=MappingConfig)
     max_scans: int | None = Field(None, ge=1, description="stop after this many scans")
+    checkpoint_every_submaps: int | None = Field(
+        20, ge=1, description="keep a checkpoint beside OUT every this many submaps (and when interrupted) for "
+        "`run --resume OUT`; removed when the run ends; None: never")
     localization: LocalizationConfig = Field(
         default_factory=LocalizationConfig, description="`localize` in a fixed map (not used by `run`)")
     ekf: EkfConfig = Field(default_factory=EkfConfig, description="the `ekf` command (not used by `run`)")
@@ -320,6 +364,23 @@ def with_overrides(section: _M, source: str = "<options>", **values: Any) -> _M:
     options given) replacing its own, validated (:class:`ConfigError`)."""
     given = {k: v for k, v in values.items() if v is not None}
     return validated(type(section), source, **{**section.model_dump(), **given})
+
+
+def _deep_merge(base: dict[str, Any], updates: dict[str, Any]) -> dict[str, Any]:
+    merged = dict(base)
+    for key, value in updates.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = _deep_merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def with_updates(config: _M, updates: dict[str, Any], source: str = "<options>") -> _M:
+    """A copy of ``config`` with the nested ``updates`` (``{"loops": {"enabled": False}}``)
+    merged in and the whole validated again, relations between values included
+    (:class:`ConfigError`). ``model_copy(update=...)`` would skip the validation."""
+    return validated(type(config), source, **_deep_merge(config.model_dump(), updates))
 
 
 def load_config(path: str | Path | None) -> PipelineConfig:

@@ -37,3 +37,8 @@ class DependencyError(SubmapSlamError):
 
 class DivergenceError(SubmapSlamError):
     """An estimator's state stopped being finite (a filter linearised too far from the truth)."""
+
+
+class OutputError(SubmapSlamError):
+    """An output path cannot take the results (a file, an input, a folder of the user's, not
+    writable, or an earlier result without ``--overwrite``); found before any work is done."""

@@ -57,6 +57,7 @@ class GraphBuilder:
         self.match_voxel = match_voxel
         self.clouds = clouds
         self.graph = PoseGraph(config)
+        self.odometry_information: dict[int, np.ndarray] = {}  # submap id -> its odometry edge's (6, 6)
         self._timer = timer
         self._world_up: np.ndarray | None = None  # 3D: the world's up direction (first ground seen)
 
@@ -68,18 +69,25 @@ class GraphBuilder:
         return self.graph
 
     # ------------------------------------------------------------------ nodes and odometry
-    def add_submap(self, submap: Submap, previous: Submap | None, wheel_odometry: bool) -> None:
+    def add_submap(self, submap: Submap, previous: Submap | None, wheel_odometry: bool,
+                   information: np.ndarray | None = None) -> None:
         """Add ``submap``'s anchor, its odometry edge from ``previous`` and its ground prior; update.
 
         ``wheel_odometry``: the log has wheel odometry (planar refinement then follows it where
         scan matching is blind, which caps the odometry edge's registration covariance).
+        ``information``: the edge's ``(6, 6)`` information as computed before (a resumed run),
+        instead of computing it. :attr:`odometry_information` keeps each edge's, by submap id.
         """
         info = T_prev_k = None
         if previous is not None:
             T_prev_k = inverse(previous.T_odom_anchor) @ submap.T_odom_anchor
-            info = odometry_information(T_prev_k, previous.distance, self.planar, self.config)
-            if self.config.odometry_registration_covariance:
-                info = self._registration_shaped(info, previous, submap, T_prev_k, wheel_odometry)
+            if information is not None:
+                info = information
+            else:
+                info = odometry_information(T_prev_k, previous.distance, self.planar, self.config)
+                if self.config.odometry_registration_covariance:
+                    info = self._registration_shaped(info, previous, submap, T_prev_k, wheel_odometry)
+            self.odometry_information[submap.id] = info
         with self._time("optimisation"):
             if previous is None:
                 self.graph.add_node(submap.id, submap.T_odom_anchor, PRIOR_INFORMATION)

@@ -80,13 +80,29 @@ class LocalizationResult:
     lost: np.ndarray                # (N,) bool
     relocalisations: int = 0        # fixes by the global search after the robot was lost
     global_searches: int = 0        # global searches tried (initialisation included)
-    initialised_at: int = 0         # index of the scan of the first fix
+    initialised_at: int = 0         # index of the scan of the first fix (-1: never found in the map)
     timings: dict[str, float] = field(default_factory=dict)  # seconds: total, tracking, global_search
     planar: bool = True
+    min_fitness: float = 0.75         # the consistency gate the scans were held to (config's)
+    min_consistent_fraction: float = 0.5  # share of consistent scans needed to call the log localised
 
     @property
     def n_scans(self) -> int:
         return len(self.timestamps)
+
+    @property
+    def consistent_fraction(self) -> float:
+        """Share of the scans tracked (not lost) with the mapped area explained (``fitness_mapped``
+        at least ``min_fitness``), in [0, 1]."""
+        if not self.n_scans:
+            return 0.0
+        return float(np.mean(~self.lost & (self.fitness_mapped >= self.min_fitness)))
+
+    @property
+    def localised(self) -> bool:
+        """Whether the log was found in this map: a fix, and most scans consistent with it. A log
+        from another building fails here even when a poor fit was accepted now and then."""
+        return bool((~self.lost).any()) and self.consistent_fraction >= self.min_consistent_fraction
 
     def lost_spans(self) -> list[tuple[int, int]]:
         """``[(first, last), ...]`` scan index ranges (inclusive) during which the robot was lost."""
@@ -106,6 +122,8 @@ class LocalizationResult:
         total = self.timings.get("total", 0.0)
         return {
             "scans": self.n_scans,
+            "localised": self.localised,
+            "consistent_fraction": round(self.consistent_fraction, 4),
             "lost_scans": int(self.lost.sum()),
             "lost_spans": [{"first_scan": a, "last_scan": b, "t_start": float(self.timestamps[a]),
                             "t_end": float(self.timestamps[b])} for a, b in self.lost_spans()],
@@ -481,8 +499,10 @@ def localize_log(
             clouds.append(pts)
             since_search += 1
             elapsed = time.perf_counter() - t_total
-            if not ever_fixed or (since_search >= cfg.relocalize_every
-                                  and t_global <= cfg.global_time_budget * elapsed):
+            # before the first fix the first scans each get a search (the fused cloud grows), then
+            # one every relocalize_every scans; once lost, the same within the time budget
+            if (not ever_fixed and (k < cfg.global_scans or since_search >= cfg.relocalize_every)) or (
+                    since_search >= cfg.relocalize_every and t_global <= cfg.global_time_budget * elapsed):
                 since_search = 0
                 del clouds[:-cfg.global_scans]
                 t = time.perf_counter()
@@ -515,15 +535,14 @@ def localize_log(
     if k < 0:
         raise SubmapSlamError("the log holds no scans to localise")
     if not ever_fixed:
-        raise SubmapSlamError(
-            f"the robot was not found in the map in {k + 1} scans ({n_searches} global searches); "
-            "give an initial pose (--initial-pose \"x y yaw\")")
+        log.warning("the robot was not found in the map in %d scans (%d global searches)", k + 1, n_searches)
     timings = {"total": time.perf_counter() - t_total, "tracking": t_track, "global_search": t_global}
     return LocalizationResult(
         timestamps=np.asarray(stamps, dtype=np.float64), poses=np.stack(poses),
         fitness=np.asarray([r.fitness for r in regs]), fitness_mapped=np.asarray([r.fitness_mapped for r in regs]),
         inlier_rmse=np.asarray([r.rmse for r in regs]), lost=np.asarray(lost, dtype=bool), relocalisations=n_relocs,
-        global_searches=n_searches, initialised_at=initialised_at, timings=timings, planar=loc.planar)
+        global_searches=n_searches, initialised_at=initialised_at if ever_fixed else -1, timings=timings,
+        planar=loc.planar, min_fitness=cfg.min_fitness, min_consistent_fraction=cfg.min_consistent_fraction)
 
 
 def _inconsistency(reg: Registration, scan: np.ndarray, prior: np.ndarray, loc: Localizer,

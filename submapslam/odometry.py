@@ -47,6 +47,7 @@ class Odometry:
         self.voxel_size: float = kiss.mapping.voxel_size
         self.frame_voxel: float = 0.5 * self.voxel_size  # [m] each scan is thinned to this first
         self.last_frame_down = np.zeros((0, 3))
+        self.last_xyt: np.ndarray | None = None  # planar: (3,) x, y, yaw of the last scan as refined
         self._preprocessor = get_preprocessor(kiss)
         self._registration = get_registration(kiss)
         self._local_map = get_voxel_hash_map(kiss)
@@ -62,26 +63,37 @@ class Odometry:
 
             self._refiner = RecentScanMap()
 
-    def register(self, scan: Scan) -> tuple[np.ndarray, np.ndarray]:
+    def register(self, scan: Scan, known: tuple[np.ndarray, np.ndarray | None] | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
         """Register one scan; return ``(T_odom_base, points_deskewed)``.
 
         ``points_deskewed`` is ``(N, 3)`` in the scan's sensor frame after range filtering and
         motion compensation; :attr:`last_frame_down` is the same thinned to :attr:`frame_voxel`
-        (what registration used).
+        (what registration used). ``known``: the ``(T_odom_base, xyt or None)`` this scan was
+        registered at before (a resumed run): no ICP, the local map and the motion model are
+        updated exactly as they were. :attr:`last_xyt` is the planar pose as refined.
         """
         times = scan.point_times if scan.point_times is not None else np.zeros(len(scan.points))
         frame = self._preprocessor.preprocess(scan.points, times, self.last_delta)
         prediction = self._predicted_delta(scan)
         if len(frame) < 10:
             # nothing to register: dead-reckon on the prediction
-            new_pose = self.last_pose @ prediction
+            new_pose = self.last_pose @ prediction if known is None else known[0]
+            self.last_xyt = matrix_to_se2(new_pose) if self.planar else None
             self._advance(new_pose)
             self.last_frame_down = frame
             return new_pose, frame
         frame_down = self._down(frame, self.frame_voxel)
         source = self._down(frame_down, self.voxel_size * 1.5)
         initial_guess = self.last_pose @ prediction
-        if self._local_map.empty():
+        if known is not None:
+            new_pose = known[0]
+            if self.planar:
+                xyt = known[1] if known[1] is not None else matrix_to_se2(new_pose)
+                if self._refiner is not None:
+                    self._refiner.add(frame_down[:, :2], xyt)
+                self.last_xyt = xyt
+        elif self._local_map.empty():
             new_pose = initial_guess
         else:
             sigma = self._threshold.get_threshold()
@@ -92,13 +104,14 @@ class Odometry:
                 max_correspondance_distance=3.0 * sigma,
                 kernel=sigma,
             )
-        if self.planar:
+        if self.planar and known is None:
             xyt = matrix_to_se2(new_pose)
             if self._refiner is not None:
                 # degenerate directions take the prediction (wheel odometry when the log has it)
                 xyt, _ = self._refiner.refine(frame_down[:, :2], xyt, matrix_to_se2(initial_guess))
                 self._refiner.add(frame_down[:, :2], xyt)
             new_pose = se2_to_matrix(*xyt)
+            self.last_xyt = xyt
         self._threshold.update_model_deviation(inverse(initial_guess) @ new_pose)
         self._local_map.update(frame_down, new_pose)
         self._advance(new_pose)

@@ -7,12 +7,14 @@ any moment) or in one call (``run(log)``). Data flows one way; nothing here writ
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable, Iterable
 from contextlib import contextmanager
 
 import numpy as np
 
+from .checkpoint import Checkpoint
 from .config import PipelineConfig
 from .errors import InputError, SubmapSlamError
 from .geometry import blend_poses_many, inverse
@@ -49,9 +51,15 @@ class SubmapSLAM:
     """
 
     def __init__(self, config: PipelineConfig | None = None, hints: list[LoopHint] | None = None,
-                 observer: RunObserver | None = None) -> None:
+                 resume_from: Checkpoint | None = None, observer: RunObserver | None = None) -> None:
+        """``resume_from``: the checkpoint of an earlier run of the same log and config; its scans
+        are replayed with its decisions (:mod:`.checkpoint`), the rest run live. ``observer``: an
+        optional viewer/logger (:mod:`.observer`), told about scans, submaps and loops."""
         self.config = config or PipelineConfig()
-        self._observer = observer  # optional viewer/logger (observer.py), told about scans, submaps, loops
+        self._replay = resume_from
+        self._observer = observer
+        self._records_by_submap: dict[int, list[LoopRecord]] = {}  # loop tests per closing submap
+        self._planar_poses: list[np.ndarray] = []  # planar: (3,) x, y, yaw per scan as refined
         self.timer = StageTimer()
         self._t_start = time.perf_counter()
         self._travelled = 0.0  # odometry path length so far [m]
@@ -95,8 +103,14 @@ class SubmapSLAM:
                 scan.point_times = scan.point_times[finite]
         if len(scan.points) == 0:
             self.empty_scans += 1
+        known = self._replay.known_pose(len(self.timestamps)) if self._replay is not None else None
+        if known is not None and scan.timestamp != self._replay.timestamps[len(self.timestamps)]:
+            raise InputError(scan.source or "log", f"scan {len(self.timestamps)} has timestamp {scan.timestamp}, the "
+                             f"checkpoint's {self._replay.timestamps[len(self.timestamps)]}: not the log it was made from")
         with self.timer("odometry"):
-            T_odom_base, frame = self._odometry.register(scan)
+            T_odom_base, frame = self._odometry.register(scan, known)
+        if self.planar:
+            self._planar_poses.append(self._odometry.last_xyt)
         self._wheel_scans += scan.odometry is not None
         if self._odom_poses:
             self._travelled += float(np.linalg.norm(T_odom_base[:3, 3] - self._odom_poses[-1][:3, 3]))
@@ -180,16 +194,40 @@ class SubmapSLAM:
         self._pending = self._worker.submit(self._add_submap_to_graph, submap, hint_pairs, wheel)
 
     def _add_submap_to_graph(self, submap: Submap, hint_pairs: list[tuple[int, int]], wheel_odometry: bool) -> None:
-        """The graph work of one closed submap: node and odometry edge, then its loop tests."""
+        """The graph work of one closed submap: node and odometry edge, then its loop tests
+        (replayed from the checkpoint being resumed, when it holds them)."""
         previous = self.submaps[submap.id - 1] if submap.id > 0 else None
-        self._graph_builder.add_submap(submap, previous, wheel_odometry=wheel_odometry)
+        replay = self._replay if self._replay is not None and submap.id < self._replay.n_submaps else None
+        self._graph_builder.add_submap(submap, previous, wheel_odometry=wheel_odometry,
+                                       information=replay.odometry_information.get(submap.id) if replay else None)
+        records: list[LoopRecord] = []
         if self._loop_closer is not None:
-            records = self._loop_closer.process(submap, self.submaps, self._graph_builder.estimate(), hint_pairs)
+            if replay is not None:
+                records = self._loop_closer.replay(submap, replay.loop_records[submap.id])
+            else:
+                records = self._loop_closer.process(submap, self.submaps, self._graph_builder.estimate(), hint_pairs)
             self.loops.extend(records)
             self._graph_builder.add_loops(records)
+        self._records_by_submap[submap.id] = records
         if self._observer is not None:
-            notify_closed_submap(self._observer, submap.id, submap.T_odom_anchor, submap.points,
-                                 records if self._loop_closer is not None else [], self._graph_builder.graph.pose)
+            notify_closed_submap(self._observer, submap.id, submap.T_odom_anchor, submap.points, records,
+                                 self._graph_builder.graph.pose)
+
+    def checkpoint(self, source: str = "") -> Checkpoint:
+        """The decisions so far (every scan's odometry, every closed submap's graph work), after
+        waiting for the graph work under way; see :mod:`.checkpoint`."""
+        import copy
+
+        self._settle()
+        planar = np.array(self._planar_poses).reshape(-1, 3) if self.planar else None
+        return Checkpoint(
+            timestamps=np.array(self.timestamps, dtype=np.float64),
+            odometry_poses=np.array(self._odom_poses).reshape(-1, 4, 4),
+            planar_poses=planar,
+            odometry_information=dict(self._graph_builder.odometry_information) if self._graph_builder else {},
+            loop_records={k: [copy.copy(r) for r in recs] for k, recs in self._records_by_submap.items()},
+            source=source,
+        )
 
     def _hint_pairs(self) -> list[tuple[int, int]]:
         """Submap pairs of the manual hints whose scans are both in closed submaps."""
@@ -260,8 +298,9 @@ class SubmapSLAM:
         return fuse_clouds(clouds, voxel or self.map_voxel)
 
     # ------------------------------------------------------------------ finishing
-    def finish(self, input_error: str | None = None, source: str = "") -> SlamResult:
-        """Close the last submap, run the final batch optimisation and build the result."""
+    def finish(self, input_error: str | None = None, source: str = "", interrupted: bool = False) -> SlamResult:
+        """Close the last submap, run the final batch optimisation and build the result
+        (``interrupted``: the scans stop before the end of the log, marked in the result)."""
         if self.planar is None:
             raise SubmapSlamError(f"{source or 'log'}: no scans were processed")
         last = self._builder.flush()
@@ -305,6 +344,7 @@ class SubmapSLAM:
             peak_memory_mb=peak_memory_mb(),
             input_error=input_error,
             source=source,
+            interrupted=interrupted,
         )
 
 
@@ -316,18 +356,40 @@ def run(
     progress: Callable[[int], None] | None = None,
     hints: list[LoopHint] | None = None,
     observer: RunObserver | None = None,
+    stop: threading.Event | None = None,
+    resume_from: Checkpoint | None = None,
+    checkpoint_every: int | None = None,
+    on_checkpoint: Callable[[Checkpoint], None] | None = None,
 ) -> SlamResult:
     """Run the whole pipeline on an iterable of scans (e.g. ``open_log(path)``).
 
+    ``source`` names the log in the result (default: the reader's ``path``, when it has one).
     An :class:`InputError` raised by the reader mid-log does not lose the scans already read:
-    the result covers them and carries the message in ``input_error``.
+    the result covers them and carries the message in ``input_error``. Setting ``stop`` (e.g.
+    from a SIGINT handler) ends the reading after the current scan; the scans so far are
+    optimised as usual and the result is marked ``interrupted``.
+
+    ``on_checkpoint`` receives a :class:`~submapslam.checkpoint.Checkpoint` every
+    ``checkpoint_every`` closed submaps and when stopped; ``resume_from`` replays one (the
+    result is the one the uninterrupted run gives).
     """
     config = config or PipelineConfig()
-    slam = SubmapSLAM(config, hints, observer)
+    source = source or str(getattr(scans, "path", "") or "")  # a log reader knows its file
+    slam = SubmapSLAM(config, hints, resume_from=resume_from, observer=observer)
+    if resume_from is not None and resume_from.n_scans and config.max_scans is not None \
+            and config.max_scans < resume_from.n_scans:
+        raise SubmapSlamError(f"--max-scans {config.max_scans} is below the {resume_from.n_scans} scans "
+                              "the checkpoint already covers")
     input_error = None
+    interrupted = False
     n = 0
+    last_checkpoint = 0  # submaps closed at the last checkpoint
     with ReadAhead(scans) as iterator:
         while True:
+            if stop is not None and stop.is_set():
+                interrupted = True
+                log.warning("stopped after %d scans on request", n)
+                break
             try:
                 with slam.timer("read"):  # time spent waiting for the reader
                     scan = next(iterator)
@@ -341,11 +403,21 @@ def run(
                 break
             slam.process_scan(scan)
             n += 1
+            if (on_checkpoint is not None and checkpoint_every
+                    and len(slam.submaps) >= last_checkpoint + checkpoint_every):
+                last_checkpoint = len(slam.submaps)
+                on_checkpoint(slam.checkpoint(source))
             if progress is not None:
                 progress(n)
             if config.max_scans is not None and n >= config.max_scans:
                 break
-    return slam.finish(input_error=input_error, source=source)
+    if n == 0 and interrupted:
+        raise SubmapSlamError(f"{source or 'log'}: stopped before the first scan was processed")
+    if resume_from is not None and n < resume_from.n_scans and input_error is None and not interrupted:
+        raise InputError(source or "log", f"holds {n} scans, fewer than the {resume_from.n_scans} of the checkpoint")
+    if interrupted and on_checkpoint is not None:
+        on_checkpoint(slam.checkpoint(source))
+    return slam.finish(input_error=input_error, source=source, interrupted=interrupted)
 
 
 class ReadAhead:
@@ -361,7 +433,6 @@ class ReadAhead:
 
     def __init__(self, scans: Iterable[Scan], depth: int = 8) -> None:
         import queue
-        import threading
 
         self._scans = scans
         self._queue: queue.Queue = queue.Queue(maxsize=depth)

@@ -62,6 +62,9 @@ class SlamResult:
         peak_memory_mb: the process's peak resident set [MiB] (``ru_maxrss``) when the result was made.
         input_error: message of an input error that stopped reading early (results cover
             the scans read before it), else None.
+        source: the log the scans came from.
+        interrupted: the run was stopped (Ctrl-C, SIGTERM) before the end of the log; the
+            result covers the scans read until then.
     """
 
     timestamps: np.ndarray
@@ -86,6 +89,7 @@ class SlamResult:
     peak_memory_mb: float = 0.0
     input_error: str | None = None
     source: str = ""
+    interrupted: bool = False
 
     @property
     def n_scans(self) -> int:
@@ -111,10 +115,13 @@ class SlamResult:
             "loop_closures_rejected": len(self.loops) - self.loops_accepted,
             "path_length_m": round(self.path_length_m, 3),
             "wall_time_s": {k: round(v, 3) for k, v in self.stage_seconds.items()},
+            "wall_time_s_note": "per stage; stages overlap in time (graph work runs beside the next scans' "
+                                "registration), so they add up to more than wall_time_total_s",
             "wall_time_total_s": round(self.wall_time_s, 3),
             "scans_per_second": round(self.n_scans / self.wall_time_s, 2) if self.wall_time_s > 0 else None,
             "peak_memory_mb": round(self.peak_memory_mb, 1),
             "memory_mb_by_km": [[round(km, 4), round(mb, 1)] for km, mb in self.memory_mb_by_km],
             "scans_by_wall_time_s": [[round(t, 3), n] for t, n in self.scans_by_wall_time],
             "input_error": self.input_error,
+            "interrupted": self.interrupted,
         }

@@ -145,7 +145,7 @@ def test_cli_localize_writes_every_output(world, tmp_path):
     r = runner.invoke(app, ["localize", str(world["loc_log"]), "--map", str(world["map_run"]), "--out", str(out),
                             "--initial-pose", f"{x} {y} {yaw}", "--max-scans", "100"])
     assert r.exit_code == 0, r.output
-    assert "100 scans localised, 0 lost" in r.output
+    assert "100 scans, 0 lost" in r.output and "100% consistent with the map" in r.output
     tum = read_tum(out / "poses_tum.txt")
     np.testing.assert_allclose(tum.timestamps, [s.timestamp for s in world["scans"][:100]], atol=1e-6)
     assert position_errors(tum.poses, world["truth"][:100]).max() < 0.06
@@ -157,6 +157,22 @@ def test_cli_localize_writes_every_output(world, tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["scans"] == 100 and summary["lost_scans"] == 0 and summary["relocalisations"] == 0
     assert summary["scans_per_s"] > 0 and summary["wall_time_s"] > 0
+    assert summary["localised"] is True and summary["consistent_fraction"] == 1.0
+
+
+def test_a_log_of_another_place_is_not_localised(world, tmp_path):
+    """A log of the rooms world in the rectangle's map: the command says so (one line, exit 1),
+    writes what it found, and does not run a global search on every scan."""
+    other = generate("rooms", tmp_path / "rooms", seed=3, laps=1, max_scans=80)
+    out = tmp_path / "out"
+    r = runner.invoke(app, ["localize", str(other), "--map", str(world["map_run"]), "--out", str(out)])
+    assert r.exit_code == 1, r.output
+    assert "was not localised in" in r.stderr and "Traceback" not in r.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["localised"] is False and summary["consistent_fraction"] < 0.5
+    assert summary["scans"] == 80
+    cfg = LocalizationConfig()
+    assert summary["global_searches"] <= cfg.global_scans + (80 - cfg.global_scans) // cfg.relocalize_every + 1
 
 
 def only_line(result, *needles):

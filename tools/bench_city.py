@@ -155,7 +155,7 @@ def tool_command(tool: str, log: Path, out: Path, args) -> tuple[list[str] | Non
         exe = Path(sys.executable).parent / "submapslam"
         if not exe.exists():
             return None, None, f"no submapslam command next to {sys.executable} (run make install)"
-        cmd = [str(exe), "run", str(log), "--out", str(out)]
+        cmd = [str(exe), "run", str(log), "--out", str(out), "--overwrite"]
         if args.config:
             cmd += ["--config", str(args.config)]
         if args.max_scans:
@@ -385,11 +385,12 @@ def bench_log(log: Path, args) -> dict:
             entry["tools"][tool] = {"status": "skipped", "reason": note}
             continue
         _say(f"{log.name}: {tool} running ... ({shlex.join(cmd)})")
-        run = run_child(cmd, out / "bench_child.log", env)
+        child_log = out.with_name(f"{tool}.log")  # beside the tool's folder: `run` writes only into its own
+        run = run_child(cmd, child_log, env)
         rec: dict = {"status": "ok", "note": note, "command": shlex.join(cmd), "out": str(out), **run,
-                     "peak_rss_mib": run["peak_rss_kib"] / 1024.0, "child_log": str(out / "bench_child.log")}
+                     "peak_rss_mib": run["peak_rss_kib"] / 1024.0, "child_log": str(child_log)}
         if run["exit_code"] != 0:
-            rec.update(status="failed", reason=f"exit code {run['exit_code']}: {_tail(out / 'bench_child.log')}")
+            rec.update(status="failed", reason=f"exit code {run['exit_code']}: {_tail(child_log)}")
         else:
             try:
                 res = (evaluate_submapslam if tool == "submapslam" else evaluate_peer)(out, gt, gt_scan_poses)

@@ -45,7 +45,7 @@ def synthetic(world: str, out: Path) -> list[tuple[str, object]]:
     planar = world != "outdoor"
     map_log = generate(world, out / "map_log", seed=0, laps=2)
     t0 = time.perf_counter()
-    slam, _ = run_log(map_log, out / "map_run")
+    slam, _ = run_log(map_log, out / "map_run", overwrite=True)
     t_map = time.perf_counter() - t0
     loc_log = generate(world, out / "loc_log", seed=0, laps=1, speed=0.8 if planar else 6.5, odometry_noise=2.0)
     gt_map, gt = read_tum(map_log / "groundtruth_tum.txt"), read_tum(loc_log / "groundtruth_tum.txt")
@@ -77,7 +77,7 @@ def carmen(log: Path, ref_path: Path, map_scans: int, out: Path, map_run: Path |
     if map_run is None:
         map_run = out / "map_run"
         t0 = time.perf_counter()
-        slam, _ = run_log(log, map_run, max_scans=map_scans)
+        slam, _ = run_log(log, map_run, max_scans=map_scans, overwrite=True)
         t_map = f"{time.perf_counter() - t0:.1f}"
         slam_traj = Trajectory(slam.timestamps, slam.poses)
     else:

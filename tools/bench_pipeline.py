@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:
 
     out = args.out or Path(tempfile.mkdtemp(prefix="bench_"))
     t0 = time.perf_counter()
-    result, _ = run_log(args.log, out, config=args.config, max_scans=args.max_scans)
+    result, _ = run_log(args.log, out, config=args.config, max_scans=args.max_scans, overwrite=True)
     wall = time.perf_counter() - t0
     s = result.summary()
     rows = [("scans", s["scans"]), ("submaps", s["submaps"]),

@@ -23,13 +23,21 @@ def run_demo(out_dir: str | Path, *, world: str = "rectangle", seed: int = 0, la
     Returns a dict with the ATE (se3-aligned) of wheel odometry, pipeline odometry and the full
     pipeline, loop counts and paths; the same dict is written to ``OUT/demo_report.json``.
     """
+    import shutil
+
     from datasets_synth import generate
 
     from ..api import run_log
     from ..evaluation.metrics import ate
+    from ..io.output_folder import MARKER, check_out_folder, write_file_atomically, written_by
     from ..io.trajectory import Trajectory, read_tum
 
     out = Path(out_dir)
+    # a demo folder is the demo's own: made again from the same seed, it is replaced without asking
+    own = out.is_dir() and written_by(out) == "demo"
+    check_out_folder(out, overwrite=own)
+    if own:
+        shutil.rmtree(out)
     log_dir = generate(world, out / "log", seed=seed, laps=laps)
     result, _ = run_log(log_dir, out / "results", progress=True)
     gt = read_tum(Path(log_dir) / "groundtruth_tum.txt")
@@ -44,6 +52,7 @@ def run_demo(out_dir: str | Path, *, world: str = "rectangle", seed: int = 0, la
         "out": str(out),
     }
     (out / "demo_report.json").write_text(json.dumps(report, indent=2) + "\n")
+    write_file_atomically(out / MARKER, json.dumps({"command": "demo"}) + "\n")
     return report
 
 

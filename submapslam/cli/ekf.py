@@ -10,7 +10,7 @@ import numpy as np
 import typer
 
 from ..errors import SubmapSlamError
-from ._common import OutFolder, console, fail
+from ._common import OutFolder, Overwrite, console, fail
 
 if TYPE_CHECKING:
     from ..landmark_log import LandmarkLog
@@ -41,6 +41,7 @@ def register(app: typer.Typer) -> None:
         incremental: Annotated[bool, typer.Option(help="With --compare: iSAM2 step by step instead of batch LM.")] = False,
         fej: Annotated[bool, typer.Option(help="First-estimates Jacobians (FEJ-EKF, Huang et al. 2008): consistent "
                                           "longer, but needs roughly right first estimates.")] = False,
+        overwrite: Overwrite = False,
     ) -> None:
         """Run the full-covariance EKF (stochastic map with credibility); write poses, landmarks, plot."""
         from ..api import run_ekf_log
@@ -51,7 +52,7 @@ def register(app: typer.Typer) -> None:
                                   a=a, b=b, remove_below=remove_below)
             summary = run_ekf_log(log, out, format=format, robot=robot, credibility=cred,
                                   max_range=max_range, first_estimate_jacobians=fej,
-                                  compare=compare, incremental=incremental)
+                                  compare=compare, incremental=incremental, overwrite=overwrite)
         except SubmapSlamError as exc:
             raise fail(exc) from None
         console.print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in summary.items()})
@@ -63,23 +64,31 @@ def register(app: typer.Typer) -> None:
         seed: Annotated[int, typer.Option(help="Seed of the first run.")] = 100,
         laps: Annotated[int, typer.Option(min=1, help="Laps per synthetic run.")] = 2,
         graph: Annotated[bool, typer.Option(help="Also the factor graph's (smoother) NEES.")] = True,
+        overwrite: Overwrite = False,
     ) -> None:
         """NEES of the EKF (and the smoother) over Monte Carlo runs on synthetic landmark worlds."""
         import tempfile
 
-        from ..api import nees_report
+        from ..api import nees_report, progress_bar
 
         try:
-            with tempfile.TemporaryDirectory() as tmp:
+            with tempfile.TemporaryDirectory() as tmp, progress_bar(runs) as bar:
+                task = bar.add_task("runs", total=runs)
                 study, doc = nees_report(synthetic_nees_trials(tmp, runs=runs, seed=seed, laps=laps), out,
-                                         with_graph=graph)
+                                         with_graph=graph, overwrite=overwrite,
+                                         progress=lambda k: bar.update(task, completed=k))
         except (SubmapSlamError, OSError) as exc:
             raise fail(exc) from None
         lo, hi = doc["band_95"]
         inside = doc["ekf_fraction_inside"]
-        console.print(f"band [{lo:.2f}, {hi:.2f}]; EKF inside for {inside:.0%} of steps; 10-step mean leaves "
-                        f"the band at step {study['ekf_left_band_at']} (FEJ-EKF: {study['ekf_fej_left_band_at']}, "
-                        f"graph: {study['graph_left_band_at']})")
+        console.print(f"band [{lo:.2f}, {hi:.2f}]; EKF inside for {inside:.0%} of steps; 10-step mean "
+                      f"{_band_exit(study['ekf_left_band_at'])} (FEJ-EKF: {_band_exit(study['ekf_fej_left_band_at'])}, "
+                      f"graph: {_band_exit(study['graph_left_band_at'])}); results in {out}", highlight=False)
+
+
+def _band_exit(step: int | None) -> str:
+    """How the 10-step mean NEES relates to the 95 % band, in words."""
+    return "stays inside the band" if step is None else f"leaves the band at step {step}"
 
 
 def synthetic_nees_trials(workdir: str | Path, runs: int = 50, seed: int = 100,

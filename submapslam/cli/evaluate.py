@@ -10,7 +10,7 @@ import typer
 from rich.table import Table
 
 from ..errors import SubmapSlamError
-from ._common import console, fail
+from ._common import Overwrite, console, fail
 
 
 def register(app: typer.Typer) -> None:
@@ -28,8 +28,11 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """ATE (RMSE) and RPE of EST against REF; with --relations the relations error."""
         from ..api import evaluate_files
+        from ..io.output_folder import check_out_file, write_file_atomically
 
         try:
+            if json_out is not None:
+                check_out_file(json_out, inputs=[est, ref, relations, raw_log], what="--json")
             figures = evaluate_files(est, ref, align=align, relations=relations, max_diff=max_diff, raw_log=raw_log)
         except SubmapSlamError as exc:
             raise fail(exc) from None
@@ -48,7 +51,10 @@ def register(app: typer.Typer) -> None:
                           f"rotation {rel['rot_mean_deg']:.4f} ± {rel['rot_std_deg']:.4f} deg")
             out["relations"] = rel
         if json_out:
-            json_out.write_text(json.dumps(out, indent=2) + "\n")
+            try:
+                write_file_atomically(json_out, json.dumps(out, indent=2) + "\n")
+            except SubmapSlamError as exc:
+                raise fail(exc) from None
 
     @app.command("compare")
     def compare_cmd(
@@ -58,6 +64,7 @@ def register(app: typer.Typer) -> None:
         label: Annotated[list[str] | None, typer.Option(help="Names for the estimates, in order.")] = None,
         align: Annotated[str, typer.Option(help="Alignment: se3, sim3, se2 or none.")] = "se3",
         raw_log: Annotated[Path | None, typer.Option(help="Raw CARMEN log, when REF is a corrected CARMEN log.")] = None,
+        overwrite: Overwrite = False,
     ) -> None:
         """Side-by-side report (table + plots) of several trajectories against one reference."""
         from ..api import compare_files
@@ -71,7 +78,8 @@ def register(app: typer.Typer) -> None:
             raise fail(SubmapSlamError(f"each --label must be unique, repeated: {', '.join(repeated)}"))
         names = labels or trajectory_labels(est)  # runA/poses vs runB/poses: two poses_tum.txt never collide
         try:
-            report = compare_files(ref, dict(zip(names, est, strict=True)), out, align=align, raw_log=raw_log)
+            report = compare_files(ref, dict(zip(names, est, strict=True)), out, align=align, raw_log=raw_log,
+                                   overwrite=overwrite)
         except SubmapSlamError as exc:
             raise fail(exc) from None
         console.print(report.markdown)

@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from ..errors import SubmapSlamError
-from ._common import OutFolder, console, err_console, fail
+from ._common import OutFolder, Overwrite, console, err_console, fail
 
 
 def register(app: typer.Typer) -> None:
@@ -35,6 +35,7 @@ def register(app: typer.Typer) -> None:
             "[default: 5, or the config's localization.lost_after].")] = None,
         config: Annotated[Path | None, typer.Option(
             "--config", "-c", help="YAML config: its localization section (see dump-config).")] = None,
+        overwrite: Overwrite = False,
     ) -> None:
         """Localise every scan of LOG in a fixed map; write poses, per-scan fitness and a summary into OUT."""
         from ..api import localize_to_folder
@@ -45,12 +46,19 @@ def register(app: typer.Typer) -> None:
                                  min_fitness=min_fitness, lost_after=lost_after)
             # a bar only on a terminal: its closing newline would break the one-line error
             result, _ = localize_to_folder(log, map, out, initial_pose=initial_pose, format=format, start=start,
-                                           max_scans=max_scans, config=cfg, progress=err_console.is_terminal)
+                                           max_scans=max_scans, config=cfg, progress=err_console.is_terminal,
+                                           overwrite=overwrite)
         except SubmapSlamError as exc:
             raise fail(exc) from None
         except OSError as exc:
             raise fail(f"{getattr(exc, 'filename', '') or out}: {exc.strerror or exc}") from None
         s = result.summary()
-        console.print(f"{s['scans']} scans localised, {s['lost_scans']} lost in {len(s['lost_spans'])} spans, "
-                        f"{s['relocalisations']} relocalisations; {s['wall_time_s']:.1f} s ({s['scans_per_s']} scans/s)")
+        console.print(f"{s['scans']} scans, {s['lost_scans']} lost in {len(s['lost_spans'])} spans, "
+                      f"{s['relocalisations']} relocalisations, {s['consistent_fraction']:.0%} consistent with the "
+                      f"map; {s['wall_time_s']:.1f} s ({s['scans_per_s']} scans/s)")
         console.print(f"results in {out}")
+        if not result.localised:
+            found = "never found in the map" if s["initialised_at_scan"] < 0 else "found, but the map explains too few"
+            raise fail(f"{log} was not localised in {map}: {found} ({s['consistent_fraction']:.0%} of the scans "
+                       f"consistent, {cfg.min_consistent_fraction:.0%} needed); a log of another place, or give "
+                       "--initial-pose")

@@ -9,7 +9,8 @@ from typing import Annotated
 import typer
 
 from ..errors import SubmapSlamError
-from ._common import OutFolder, console, fail
+from ._common import Overwrite, console, fail
+from ._interrupt import EXIT_INTERRUPTED, quit_now, stop_requests
 
 
 def register(app: typer.Typer) -> None:
@@ -17,13 +18,17 @@ def register(app: typer.Typer) -> None:
 
     @app.command()
     def run(
-        log: Annotated[Path, typer.Argument(help="Log: CARMEN file, folder of .bin/.ply/.pcd scans, synthetic log folder, "
-                                            "ROS bag (.bag, ROS 2 folder, .mcap).")],
-        out: OutFolder,
+        log: Annotated[Path | None, typer.Argument(
+            help="Log: CARMEN file, folder of .bin/.ply/.pcd scans, synthetic log folder, "
+            "ROS bag (.bag, ROS 2 folder, .mcap). Not needed with --resume.")] = None,
+        out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder.")] = None,
+        resume: Annotated[Path | None, typer.Option(
+            "--resume", help="Continue the interrupted run that writes into this folder, from its checkpoint "
+            "(same log, options and config), to the result an uninterrupted run gives.")] = None,
         config: Annotated[Path | None, typer.Option("--config", "-c", help="YAML config (see dump-config).")] = None,
         format: Annotated[str | None, typer.Option("--format", "-f", help="Force the log format.")] = None,
         hints: Annotated[Path | None, typer.Option("--hints", help="Manual loop hints: 'a b' scan indices or timestamps per line.")] = None,
-        max_scans: Annotated[int | None, typer.Option("--max-scans", help="Stop after N scans.")] = None,
+        max_scans: Annotated[int | None, typer.Option("--max-scans", min=1, help="Stop after N scans.")] = None,
         no_loops: Annotated[bool, typer.Option("--no-loops", help="Odometry and submaps only.")] = False,
         topic: Annotated[str | None, typer.Option("--topic", help="ROS bag: the PointCloud2/LaserScan topic to read.")] = None,
         odometry_topic: Annotated[str | None, typer.Option(
@@ -31,26 +36,50 @@ def register(app: typer.Typer) -> None:
         base_frame: Annotated[str | None, typer.Option(
             "--base-frame", help="ROS bag: robot frame the points are moved into through /tf_static "
             "(default: the odometry's child_frame_id, else base_link).")] = None,
+        overwrite: Overwrite = False,
         view: Annotated[bool, typer.Option("--view", help="Stream the run live to a Rerun viewer (needs rerun-sdk: the view extra).")] = False,
         record: Annotated[Path | None, typer.Option(
             "--record", help="Save the live view as a Rerun .rrd recording (works headless).")] = None,
     ) -> None:
-        """Build a map and trajectory from LOG; write poses, graph, map and summary into OUT."""
+        """Build a map and trajectory from LOG; write poses, graph, map and summary into OUT.
+
+        OUT is checked before the log is read; the files appear in OUT only when all are written.
+        Ctrl-C (or SIGTERM) stops after the current scan and still writes a complete result
+        marked "interrupted" in summary.json; a second Ctrl-C quits at once.
+        """
         from ..api import run_log
         from ._live_view import open_live_view
 
+        if resume is not None:
+            if out is not None and out.resolve() != resume.resolve():
+                raise fail(f"--resume {resume} continues the run that writes into {resume}; --out {out} differs")
+            given = [name for name, value in (("--config", config), ("--hints", hints), ("--max-scans", max_scans),
+                                              ("--format", format)) if value is not None]
+            if given or no_loops:
+                raise fail(f"{', '.join(given + (['--no-loops'] if no_loops else []))} cannot change a resumed run: "
+                           "it continues with the options it was started with")
+            out = resume
+        elif out is None:
+            raise fail("--out is needed: the folder the results go into")
+        elif log is None:
+            raise fail("LOG is needed (or --resume OUT to continue an interrupted run)")
         try:
             observer = open_live_view(view, record)
             try:
-                result, paths = run_log(log, out, config=config, format=format, hints=hints,
-                                        max_scans=max_scans, loops=not no_loops, progress=True,
-                                        reader_options={"topic": topic, "odometry_topic": odometry_topic,
-                                                        "base_frame": base_frame}, observer=observer)
+                with stop_requests("the run") as stop:
+                    result, paths = run_log(log, out, config=config, format=format, hints=hints,
+                                            max_scans=max_scans, loops=not no_loops, progress=True,
+                                            reader_options={"topic": topic, "odometry_topic": odometry_topic,
+                                                            "base_frame": base_frame},
+                                            overwrite=overwrite, stop=stop, resume=resume is not None,
+                                            observer=observer)
             finally:
                 if observer is not None:
                     observer.close()
         except SubmapSlamError as exc:
             raise fail(exc) from None
+        except KeyboardInterrupt:
+            quit_now(f"nothing written to {out}")
         if record is not None:
             console.print(f"live view recorded in {record} (open it with: rerun {record})")
         # summary.json is written last: its wall time and peak memory include the writing
@@ -60,5 +89,9 @@ def register(app: typer.Typer) -> None:
             f"{s['loop_closures_accepted']} accepted; {s['wall_time_total_s']:.1f} s, peak {s['peak_memory_mb']:.0f} MiB"
         )
         console.print(f"results in {out}")
+        if result.interrupted:
+            console.print(f"interrupted: the results cover the first {s['scans']} scans of the log; "
+                          f"`submapslam run --resume {out}` continues the run")
+            raise typer.Exit(EXIT_INTERRUPTED)
         if result.input_error:
             raise fail(f"{result.input_error} (results cover the {s['scans']} scans read before it)")

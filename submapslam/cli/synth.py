@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 
 from ..errors import SubmapSlamError
-from ._common import console, fail
+from ._common import Overwrite, console, fail
 
 
 def register(app: typer.Typer) -> None:
@@ -22,46 +22,47 @@ def register(app: typer.Typer) -> None:
         seed: Annotated[int, typer.Option(help="Random seed (same seed, same files).")] = 0,
         laps: Annotated[int | None, typer.Option(help="Laps around the loop [default: 2].")] = None,
         sensor: Annotated[str | None, typer.Option(help="laser2d or lidar3d (default: the world's).")] = None,
-        max_scans: Annotated[int | None, typer.Option(help="Cut the log after N scans.")] = None,
-        odometry_noise: Annotated[float, typer.Option(help="Scale of the wheel-odometry noise.")] = 1.0,
+        max_scans: Annotated[int | None, typer.Option(min=1, help="Cut the log after N scans.")] = None,
+        odometry_noise: Annotated[float, typer.Option(min=0.0, help="Scale of the wheel-odometry noise (0: exact).")] = 1.0,
         poles: Annotated[int, typer.Option(min=0, help="rectangle: free-standing poles (EKF point features).")] = 0,
         path: Annotated[Path | None, typer.Option("--path", help="kitti: KITTI pose file (NN.txt or NN.txt.xz).")] = None,
         rings: Annotated[int, typer.Option(help="kitti: 16 (VLP-16 like) or 64 (HDL-64E like).")] = 16,
+        overwrite: Overwrite = False,
     ) -> None:
         """Generate a synthetic world and write it as a log folder (and CARMEN for 2D).
 
         ``synth kitti --path 00.txt.xz --rings 16 --out DIR`` drives the KITTI path through a
-        generated city and ray-casts a Velodyne-like LiDAR at every pose (10 Hz).
+        generated city and ray-casts a Velodyne-like LiDAR at every pose (10 Hz). The log is
+        written into a staging folder beside OUT and appears as OUT only when complete.
         """
+        from ..io.output_folder import staged_folder
+
         try:
             if world == "kitti":
-                _kitti(out, path, rings, seed, max_scans, odometry_noise, laps=laps, sensor=sensor, poles=poles)
+                _check_kitti_options(path, rings, laps=laps, sensor=sensor, poles=poles)
+            elif path is not None:
+                raise SubmapSlamError(f"--path is for the kitti world, not {world!r}")
             else:
-                if path is not None:
-                    raise SubmapSlamError(f"--path is for the kitti world, not {world!r}")
-                _world(world, out, seed, laps or 2, sensor, max_scans, odometry_noise, poles)
+                _check_world(world)
+            with staged_folder(out, "synth", overwrite=overwrite, inputs=[path]) as staging:
+                if world == "kitti":
+                    meta = _kitti(staging, path, rings, seed, max_scans, odometry_noise)
+                else:
+                    meta = _world(world, staging, seed, laps or 2, sensor, max_scans, odometry_noise, poles)
         except SubmapSlamError as exc:
             raise fail(exc) from None
+        console.print(f"{meta} -> {out}")
 
 
-def _world(world, out, seed, laps, sensor, max_scans, odometry_noise, poles) -> None:
-    import yaml
+def _check_world(world: str) -> None:
+    """One line for a world name that does not exist (before any file is written)."""
+    from datasets_synth import WORLDS
 
-    from datasets_synth import generate
-
-    extra = {"poles": poles} if poles else {}
-    path = generate(world, out, seed=seed, laps=laps, sensor=sensor, max_scans=max_scans,
-                    odometry_noise=odometry_noise, **extra)
-    meta = yaml.safe_load((path / "meta.yaml").read_text())
-    console.print(f"{meta['n_scans']} scans of {world} ({meta['sensor']['type']}), loop {meta['loop_length_m']:.0f} m "
-                    f"x {meta['laps']} laps, wheel odometry end drift {meta['odometry_end_drift_m']:.2f} m -> {path}")
+    if world not in WORLDS:
+        raise SubmapSlamError(f"unknown world {world!r}; choose from {', '.join([*sorted(WORLDS), 'kitti'])}")
 
 
-def _kitti(out, path, rings, seed, max_scans, odometry_noise, *, laps, sensor, poles) -> None:
-    import yaml
-
-    from datasets_synth import generate_kitti_drive
-
+def _check_kitti_options(path, rings, *, laps, sensor, poles) -> None:
     if path is None:
         raise SubmapSlamError("synth kitti needs --path: a KITTI pose file such as kitti_gt/00.txt.xz")
     unused = [name for name, value in (("--laps", laps), ("--sensor", sensor), ("--poles", poles or None))
@@ -71,6 +72,28 @@ def _kitti(out, path, rings, seed, max_scans, odometry_noise, *, laps, sensor, p
                               "the sensor is set by --rings)")
     if rings not in (16, 64):
         raise SubmapSlamError(f"--rings must be 16 or 64, not {rings}")
+    if not Path(path).is_file():
+        raise SubmapSlamError(f"--path {path}: no such KITTI pose file")
+
+
+def _world(world, out, seed, laps, sensor, max_scans, odometry_noise, poles) -> str:
+    import yaml
+
+    from datasets_synth import generate
+
+    extra = {"poles": poles} if poles else {}
+    path = generate(world, out, seed=seed, laps=laps, sensor=sensor, max_scans=max_scans,
+                    odometry_noise=odometry_noise, **extra)
+    meta = yaml.safe_load((path / "meta.yaml").read_text())
+    return (f"{meta['n_scans']} scans of {world} ({meta['sensor']['type']}), loop {meta['loop_length_m']:.0f} m "
+            f"x {meta['laps']} laps, wheel odometry end drift {meta['odometry_end_drift_m']:.2f} m")
+
+
+def _kitti(out, path, rings, seed, max_scans, odometry_noise) -> str:
+    import yaml
+
+    from datasets_synth import generate_kitti_drive
+
     from ..api import progress_bar
 
     with progress_bar(None) as bar:
@@ -79,6 +102,6 @@ def _kitti(out, path, rings, seed, max_scans, odometry_noise, *, laps, sensor, p
                                    odometry_noise=odometry_noise,
                                    progress=lambda done, total: bar.update(task, completed=done, total=total))
     meta = yaml.safe_load((log / "meta.yaml").read_text())
-    console.print(f"{meta['n_scans']} scans along {path.name} ({rings}-ring LiDAR), "
-                    f"{meta['path_length_m'] / 1000:.2f} km, {meta['city']['buildings']} buildings, "
-                    f"{meta['city']['cars']} parked cars -> {log}")
+    return (f"{meta['n_scans']} scans along {path.name} ({rings}-ring LiDAR), "
+            f"{meta['path_length_m'] / 1000:.2f} km, {meta['city']['buildings']} buildings, "
+            f"{meta['city']['cars']} parked cars")

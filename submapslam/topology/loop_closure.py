@@ -284,6 +284,15 @@ class LoopCloser:
         self.index.add(new.id, descriptor)
         return records
 
+    def replay(self, new: Submap, records: list[LoopRecord]) -> list[LoopRecord]:
+        """What :meth:`process` did for ``new`` in an earlier run, from its ``records``: the
+        descriptor is indexed and the pairs marked tested, with no test run; returns ``records``."""
+        with self._time("descriptors"):
+            descriptor = compute_descriptor(new.points, planar=self.planar, max_range=self.config.descriptor_radius)
+        self._tested.update((rec.i, rec.j) for rec in records)
+        self.index.add(new.id, descriptor)
+        return records
+
     def _test(self, hyp: Hypothesis, submaps: list[Submap], graph: GraphEstimate) -> LoopRecord:
         """One hypothesis through the gates: reachable, correspondence, structure (3D),
         plausible under the estimate, confirmed by the adjacent submaps."""

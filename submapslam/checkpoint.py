@@ -1,0 +1,58 @@
+"""A run's progress, kept so that an interrupted run can be resumed to the same result.
+
+A :class:`Checkpoint` holds what the expensive steps decided: every scan's odometry pose, each
+submap's odometry-edge information (from a registration) and each submap's tested loop
+hypotheses with their constraints. Resuming re-reads the log and replays those scans through
+the same steps with the decisions taken from the checkpoint (no ICP, no correspondence test),
+which rebuilds the odometry's local map, the submaps, the descriptor index and the GTSAM graph
+in the same order with the same numbers; after the checkpoint's last scan the run continues
+live. Because every step is deterministic, the resumed run ends with the trajectory an
+uninterrupted run gives.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .result import LoopRecord
+
+
+@dataclass
+class Checkpoint:
+    """The decisions of the first :attr:`n_scans` scans of a run.
+
+    Attributes:
+        timestamps: ``(K,)`` the scans' timestamps (a resumed log must give the same).
+        odometry_poses: ``(K, 4, 4)`` ``T_odom_base`` of scans ``0..K-1`` as registered.
+        planar_poses: ``(K, 3)`` the same as ``x, y, yaw`` for planar logs (the refinement's own
+            numbers, which a matrix round trip would change in the last bit), else None.
+        odometry_information: per submap id >= 1, the ``(6, 6)`` information of its odometry
+            edge from the previous submap (GTSAM order).
+        loop_records: per submap id, the hypotheses tested when it closed, in test order.
+        source: the log the scans came from.
+    """
+
+    timestamps: np.ndarray
+    odometry_poses: np.ndarray
+    planar_poses: np.ndarray | None
+    odometry_information: dict[int, np.ndarray] = field(default_factory=dict)
+    loop_records: dict[int, list[LoopRecord]] = field(default_factory=dict)
+    source: str = ""
+
+    @property
+    def n_scans(self) -> int:
+        return len(self.odometry_poses)
+
+    @property
+    def n_submaps(self) -> int:
+        """Submaps whose graph work (odometry edge, loop tests) the checkpoint holds."""
+        return len(self.loop_records)
+
+    def known_pose(self, scan_index: int) -> tuple[np.ndarray, np.ndarray | None] | None:
+        """``(T_odom_base, xyt or None)`` of a scan the checkpoint covers, else None."""
+        if scan_index >= self.n_scans:
+            return None
+        xyt = self.planar_poses[scan_index] if self.planar_poses is not None else None
+        return self.odometry_poses[scan_index], xyt
