@@ -20,6 +20,7 @@ if TYPE_CHECKING:
     from .ekf.stochastic_map import CredibilityParams
     from .landmark_log import LandmarkLog
     from .localization import LocalizationConfig, LocalizationResult
+    from .observer import RunObserver
 
 log = logging.getLogger(__name__)
 
@@ -47,10 +48,12 @@ def run_log(
     overwrite: bool = False,
     stop: threading.Event | None = None,
     resume: bool = False,
+    observer: RunObserver | None = None,
 ) -> tuple[SlamResult, dict[str, Path]]:
     """Open ``log_path``, run the pipeline, write results to ``out_dir`` (if given).
 
-    ``reader_options`` go to the log reader (ROS bags: ``topic``, ``odometry_topic``).
+    ``reader_options`` go to the log reader (ROS bags: ``topic``, ``odometry_topic``);
+    ``observer`` watches the run (:mod:`submapslam.observer`, e.g. the Rerun live view).
     Every option and ``out_dir`` are checked before the log is read
     (:func:`~submapslam.io.output_folder.check_out_folder`: an earlier result in ``out_dir`` is
     replaced only with ``overwrite``); the files are written into a staging folder swapped in at
@@ -118,7 +121,7 @@ def run_log(
             write_checkpoint(out_dir, ckpt, cfg, started)
 
     options = dict(source=source, hints=hint_pairs, stop=stop, resume_from=checkpoint,
-                   checkpoint_every=cfg.checkpoint_every_submaps, on_checkpoint=keep)
+                   checkpoint_every=cfg.checkpoint_every_submaps, on_checkpoint=keep, observer=observer)
     if progress:
         with progress_bar(total) as bar:
             task = bar.add_task("run", total=total)
@@ -132,12 +135,14 @@ def run_log(
     paths: dict[str, Path] = {}
     if out_dir is not None:
         from .io.output_folder import staged_folder
+        from .io.provenance import input_provenance, write_provenance
         from .io.results import write_results
         from .mapping.global_map import build_map_outputs
 
         maps = build_map_outputs(result)
         with staged_folder(out_dir, "run", overwrite=overwrite, inputs=inputs) as staging:
             written = write_results(result, staging, maps, run_started=t_start)
+            written["input.json"] = write_provenance(staging, input_provenance(log_path, result.timestamps))
         paths = {name: Path(out_dir) / p.name for name, p in written.items()}
         if not result.interrupted:
             from .io.checkpoint import remove_checkpoint
@@ -227,6 +232,17 @@ def run_ekf_log(
     with staged_folder(out_dir, "ekf", overwrite=overwrite, inputs=[log_path]) as staging:
         write_ekf_results(staging, run, summary)
         plot_stochastic_map(staging / "landmarks.png", run, data.truth_landmarks or None, data.truth_poses)
+        from .io.provenance import input_provenance, write_provenance
+
+        write_provenance(staging, input_provenance(log_path, run.times))
+        if data.truth_poses is not None and len(data.truth_poses) > 1:  # NEES where truth is known (report)
+            from .evaluation.ekf_nees import pose_nees_against_truth
+            from .io.nees_csv import write_nees_csv
+
+            t, nees = pose_nees_against_truth(run.times, run.poses, run.pose_covs, data.truth_times,
+                                              data.truth_poses)
+            if len(t):
+                write_nees_csv(staging / "nees.csv", t, nees)
     return summary
 
 
@@ -342,6 +358,46 @@ def compare_files(ref: str | Path, estimates: dict[str, str | Path], out_dir: st
     r = _reference(ref, raw_log)
     trajectories = {label: read_trajectory(p) for label, p in estimates.items()}
     with staged_folder(out_dir, "compare", overwrite=overwrite, inputs=inputs) as staging:
-        report = compare_trajectories(r, trajectories, staging, align=align)
+        report = compare_trajectories(r, trajectories, staging, align=align, reference_name=Path(ref).name)
     report.files = {name: Path(out_dir) / p.name for name, p in report.files.items()}
     return report
+
+
+def report_run(run_dir: str | Path, out_path: str | Path | None = None, *, ref: str | Path | None = None,
+               raw_log: str | Path | None = None, align: str = "se3") -> Path:
+    """Write the self-contained HTML report of the results folder ``run_dir`` (default
+    ``run_dir/report.html``); with ``ref`` (``raw_log``: the raw CARMEN log when ``ref`` is a
+    corrected one) the error against it. Returns the page's path.
+
+    An existing file at ``out_path`` is replaced only when it is a report this function wrote;
+    anything else is an error, so no file of the user's is overwritten.
+    """
+    from .errors import InputError
+    from .evaluation.html_page import is_report
+    from .evaluation.html_report import write_run_report
+    from .evaluation.metrics import Alignment
+    from .io.run_folder import read_run_folder
+
+    mode = Alignment(align)
+    out = Path(out_path) if out_path is not None else Path(run_dir) / "report.html"
+    if out.exists():
+        if out.is_dir():
+            raise InputError(out, "is a folder; --out takes the path of the .html file to write")
+        with open(out, "rb") as fh:
+            if not is_report(fh.read(2048)):
+                raise InputError(out, "exists and is not a submapslam report; not overwriting it (choose another --out)")
+    if not out.parent.is_dir():
+        raise InputError(out.parent, "no such folder for the report")
+    if ref is None:
+        return write_run_report(read_run_folder(run_dir), out, None, align=mode)
+    from concurrent.futures import ThreadPoolExecutor
+
+    # the reference is read (decompressed: bz2/gzip release the GIL) while the map is drawn
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="reference") as pool:
+        reference = pool.submit(_reference, ref, raw_log)
+        try:
+            record = read_run_folder(run_dir)
+        except BaseException:
+            reference.cancel()
+            raise
+        return write_run_report(record, out, reference.result, align=mode, reference_name=Path(ref).name)

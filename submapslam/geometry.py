@@ -155,6 +155,19 @@ def pose_from_xyz_quat(xyz: ArrayLike, q_xyzw: ArrayLike) -> Array:
     return T
 
 
+def poses_from_xyz_quats(xyz: ArrayLike, q_xyzw: ArrayLike) -> Array:
+    """:func:`pose_from_xyz_quat` for many: ``(N, 3)`` translations, ``(N, 4)`` quaternions ->
+    ``(N, 4, 4)`` (each quaternion normalised first)."""
+    q = np.asarray(q_xyzw, dtype=np.float64).reshape(-1, 4)
+    x, y, z, w = (q / np.linalg.norm(q, axis=1, keepdims=True)).T
+    T = np.tile(np.eye(4), (len(q), 1, 1))
+    T[:, 0, 0], T[:, 0, 1], T[:, 0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)
+    T[:, 1, 0], T[:, 1, 1], T[:, 1, 2] = 2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)
+    T[:, 2, 0], T[:, 2, 1], T[:, 2, 2] = 2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)
+    T[:, :3, 3] = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    return T
+
+
 def se3_exp(xi: ArrayLike) -> Array:
     """Twist ``(6,)`` = (rho, phi) (translation first) -> ``(4, 4)``, first-order coupled."""
     xi = np.asarray(xi, dtype=np.float64)

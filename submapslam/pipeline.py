@@ -19,6 +19,7 @@ from .config import PipelineConfig
 from .errors import InputError, SubmapSlamError
 from .geometry import blend_poses_many, inverse
 from .graph_builder import GraphBuilder
+from .observer import RunObserver, notify_closed_submap
 from .odometry import Odometry
 from .process_stats import current_memory_mb, peak_memory_mb
 from .result import LoopRecord, SlamResult
@@ -50,17 +51,20 @@ class SubmapSLAM:
     """
 
     def __init__(self, config: PipelineConfig | None = None, hints: list[LoopHint] | None = None,
-                 resume_from: Checkpoint | None = None) -> None:
+                 resume_from: Checkpoint | None = None, observer: RunObserver | None = None) -> None:
         """``resume_from``: the checkpoint of an earlier run of the same log and config; its scans
-        are replayed with its decisions (:mod:`.checkpoint`), the rest run live."""
+        are replayed with its decisions (:mod:`.checkpoint`), the rest run live. ``observer``: an
+        optional viewer/logger (:mod:`.observer`), told about scans, submaps and loops."""
         self.config = config or PipelineConfig()
         self._replay = resume_from
+        self._observer = observer
         self._records_by_submap: dict[int, list[LoopRecord]] = {}  # loop tests per closing submap
         self._planar_poses: list[np.ndarray] = []  # planar: (3,) x, y, yaw per scan as refined
         self.timer = StageTimer()
         self._t_start = time.perf_counter()
         self._travelled = 0.0  # odometry path length so far [m]
         self.memory_mb_by_km: list[tuple[float, float]] = []  # (km travelled, resident MiB) per closed submap
+        self.scans_by_wall_time: list[tuple[float, int]] = []  # (seconds since start, scans done) per closed submap
         self.planar: bool | None = None
         self._fuse_thinned = False  # 3D: fuse the odometry's thinned scans into submaps (set at the first scan)
         self.map_voxel = self.config.mapping.map_voxel_size or 0.1  # resolved for the log's kind at the first scan
@@ -119,6 +123,8 @@ class SubmapSLAM:
                                            full_scan=frame)
             else:
                 submap = self._builder.add(len(self.timestamps) - 1, T_odom_base, frame)
+        if self._observer is not None:
+            self._observer.on_scan(len(self.timestamps) - 1, scan.timestamp, T_odom_base, scan.points)
         if submap is not None:
             self._close_submap(submap)
 
@@ -170,6 +176,7 @@ class SubmapSLAM:
     def _close_submap(self, submap: Submap, background: bool = True) -> None:
         self._settle()
         self.memory_mb_by_km.append((self._travelled / 1000.0, current_memory_mb()))
+        self.scans_by_wall_time.append((time.perf_counter() - self._t_start, len(self.timestamps)))
         self.submaps.append(submap)
         for idx in submap.scan_indices:
             self._scan_submap[idx] = submap.id
@@ -202,6 +209,9 @@ class SubmapSLAM:
             self.loops.extend(records)
             self._graph_builder.add_loops(records)
         self._records_by_submap[submap.id] = records
+        if self._observer is not None:
+            notify_closed_submap(self._observer, submap.id, submap.T_odom_anchor, submap.points, records,
+                                 self._graph_builder.graph.pose)
 
     def checkpoint(self, source: str = "") -> Checkpoint:
         """The decisions so far (every scan's odometry, every closed submap's graph work), after
@@ -330,6 +340,7 @@ class SubmapSLAM:
             map_voxel_size=self.map_voxel,
             path_length_m=self._travelled,
             memory_mb_by_km=list(self.memory_mb_by_km),
+            scans_by_wall_time=list(self.scans_by_wall_time),
             peak_memory_mb=peak_memory_mb(),
             input_error=input_error,
             source=source,
@@ -344,6 +355,7 @@ def run(
     source: str = "",
     progress: Callable[[int], None] | None = None,
     hints: list[LoopHint] | None = None,
+    observer: RunObserver | None = None,
     stop: threading.Event | None = None,
     resume_from: Checkpoint | None = None,
     checkpoint_every: int | None = None,
@@ -363,7 +375,7 @@ def run(
     """
     config = config or PipelineConfig()
     source = source or str(getattr(scans, "path", "") or "")  # a log reader knows its file
-    slam = SubmapSLAM(config, hints, resume_from=resume_from)
+    slam = SubmapSLAM(config, hints, resume_from=resume_from, observer=observer)
     if resume_from is not None and resume_from.n_scans and config.max_scans is not None \
             and config.max_scans < resume_from.n_scans:
         raise SubmapSlamError(f"--max-scans {config.max_scans} is below the {resume_from.n_scans} scans "

@@ -57,6 +57,8 @@ class SlamResult:
         map_voxel_size: [m] voxel of the fused map (the config's, resolved for the log's kind).
         path_length_m: odometry path length [m].
         memory_mb_by_km: ``(km travelled, resident MiB)`` when each submap closed.
+        scans_by_wall_time: ``(seconds since the engine's start, scans done)`` when each submap
+            closed (scans/s along the run).
         peak_memory_mb: the process's peak resident set [MiB] (``ru_maxrss``) when the result was made.
         input_error: message of an input error that stopped reading early (results cover
             the scans read before it), else None.
@@ -86,6 +88,7 @@ class SlamResult:
     map_voxel_size: float = 0.1
     path_length_m: float = 0.0
     memory_mb_by_km: list[tuple[float, float]] = field(default_factory=list)
+    scans_by_wall_time: list[tuple[float, int]] = field(default_factory=list)
     peak_memory_mb: float = 0.0
     input_error: str | None = None
     source: str = ""
@@ -123,6 +126,7 @@ class SlamResult:
             "scans_per_second": round(self.n_scans / self.wall_time_s, 2) if self.wall_time_s > 0 else None,
             "peak_memory_mb": round(self.peak_memory_mb, 1),
             "memory_mb_by_km": [[round(km, 4), round(mb, 1)] for km, mb in self.memory_mb_by_km],
+            "scans_by_wall_time_s": [[round(t, 3), n] for t, n in self.scans_by_wall_time],
             "input_error": self.input_error,
             "interrupted": self.interrupted,
             **self.log_info,

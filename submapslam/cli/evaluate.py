@@ -72,13 +72,18 @@ def register(app: typer.Typer) -> None:
     ) -> None:
         """Side-by-side report (table + plots) of several trajectories against one reference."""
         from ..api import compare_files
+        from ..io.trajectory_names import trajectory_labels
 
         labels = list(label or [])
         if labels and len(labels) != len(est):
             raise fail(SubmapSlamError(f"{len(labels)} labels for {len(est)} trajectories"))
+        repeated = sorted({x for x in labels if labels.count(x) > 1})
+        if repeated:
+            raise fail(SubmapSlamError(f"each --label must be unique, repeated: {', '.join(repeated)}"))
+        names = labels or trajectory_labels(est)  # runA/poses vs runB/poses: two poses_tum.txt never collide
         try:
-            report = compare_files(ref, {(labels[k] if labels else p.stem): p for k, p in enumerate(est)}, out,
-                                   align=align, raw_log=raw_log, overwrite=overwrite)
+            report = compare_files(ref, dict(zip(names, est, strict=True)), out, align=align, raw_log=raw_log,
+                                   overwrite=overwrite)
         except SubmapSlamError as exc:
             raise fail(exc) from None
         console.print(report.markdown)

@@ -44,6 +44,9 @@ def register(app: typer.Typer) -> None:
         skip_bad: Annotated[bool, typer.Option(
             "--skip-bad", help="CARMEN logs and scan folders: skip damaged records (scan files) and "
             "count them in summary.json instead of stopping at the first.")] = False,
+        view: Annotated[bool, typer.Option("--view", help="Stream the run live to a Rerun viewer (needs rerun-sdk: the view extra).")] = False,
+        record: Annotated[Path | None, typer.Option(
+            "--record", help="Save the live view as a Rerun .rrd recording (works headless).")] = None,
     ) -> None:
         """Build a map and trajectory from LOG; write poses, graph, map and summary into OUT.
 
@@ -52,6 +55,7 @@ def register(app: typer.Typer) -> None:
         marked "interrupted" in summary.json; a second Ctrl-C quits at once.
         """
         from ..api import run_log
+        from ._live_view import open_live_view
 
         if resume is not None:
             if out is not None and out.resolve() != resume.resolve():
@@ -67,17 +71,25 @@ def register(app: typer.Typer) -> None:
         elif log is None:
             raise fail("LOG is needed (or --resume OUT to continue an interrupted run)")
         try:
-            with stop_requests("the run") as stop:
-                result, paths = run_log(log, out, config=config, format=format, hints=hints,
-                                        max_scans=max_scans, loops=not no_loops, progress=True,
-                                        reader_options={"topic": topic, "odometry_topic": odometry_topic,
-                                                        "base_frame": base_frame, "laser": laser,
-                                                        "skip_bad": True if skip_bad else None},
-                                        overwrite=overwrite, stop=stop, resume=resume is not None)
+            observer = open_live_view(view, record)
+            try:
+                with stop_requests("the run") as stop:
+                    result, paths = run_log(log, out, config=config, format=format, hints=hints,
+                                            max_scans=max_scans, loops=not no_loops, progress=True,
+                                            reader_options={"topic": topic, "odometry_topic": odometry_topic,
+                                                            "base_frame": base_frame, "laser": laser,
+                                                            "skip_bad": True if skip_bad else None},
+                                            overwrite=overwrite, stop=stop, resume=resume is not None,
+                                            observer=observer)
+            finally:
+                if observer is not None:
+                    observer.close()
         except SubmapSlamError as exc:
             raise fail(exc) from None
         except KeyboardInterrupt:
             quit_now(f"nothing written to {out}")
+        if record is not None:
+            console.print(f"live view recorded in {record} (open it with: rerun {record})")
         # summary.json is written last: its wall time and peak memory include the writing
         s = json.loads(paths["summary.json"].read_text()) if "summary.json" in paths else result.summary()
         console.print(

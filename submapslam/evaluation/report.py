@@ -27,8 +27,9 @@ class ComparisonResult:
 
 
 def compare_trajectories(reference: Trajectory, estimates: dict[str, Trajectory], out_dir: str | Path,
-                         align: AlignMode = Alignment.SE3) -> ComparisonResult:
-    """Write ``report.md``, ``report.json``, ``trajectories.png`` and ``ate.png`` into ``out_dir``.
+                         align: AlignMode = Alignment.SE3, reference_name: str = "reference") -> ComparisonResult:
+    """Write ``report.md``, ``report.json``, ``trajectories.png``, ``ate.png`` and ``report.html``
+    (one self-contained page: sortable table, every estimate side by side and overlaid) into ``out_dir``.
 
     ``align`` is an :class:`~submapslam.evaluation.metrics.Alignment` (or its string), checked
     before anything is computed or written.
@@ -87,4 +88,9 @@ def compare_trajectories(reference: Trajectory, estimates: dict[str, Trajectory]
     ax.legend(fontsize=8)
     fig.savefig(files["ate.png"], dpi=120, bbox_inches="tight")
     plt.close(fig)
+    from .html_report import build_comparison_report
+
+    files["report.html"] = out / "report.html"
+    files["report.html"].write_text(build_comparison_report(reference, estimates, rows, align, reference_name),
+                                     encoding="utf-8")
     return ComparisonResult(rows, markdown, files)

@@ -25,10 +25,10 @@ def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs,
     build_map_outputs`); return ``{name: path}``. Nothing is computed here.
 
     Files: ``poses_tum.txt``, ``poses_kitti.txt``, ``odometry_tum.txt``, ``graph.g2o``,
-    ``map.ply``, ``config.yaml``, ``summary.json``, ``loops.csv``, ``submaps.csv`` (anchor poses
-    and marginal standard deviations), and for planar runs ``map.pgm`` + ``map.yaml`` (occupancy
-    grid in the ROS map_server format, moving objects cleared; for 3D LiDAR from the
-    obstacle slice of each scan).
+    ``map.ply``, ``config.yaml``, ``summary.json``, ``loops.csv``, ``submaps.csv`` (anchor poses,
+    marginal standard deviations and the x-y covariance in the anchor frame, for ellipses), and
+    for planar runs ``map.pgm`` + ``map.yaml`` (occupancy grid in the ROS map_server format,
+    moving objects cleared; for 3D LiDAR from the obstacle slice of each scan).
 
     ``run_started``: ``time.perf_counter()`` at the start of the whole run (config, reading, maps
     and writing included); ``summary.json``'s ``wall_time_total_s`` is measured from it. None:
@@ -80,10 +80,10 @@ def _write_submaps(path: Path, result: SlamResult) -> None:
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
         w.writerow(["id", "first_scan", "last_scan", "x", "y", "z", "yaw",
-                    "sigma_x", "sigma_y", "sigma_z", "sigma_roll", "sigma_pitch", "sigma_yaw"])
+                    "sigma_x", "sigma_y", "sigma_z", "sigma_roll", "sigma_pitch", "sigma_yaw", "cov_xy"])
         for k, (T, cov, idx) in enumerate(zip(result.submap_poses, result.submap_covariances,
                                                result.submap_scan_indices)):
             sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
             x, y, yaw = matrix_to_se2(T)
             w.writerow([k, idx[0], idx[-1], f"{x:.4f}", f"{y:.4f}", f"{T[2, 3]:.4f}", f"{yaw:.6f}",
-                        *(f"{v:.6g}" for v in (sd[3], sd[4], sd[5], sd[0], sd[1], sd[2]))])
+                        *(f"{v:.6g}" for v in (sd[3], sd[4], sd[5], sd[0], sd[1], sd[2], cov[3, 4]))])

@@ -14,7 +14,7 @@ from typing import Literal
 import numpy as np
 
 from ..errors import ConfigError, InputError
-from ..geometry import matrix_to_quat, pose_from_xyz_quat, se2_to_matrix
+from ..geometry import matrix_to_quat, poses_from_xyz_quats, se2_to_matrix
 from ..trajectory import Relations, Trajectory
 from .compression import base_suffix, open_text
 
@@ -54,9 +54,8 @@ def read_tum(path: str | Path) -> Trajectory:
         norm = float(np.linalg.norm(r[4:8]))
         if not 1e-6 < norm < 1e150:  # normalised below; zero (or overflowing) has no rotation
             raise InputError(path, f"quaternion qx qy qz qw has length {norm:.3g}: not a rotation", lineno)
-    stamps = np.array([r[0] for _, r in rows])
-    poses = np.array([pose_from_xyz_quat(r[1:4], r[4:8]) for _, r in rows])
-    return Trajectory(stamps, poses)
+    values = np.array([r for _, r in rows])
+    return Trajectory(values[:, 0], poses_from_xyz_quats(values[:, 1:4], values[:, 4:8]))
 
 
 def write_tum(path: str | Path, traj: Trajectory) -> None:
