@@ -27,6 +27,9 @@ def register(app: typer.Typer) -> None:
         poles: Annotated[int, typer.Option(min=0, help="rectangle: free-standing poles (EKF point features).")] = 0,
         path: Annotated[Path | None, typer.Option("--path", help="kitti: KITTI pose file (NN.txt or NN.txt.xz).")] = None,
         rings: Annotated[int, typer.Option(help="kitti: 16 (VLP-16 like) or 64 (HDL-64E like).")] = 16,
+        movers: Annotated[int, typer.Option(min=0, help="Things that move: kitti: cars both ways, pedestrians, parked "
+                                                        "cars that leave; 2D worlds: people and boxes. Labelled in "
+                                                        "labels/NNNNNN.label (SemanticKITTI).")] = 0,
     ) -> None:
         """Generate a synthetic world and write it as a log folder (and CARMEN for 2D).
 
@@ -35,7 +38,8 @@ def register(app: typer.Typer) -> None:
         """
         try:
             if world == "kitti":
-                _kitti(out, path, rings, seed, max_scans, odometry_noise, laps=laps, sensor=sensor, poles=poles)
+                _kitti(out, path, rings, seed, max_scans, odometry_noise, laps=laps, sensor=sensor, poles=poles,
+                       movers=movers)
             else:
                 if path is not None:
                     raise SubmapSlamError(f"--path is for the kitti world, not {world!r}")
@@ -57,7 +61,7 @@ def _world(world, out, seed, laps, sensor, max_scans, odometry_noise, poles) -> 
                     f"x {meta['laps']} laps, wheel odometry end drift {meta['odometry_end_drift_m']:.2f} m -> {path}")
 
 
-def _kitti(out, path, rings, seed, max_scans, odometry_noise, *, laps, sensor, poles) -> None:
+def _kitti(out, path, rings, seed, max_scans, odometry_noise, *, laps, sensor, poles, movers) -> None:
     import yaml
 
     from datasets_synth import generate_kitti_drive
@@ -76,9 +80,14 @@ def _kitti(out, path, rings, seed, max_scans, odometry_noise, *, laps, sensor, p
     with progress_bar(None) as bar:
         task = bar.add_task("scans", total=None)
         log = generate_kitti_drive(path, out, rings=rings, seed=seed, max_scans=max_scans,
-                                   odometry_noise=odometry_noise,
+                                   odometry_noise=odometry_noise, movers=movers,
                                    progress=lambda done, total: bar.update(task, completed=done, total=total))
     meta = yaml.safe_load((log / "meta.yaml").read_text())
     console.print(f"{meta['n_scans']} scans along {path.name} ({rings}-ring LiDAR), "
                     f"{meta['path_length_m'] / 1000:.2f} km, {meta['city']['buildings']} buildings, "
-                    f"{meta['city']['cars']} parked cars -> {log}")
+                    f"{meta['city']['cars']} parked cars{_movers_text(meta)} -> {log}")
+
+
+def _movers_text(meta: dict) -> str:
+    counts = meta.get("movers") or {}
+    return (", movers: " + ", ".join(f"{n} {kind}" for kind, n in counts.items())) if counts else ""
