@@ -216,3 +216,34 @@ def compare_files(ref: str | Path, estimates: dict[str, str | Path], out_dir: st
     Alignment(align)
     r = _reference(ref, raw_log)
     return compare_trajectories(r, {label: read_trajectory(p) for label, p in estimates.items()}, out_dir, align=align)
+
+
+def evaluate_map_file(map_path: str | Path, log_path: str | Path, *, poses: str | Path | None = None,
+                      voxel: float = 0.1, radius: float = 0.15) -> dict:
+    """DynamicMap scores (SA, DA, AA) of a map file (PLY/PCD cloud or map_server grid) against a
+    labelled log (``labels/NNNNNN.label``) placed at ``poses`` (default: the log's ground truth).
+
+    For a grid the truth is voxelised into 2D cells of the grid's resolution and the radius is
+    at least 0.75 cells (a wall point's cell centre is up to 0.71 cells from its centroid).
+    """
+    from .errors import SubmapSlamError
+    from .evaluation.dynamic_map import LabelledVoxels, score_map
+    from .io.labels import count_scans, labelled_scans, read_map_points, scan_poses
+
+    if voxel <= 0 or radius <= 0:
+        raise SubmapSlamError(f"--voxel and --radius must be > 0 (got {voxel}, {radius})")
+    map_points, resolution = read_map_points(map_path)
+    T = scan_poses(log_path, poses, count_scans(log_path))
+    planar_grid = resolution is not None
+    cell = resolution if planar_grid else voxel
+    truth = None
+    for k, points, labels, planar in labelled_scans(log_path):
+        if truth is None:
+            truth = LabelledVoxels(cell, planar=planar or planar_grid)
+        truth.add(points @ T[k][:3, :3].T + T[k][:3, 3], labels)
+    if truth is None:
+        raise SubmapSlamError(f"{log_path}: no scans")
+    r = max(radius, 0.75 * resolution) if planar_grid else radius
+    scores = score_map(truth, map_points, r).as_dict()
+    return {"map": str(map_path), "log": str(log_path), "voxel": cell, "radius": r,
+            "grid": planar_grid, "gt_points": truth.points, **scores}
