@@ -247,3 +247,64 @@ def evaluate_map_file(map_path: str | Path, log_path: str | Path, *, poses: str 
     scores = score_map(truth, map_points, r).as_dict()
     return {"map": str(map_path), "log": str(log_path), "voxel": cell, "radius": r,
             "grid": planar_grid, "gt_points": truth.points, **scores}
+
+
+def clean_log(log_path: str | Path, poses: str | Path, out_dir: str | Path, *, format: str | None = None,
+              params=None, progress: bool = False) -> dict:
+    """Remove what moved from a log given one pose per scan (TUM or KITTI ``T_world_base``, scan order);
+    write ``map_static.ply``, ``map_dynamic.ply`` (voxel centroids, world frame) and ``summary.json``
+    into ``out_dir``. Returns the summary (points and voxels kept/removed, wall time, peak memory).
+    """
+    import time
+
+    from .errors import InputError, SubmapSlamError
+    from .io.clean_results import check_clean_folder, write_clean_results
+    from .io.registry import open_log
+    from .io.trajectory import read_trajectory
+    from .mapping.dynamic_removal import RemovalParams, remove_dynamic_points
+    from .process_stats import peak_memory_mb
+
+    t0 = time.perf_counter()
+    params = params or RemovalParams()
+    traj = read_trajectory(poses)
+    reader = open_log(log_path, format)
+    out = check_clean_folder(out_dir)
+    planar = bool(getattr(reader, "planar", False))
+    counted = {"scans": 0}
+
+    def scans():
+        for k, scan in enumerate(open_log(log_path, format)):
+            if k >= len(traj.poses):
+                raise InputError(Path(poses), f"{len(traj.poses)} poses, but the log has more scans "
+                                              "(one pose per scan, in scan order)")
+            counted["scans"] = k + 1
+            yield scan.points
+
+    bar = progress_bar(None) if progress else None
+    if bar is not None:
+        bar.start()
+        task = bar.add_task("scans", total=2 * len(traj.poses))
+    try:
+        result = remove_dynamic_points(
+            scans, traj.poses, getattr(reader, "T_base_sensor", None), params, planar=planar,
+            progress=None if bar is None else (
+                lambda stage, k: bar.update(task, completed=k + (len(traj.poses) if stage == "evidence" else 0))))
+    finally:
+        if bar is not None:
+            bar.stop()
+    if counted["scans"] != len(traj.poses):
+        raise InputError(Path(poses), f"{len(traj.poses)} poses for {counted['scans']} scans "
+                                      "(one pose per scan, in scan order)")
+    if not len(result.keys):
+        raise SubmapSlamError(f"{log_path}: the scans hold no points")
+    summary = {
+        "log": str(log_path), "poses": str(poses), "scans": counted["scans"],
+        "points_kept": result.points_kept, "points_removed": result.points_removed,
+        "voxels_kept": int((~result.dynamic).sum()), "voxels_removed": int(result.dynamic.sum()),
+        "voxel_m": params.voxel, "output": "one point per voxel: the centroid of the scan points in it",
+        "seconds": result.seconds, "params": {k: getattr(params, k) for k in params.__dataclass_fields__},
+    }
+    summary["wall_time_s"] = round(time.perf_counter() - t0, 3)
+    summary["peak_memory_mb"] = round(peak_memory_mb(), 1)
+    write_clean_results(out, result.centroids[~result.dynamic], result.centroids[result.dynamic], summary)
+    return summary

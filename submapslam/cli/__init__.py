@@ -33,9 +33,9 @@ def _main(
 
 
 def _register_commands() -> None:
-    from . import demo, dump_config, ekf, eval_map, evaluate, localize, run, synth
+    from . import clean, demo, dump_config, ekf, eval_map, evaluate, localize, run, synth
 
-    for module in (run, dump_config, demo, evaluate, synth, ekf, localize, eval_map):
+    for module in (run, dump_config, demo, evaluate, synth, ekf, localize, eval_map, clean):
         module.register(app)
 
 

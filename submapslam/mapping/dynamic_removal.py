@@ -234,7 +234,7 @@ def _spherical(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_base: np.ndarray,
                           T_base_sensor: np.ndarray | None = None, params: RemovalParams = RemovalParams(),
-                          progress: Callable[[str, int], None] | None = None) -> RemovalResult:
+                          progress: Callable[[str, int], None] | None = None, planar: bool = False) -> RemovalResult:
     """Find the voxels of a posed scan sequence that something passed through.
 
     Args:
@@ -243,6 +243,7 @@ def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_bas
         T_base_sensor: ``(4, 4)`` the sensor's mounting (ray origin and range-image frame); identity if None.
         params: voxel, range, margin and vote settings.
         progress: called as ``progress(pass_name, scans_done)``.
+        planar: 2D laser scans (z = 0): there is no ground to keep.
     """
     T_bs = np.eye(4) if T_base_sensor is None else np.asarray(T_base_sensor, dtype=np.float64)
     t0 = time.perf_counter()
@@ -263,7 +264,8 @@ def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_bas
     # after the last one that saw a point in it and up to `window` before the first (a free vote
     # while points still arrive is an edge effect). The decision is per cluster, by the fraction
     # of voted voxels: of a large cluster a sample of about `cluster_sample` voxels is tested.
-    ground = ground_voxels(centroids, params.ground_cell, params.ground_band)
+    ground = np.zeros(len(keys), dtype=bool) if planar else ground_voxels(centroids, params.ground_cell,
+                                                                           params.ground_band)
     cluster = co_observed_clusters(keys, first, last, ~ground, params.grow_slack)
     tested = _sample_clusters(cluster, keys, params.cluster_sample)
     t_cluster = time.perf_counter() - t1
