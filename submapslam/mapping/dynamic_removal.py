@@ -101,8 +101,11 @@ class RemovalParams:
     grow_slack: int = 2  # scans: neighbours seen within this of each other's sightings are one cluster
     cluster_fraction: float = 0.3  # a cluster with this fraction of free-voted voxels moved
     cluster_sample: int = 300  # voxels tested of a larger cluster (a sample, by key hash)
+    protect: bool = True  # a vote beside a voxel seen long before or after the voted one does not count ...
+    protect_slack: int = 20  # ... longer than this many scans
+    protect_min_seen: int = 5  # scans between the first and last sighting of a protecting voxel
     ground_cell: float = 1.0  # [m] columns whose lowest voxel is the ground ...
-    ground_band: float = 0.25  # [m] ... and the voxels this far above it, never removed
+    ground_band: float = 0.15  # [m] ... and the voxels this far above it, never removed
     el_bin_deg: float = 0.25  # range-image pixel: elevation ...
     az_bin_deg: float = 0.2  # ... and azimuth
 
@@ -300,8 +303,11 @@ def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_bas
         if progress is not None:
             progress("evidence", k + 1)
     t2 = time.perf_counter()
+    hit = votes >= 1
+    if params.protect:
+        hit &= ~protected_by_static(keys, first, last, hit, params.protect_slack, params.protect_min_seen)
     voted = np.zeros(len(keys), dtype=np.int8) - 1  # -1: not tested
-    voted[tested] = votes[tested] >= 1
+    voted[tested] = hit[tested]
     dynamic = dynamic_clusters(cluster, voted, params.cluster_fraction, params.min_free) & ~ground
     t3 = time.perf_counter()
     return RemovalResult(keys, centroids, counts, votes, dynamic, params,
@@ -407,13 +413,16 @@ def _neighbour_pairs(keys: np.ndarray, of: np.ndarray, half: bool = False) -> tu
 
 
 def protected_by_static(keys: np.ndarray, first: np.ndarray, last: np.ndarray, dynamic: np.ndarray,
-                        slack: int) -> np.ndarray:
-    """Which dynamic voxels touch a static voxel that was seen before their first or after their last
+                        slack: int, min_seen: int = 0) -> np.ndarray:
+    """Which voted (``dynamic``) voxels touch a static voxel that was seen before their first or after their last
     sighting (by more than ``slack`` scans): range noise scatters a pole's or a wall's points into
     the free space beside it, where later beams rightly pass; what moved has no such neighbour.
+    Only neighbours seen over ``min_seen`` scans or more protect (not another car that drove the
+    same lane later).
     """
     src, nb = _neighbour_pairs(keys, np.flatnonzero(dynamic))
-    keep = ~dynamic[nb] & ((last[nb] > last[src] + slack) | (first[nb] < first[src] - slack))
+    keep = ~dynamic[nb] & ((last[nb] > last[src] + slack) | (first[nb] < first[src] - slack)) \
+        & (last[nb] - first[nb] >= min_seen)
     out = np.zeros(len(keys), dtype=bool)
     out[src[keep]] = True
     return out
