@@ -5,7 +5,10 @@ Usage:
                                   [--dufomap "0.1,0.2,2;0.2,0.2,1"]
 
 LOG is a labelled log folder (``scans/`` + ``labels/NNNNNN.label``, e.g. ``submapslam synth kitti
---movers 80``); TRAJ one pose per scan (default: the log's ground truth). Every method runs in its
+--movers 80``); TRAJ one pose per scan that the methods use (default: the log's ground truth),
+e.g. ``run``'s own ``poses_tum.txt``: it is moved into the ground truth's frame by its first pose
+(``T_gt[0] @ inv(T_traj[0])``, no other alignment), and the maps are always scored against the
+log's ground truth, so drift costs static accuracy as it would in a real map. Every method runs in its
 own child process, so its wall time (around the whole run: reading the scans, the removal and
 writing the map) and peak memory (``ru_maxrss`` of that process) are its own. Each map is then
 scored with ``submapslam eval-map``'s DynamicMap scores (0.1 m voxels, 0.15 m radius). Prints a
@@ -34,12 +37,23 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-def _scans_and_poses(log: Path, poses: Path | None):
+def _poses_in_truth_frame(log: Path, poses: Path | None) -> np.ndarray:
+    """The poses the methods use ``(S, 4, 4)``, in the frame of the log's ground truth."""
     from submapslam.io.labels import count_scans, scan_poses
+
+    n = count_scans(log)
+    truth = scan_poses(log, None, n)
+    if poses is None:
+        return truth
+    est = scan_poses(log, poses, n)
+    return truth[0] @ np.linalg.inv(est[0]) @ est
+
+
+def _scans_and_poses(log: Path, poses: Path | None):
     from submapslam.io.registry import open_log
 
     reader = open_log(log)
-    T = scan_poses(log, poses, count_scans(log))
+    T = _poses_in_truth_frame(log, poses)
     T_bs = getattr(reader, "T_base_sensor", None)
     return reader, T, np.eye(4) if T_bs is None else T_bs
 
@@ -59,8 +73,12 @@ def child(method: str, log: Path, poses: Path | None, out: Path, setting: str) -
     t0 = time.perf_counter()
     if method == "clean":
         from submapslam.api import clean_log
+        from submapslam.io.trajectory import Trajectory, read_tum, write_tum
 
-        traj = poses or log / "groundtruth_tum.txt"
+        traj = log / "groundtruth_tum.txt"
+        if poses is not None:
+            traj = out / "poses_in_truth_frame_tum.txt"
+            write_tum(traj, Trajectory(read_tum(log / "groundtruth_tum.txt").timestamps, _poses_in_truth_frame(log, poses)))
         s = clean_log(log, traj, out / "clean")
         (out / "map.ply").symlink_to(out / "clean" / "map_static.ply")
         extra = {"points_removed": s["points_removed"]}
@@ -135,7 +153,7 @@ def main() -> None:
             if proc.returncode:
                 raise SystemExit(f"{name} failed:\n{proc.stderr[-2000:]}")
             stats = json.loads(proc.stdout.strip().splitlines()[-1])
-            scores = evaluate_map_file(folder / "map.ply", args.log, poses=args.poses)
+            scores = evaluate_map_file(folder / "map.ply", args.log)  # always against the ground truth
             runs.append({"method": name, **stats, **{k: scores[k] for k in ("SA", "DA", "AA", "static_voxels",
                                                                             "dynamic_voxels", "map_points")}})
             print(f"done: {name}", file=sys.stderr)
