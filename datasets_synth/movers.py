@@ -228,3 +228,45 @@ def _parked_leaving(lane: Lane, path_xyt, ego_s, t, wanted, rng, parked_cars, pa
         track.present[0, parked] = True
         parts.append(track)
     return np.sort(chosen)
+
+
+BOX_SIZE = (0.6, 0.6, 0.0, 0.8)
+INDOOR_PERSON = (0.5, 0.5, 0.0, 1.75)
+
+
+def indoor_movers(path_xyt: np.ndarray, rate: float, n: int, rng: np.random.Generator,
+                  corridor_half_width: float = 1.5) -> MoverTracks:
+    """``n`` movers along a hallway path ``(N, 3)`` sampled at ``rate`` Hz: two thirds people
+    walking the corridors 0.6-0.9 m beside the robot's line, both ways (0.8-1.4 m/s; half of them
+    stand still for 5-20 s where the robot meets them, then walk on), one third boxes standing
+    beside a wall that are moved to another place along the corridor halfway through the log
+    (between laps). Each person meets the robot at a random scan.
+    """
+    N = len(path_xyt)
+    t = np.arange(N) / rate
+    lane = Lane(path_xyt[:, :2], extend=0.0)
+    robot_s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path_xyt[:, :2], axis=0), axis=1))])
+    n_boxes = n // 3
+    parts: list[MoverTracks] = []
+    for _ in range(n - n_boxes):
+        forward = bool(rng.random() < 0.5)
+        sign = 1.0 if forward else -1.0
+        v = rng.uniform(0.8, 1.4)
+        k_meet = int(rng.integers(N))
+        s_meet = robot_s[k_meet] + rng.uniform(1.0, 6.0)
+        u = t - t[k_meet]
+        if rng.random() < 0.5:
+            start, dur = -rng.uniform(2.0, 5.0), rng.uniform(5.0, 20.0)
+            u = u - np.clip(u - start, 0.0, dur)
+        s = s_meet + sign * v * u
+        side = 1.0 if rng.random() < 0.5 else -1.0
+        parts.append(_track(lane, s, side * rng.uniform(0.6, 0.9), not forward, INDOOR_PERSON, MOVING_PERSON,
+                            "person"))
+    half = N // 2
+    for _ in range(n_boxes):
+        side = 1.0 if rng.random() < 0.5 else -1.0
+        offset = side * (corridor_half_width - 0.45)
+        s_a, s_b = rng.uniform(lane.lo, lane.hi, 2)
+        s = np.where(np.arange(N) < half, s_a, s_b)
+        parts.append(_track(lane, s, offset, False, BOX_SIZE, MOVING_OTHER, "box"))
+    return MoverTracks.concat(parts) if parts else MoverTracks.empty(N)

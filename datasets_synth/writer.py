@@ -30,7 +30,7 @@ from submapslam.geometry import matrix_to_se2, se2_array_to_matrices
 from submapslam.io.trajectory import Trajectory, write_kitti, write_tum
 
 from .motion import OdometryNoise, loop_path, open_path, wheel_odometry
-from .movers import MoverCaster, MoverTracks
+from .movers import MoverCaster, MoverTracks, indoor_movers
 from .sensors import Laser2D, Lidar3D, RayCaster, measure
 from .worlds import WORLDS, World
 
@@ -155,7 +155,8 @@ def write_landmarks(out: Path, cylinders: np.ndarray | None) -> None:
 
 def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, sensor: str | None = None,
              speed: float | None = None, rate: float = 10.0, odometry_noise: float = 1.0,
-             max_scans: int | None = None, sensor_options: dict | None = None, **world_options) -> Path:
+             max_scans: int | None = None, sensor_options: dict | None = None, movers: int = 0,
+             **world_options) -> Path:
     """Write a synthetic log of ``world`` into ``out_dir``; returns ``out_dir``.
 
     Args:
@@ -167,6 +168,10 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
         odometry_noise: multiplies the default :class:`OdometryNoise` (0 = perfect odometry).
         max_scans: cut the log after this many scans (small test logs).
         sensor_options: overrides of :class:`Laser2D` / :class:`Lidar3D` fields (e.g. max_range).
+        movers: planar worlds: people walking the hallways (some standing, then leaving) and
+            boxes moved halfway through the log (:func:`datasets_synth.movers.indoor_movers`).
+            Every scan's per-point SemanticKITTI classes go to ``labels/NNNNNN.label`` (254 person,
+            259 moved box, 50 walls and pillars); the CARMEN copy gets ``log.clf.labels``.
         world_options: passed to the world builder (e.g. size, feature_density).
     """
     if world not in WORLDS:
@@ -200,9 +205,14 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
     if sensor == "laser2d" or w.planar:
         T_cast[:, 2, 3] = dev.mount_height
     out = Path(out_dir)
+    tracks = None
+    if movers:
+        if not w.planar:
+            raise SubmapSlamError("movers are built for the planar worlds (rectangle, rooms, figure8) and synth kitti")
+        tracks = indoor_movers(truth_xyt, rate, movers, np.random.default_rng([seed, 3131]))
     mesh, triangle_labels = w.labelled_mesh()
     cast = cast_scans(out, RayCaster(mesh), dev, T_cast, rng, keep_ranges=sensor == "laser2d",
-                      triangle_labels=triangle_labels)
+                      triangle_labels=triangle_labels, movers=tracks)
     carmen_ranges = [r for r, _ in cast]
     stamps = write_trajectories(out, truth, odom, rate)
     summary = odometry_summary(truth, odom)
@@ -213,9 +223,14 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
         "loop_length_m": round(w.loop_length(), 3), "odometry_noise": asdict(noise),
         "odometry_end_drift_m": summary["odometry_end_drift_m"], "T_base_sensor": np.eye(4).tolist(),
         "path_length_m": summary["path_length_m"],
+        "movers": tracks.counts() if tracks is not None else {},
     })
     write_landmarks(out, w.cylinders)
     if sensor == "laser2d" and abs(dev.fov_deg - 180.0) < 1e-9:
         (out / "log.clf").write_text("\n".join(_carmen_lines(stamps, carmen_ranges, odom, dev.max_range)) + "\n")
+        (out / "log.clf.labels").write_text(
+            "# one line per FLASER line of log.clf: num_readings, then the SemanticKITTI class of each beam "
+            "(0: no return; 254 person, 259 moved object)\n"
+            + "".join(f"{len(c)} {' '.join(map(str, c.tolist()))}\n" for _, c in cast))
     log.info("wrote %d scans of %s to %s", len(truth), world, out)
     return out

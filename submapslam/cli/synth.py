@@ -43,22 +43,23 @@ def register(app: typer.Typer) -> None:
             else:
                 if path is not None:
                     raise SubmapSlamError(f"--path is for the kitti world, not {world!r}")
-                _world(world, out, seed, laps or 2, sensor, max_scans, odometry_noise, poles)
+                _world(world, out, seed, laps or 2, sensor, max_scans, odometry_noise, poles, movers)
         except SubmapSlamError as exc:
             raise fail(exc) from None
 
 
-def _world(world, out, seed, laps, sensor, max_scans, odometry_noise, poles) -> None:
+def _world(world, out, seed, laps, sensor, max_scans, odometry_noise, poles, movers=0) -> None:
     import yaml
 
     from datasets_synth import generate
 
     extra = {"poles": poles} if poles else {}
     path = generate(world, out, seed=seed, laps=laps, sensor=sensor, max_scans=max_scans,
-                    odometry_noise=odometry_noise, **extra)
+                    odometry_noise=odometry_noise, movers=movers, **extra)
     meta = yaml.safe_load((path / "meta.yaml").read_text())
     console.print(f"{meta['n_scans']} scans of {world} ({meta['sensor']['type']}), loop {meta['loop_length_m']:.0f} m "
-                    f"x {meta['laps']} laps, wheel odometry end drift {meta['odometry_end_drift_m']:.2f} m -> {path}")
+                    f"x {meta['laps']} laps, wheel odometry end drift {meta['odometry_end_drift_m']:.2f} m"
+                    f"{_movers_text(meta)} -> {path}")
 
 
 def _kitti(out, path, rings, seed, max_scans, odometry_noise, *, laps, sensor, poles, movers) -> None:
