@@ -126,3 +126,25 @@ def test_clean_cli_never_overwrites_and_checks_the_poses(drive, tmp_path):
                                               str(tmp_path / "o2")]), "50 poses")
     assert_one_error_line(runner.invoke(app, ["clean", str(log), "--poses", str(tmp_path / "nope.txt"), "--out",
                                               str(tmp_path / "o3")]), "no such trajectory file")
+
+
+def test_planar_movers_label_the_carmen_beams_too(tmp_path):
+    from datasets_synth import generate
+
+    log = generate("rectangle", tmp_path / "rect", max_scans=120, movers=6)
+    meta = yaml.safe_load((log / "meta.yaml").read_text())
+    assert meta["movers"] == {"box": 2, "person": 4}
+    lines = [ln.split() for ln in (log / "log.clf.labels").read_text().splitlines() if not ln.startswith("#")]
+    flaser = [ln for ln in (log / "log.clf").read_text().splitlines() if ln.startswith("FLASER")]
+    assert len(lines) == len(flaser) == 120
+    seen = set()
+    for (_, points, labels, planar), beams, row in zip(labelled_scans(log), lines, flaser):
+        assert len(points) == len(labels)
+        classes = np.array(beams[1:], dtype=np.uint32)
+        assert planar and int(beams[0]) == len(classes) == int(row.split()[1])
+        # the beams with a return are the scan's points, in order, with the same classes
+        assert np.array_equal(classes[classes > 0], labels)
+        ranges = np.array(row.split()[2:2 + len(classes)], dtype=float)
+        assert np.all((ranges < 80.0) == (classes > 0))
+        seen |= set(np.unique(labels).tolist())
+    assert seen <= {50, 254, 259} and 50 in seen and seen & {254, 259}
