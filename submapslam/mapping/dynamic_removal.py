@@ -104,6 +104,7 @@ class RemovalParams:
     protect: bool = True  # a vote beside a voxel seen long before or after the voted one does not count ...
     protect_slack: int = 20  # ... longer than this many scans
     protect_min_seen: int = 5  # scans between the first and last sighting of a protecting voxel
+    planar_clusters: bool = False  # 2D logs: clusters too (else each voxel is decided by its own votes)
     ground_cell: float = 1.0  # [m] columns whose lowest voxel is the ground ...
     ground_band: float = 0.15  # [m] ... and the voxels this far above it, never removed
     el_bin_deg: float = 0.25  # range-image pixel: elevation ...
@@ -269,7 +270,11 @@ def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_bas
     # of voted voxels: of a large cluster a sample of about `cluster_sample` voxels is tested.
     ground = np.zeros(len(keys), dtype=bool) if planar else ground_voxels(centroids, params.ground_cell,
                                                                            params.ground_band)
-    cluster = co_observed_clusters(keys, first, last, ~ground, params.grow_slack)
+    per_voxel = planar and not params.planar_clusters
+    if per_voxel:  # a 2D wall is one long cluster: decide voxel by voxel
+        cluster = np.where(ground, -1, np.arange(len(keys)))
+    else:
+        cluster = co_observed_clusters(keys, first, last, ~ground, params.grow_slack)
     tested = _sample_clusters(cluster, keys, params.cluster_sample)
     t_cluster = time.perf_counter() - t1
     by_last = tested[np.argsort(last[tested], kind="stable")]
@@ -303,12 +308,12 @@ def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_bas
         if progress is not None:
             progress("evidence", k + 1)
     t2 = time.perf_counter()
-    hit = votes >= 1
+    hit = votes >= (params.min_free if per_voxel else 1)
     if params.protect:
         hit &= ~protected_by_static(keys, first, last, hit, params.protect_slack, params.protect_min_seen)
     voted = np.zeros(len(keys), dtype=np.int8) - 1  # -1: not tested
     voted[tested] = hit[tested]
-    dynamic = dynamic_clusters(cluster, voted, params.cluster_fraction, params.min_free) & ~ground
+    dynamic = dynamic_clusters(cluster, voted, params.cluster_fraction, 1 if per_voxel else params.min_free) & ~ground
     t3 = time.perf_counter()
     return RemovalResult(keys, centroids, counts, votes, dynamic, params,
                          {"voxels": round(t1 - t0, 3), "clusters": round(t_cluster, 3),
