@@ -148,3 +148,20 @@ def test_planar_movers_label_the_carmen_beams_too(tmp_path):
         assert np.all((ranges < 80.0) == (classes > 0))
         seen |= set(np.unique(labels).tolist())
     assert seen <= {50, 254, 259} and 50 in seen and seen & {254, 259}
+
+
+def test_bench_tool_runs_clean_and_no_removal_side_by_side(drive, tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    log, _, _ = drive
+    tool = Path(__file__).resolve().parents[1] / "tools" / "bench_dynamic.py"
+    proc = subprocess.run([sys.executable, str(tool), str(log), "--methods", "clean,none", "--out", str(tmp_path)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    runs = {r["method"]: r for r in json.loads((tmp_path / "results.json").read_text())}
+    assert runs["none"]["DA"] == 0.0 and runs["none"]["SA"] == 1.0
+    assert runs["clean"]["DA"] >= 0.8 and runs["clean"]["SA"] >= 0.99
+    assert all(r["seconds"] > 0 and r["peak_mb"] > 0 for r in runs.values())
+    assert "| clean |" in proc.stdout and "| none |" in proc.stdout
