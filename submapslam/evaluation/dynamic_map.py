@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..mapping.dynamic_removal import voxel_keys
+
 DYNAMIC_LOW, DYNAMIC_HIGH = 252, 259  # SemanticKITTI moving classes (lower 16 bits)
 
 
@@ -24,12 +26,6 @@ def is_dynamic(labels: np.ndarray) -> np.ndarray:
     """``(N,)`` bool: which SemanticKITTI labels (uint32, class in the lower 16 bits) are moving classes."""
     cls = np.asarray(labels, dtype=np.uint32) & 0xFFFF
     return (cls >= DYNAMIC_LOW) & (cls <= DYNAMIC_HIGH)
-
-
-def voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
-    """One int64 key per point ``(N, 3)`` for its ``voxel``-sized cell (21 bits per axis, +-104 km at 0.1 m)."""
-    ijk = np.floor(np.asarray(points, dtype=np.float64) / voxel).astype(np.int64) + (1 << 20)
-    return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
 
 
 class LabelledVoxels:
