@@ -21,6 +21,7 @@ from submapslam.geometry import se2_array_to_matrices
 from submapslam.io.trajectory import read_kitti
 
 from .motion import OdometryNoise, wheel_odometry
+from .movers import city_movers
 from .sensors import LIDAR_PRESETS, Lidar3D, RayCaster
 from .streets import StreetBuilder, StreetStyle, building_templates
 from .worlds import World
@@ -81,7 +82,7 @@ def kitti_city(path_xyt: np.ndarray, *, seed: int = 0, repeated_buildings: bool 
 
 def generate_kitti_drive(path_file: str | Path, out_dir: str | Path, *, rings: int = 16, seed: int = 0,
                          max_scans: int | None = None, odometry_noise: float = 1.0, repeated_buildings: bool = True,
-                         progress: Callable[[int, int], None] | None = None) -> Path:
+                         movers: int = 0, progress: Callable[[int, int], None] | None = None) -> Path:
     """Drive a KITTI ground-truth path through a synthetic city and write the log; returns ``out_dir``.
 
     The folder is the one :func:`datasets_synth.generate` writes: ``scans/NNNNNN.ply`` (float32
@@ -98,6 +99,9 @@ def generate_kitti_drive(path_file: str | Path, out_dir: str | Path, *, rings: i
         max_scans: drive only the first N poses (the city is built along those only).
         odometry_noise: multiplies the default :class:`OdometryNoise` (0 = perfect odometry).
         repeated_buildings: buildings from a small catalogue of templates (streets alias).
+        movers: cars driving both ways, pedestrians and parked cars that leave
+            (:func:`datasets_synth.movers.city_movers`); every scan's per-point SemanticKITTI
+            classes are written to ``labels/NNNNNN.label`` (with or without movers).
         progress: called as ``progress(done, total)`` while scans are written.
     """
     if rings not in LIDAR_PRESETS:
@@ -106,6 +110,8 @@ def generate_kitti_drive(path_file: str | Path, out_dir: str | Path, *, rings: i
         raise SubmapSlamError(f"max_scans must be at least 2, not {max_scans}")
     if odometry_noise < 0:
         raise SubmapSlamError(f"odometry_noise must be >= 0, not {odometry_noise}")
+    if movers < 0:
+        raise SubmapSlamError(f"movers must be >= 0, not {movers}")
     path_xyt = read_kitti_path(path_file)
     if max_scans is not None:
         path_xyt = path_xyt[:max_scans]
@@ -117,9 +123,19 @@ def generate_kitti_drive(path_file: str | Path, out_dir: str | Path, *, rings: i
     truth = se2_array_to_matrices(path_xyt)
     truth[:, 2, 3] = dev.mount_height
     out = Path(out_dir)
-    caster = RayCaster(world.mesh())
+    tracks = None
+    if movers:
+        parked = np.flatnonzero(world.box_labels == "car")
+        tracks, left = city_movers(path_xyt, KITTI_RATE_HZ, movers, np.random.default_rng([seed, 2525]),
+                                   world.oriented_boxes[parked])
+        stay = np.ones(len(world.oriented_boxes), dtype=bool)
+        stay[parked[left]] = False
+        world.oriented_boxes, world.box_labels = world.oriented_boxes[stay], world.box_labels[stay]
+    mesh, triangle_labels = world.labelled_mesh()
+    caster = RayCaster(mesh)
     total = len(truth)
-    cast_scans(out, caster, dev, truth, rng, progress=None if progress is None else (lambda k: progress(k, total)))
+    cast_scans(out, caster, dev, truth, rng, progress=None if progress is None else (lambda k: progress(k, total)),
+               triangle_labels=triangle_labels, movers=tracks)
     write_trajectories(out, truth, odom, KITTI_RATE_HZ)
     summary = odometry_summary(truth, odom)
     labels = world.box_labels
@@ -135,6 +151,9 @@ def generate_kitti_drive(path_file: str | Path, out_dir: str | Path, *, rings: i
         "city": {"buildings": int((labels == "building").sum()), "cars": int((labels == "car").sum()),
                  "poles_and_trees": len(world.cylinders), "road_half_width_m": StreetStyle().road_half_width,
                  "mesh_triangles": int(caster.triangles)},
+        "movers": tracks.counts() if tracks is not None else {},
+        "labels": "labels/NNNNNN.label: SemanticKITTI uint32 per point (40 road, 50 building, 10 parked car, "
+                  "70 vegetation, 80 pole; 252 moving car, 254 moving person: anything not in one place all log)",
     })
     write_landmarks(out, world.cylinders)
     log.info("wrote %d scans along %s to %s", total, path_file, out)

@@ -90,10 +90,15 @@ class RayCaster:
 
     def ranges(self, T_world_sensor: np.ndarray, directions: np.ndarray) -> np.ndarray:
         """Distances ``(N,)`` along sensor-frame unit ``directions`` (inf where nothing is hit)."""
+        return self.cast(T_world_sensor, directions)[0]
+
+    def cast(self, T_world_sensor: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distances ``(N,)`` (inf where nothing is hit) and the index ``(N,)`` of the triangle hit."""
         d_world = directions @ T_world_sensor[:3, :3].T
         origins = np.broadcast_to(T_world_sensor[:3, 3], d_world.shape)
         rays = self._o3d.core.Tensor(np.hstack([origins, d_world]).astype(np.float32))
-        return self.scene.cast_rays(rays)["t_hit"].numpy().astype(np.float64)
+        hit = self.scene.cast_rays(rays)
+        return hit["t_hit"].numpy().astype(np.float64), hit["primitive_ids"].numpy().astype(np.int64)
 
 
 def measure(ranges: np.ndarray, max_range: float, noise: float, dropout: float,

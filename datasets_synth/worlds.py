@@ -58,28 +58,50 @@ class World:
 
     def mesh(self):
         """The world as an open3d legacy ``TriangleMesh``."""
+        return self.labelled_mesh()[0]
+
+    def labelled_mesh(self):
+        """The world mesh and each triangle's SemanticKITTI class ``(T,)`` uint32 (:data:`STATIC_CLASSES`):
+        walls and axis-aligned boxes 50 building, cylinders 80 pole, oriented boxes by their label
+        (building 50, car 10, canopy 70 vegetation, else 99 other object), the ground 40 road."""
         from submapslam._deps import open3d
 
         o3d = open3d()
         mesh = o3d.geometry.TriangleMesh()
+        labels: list[np.ndarray] = []
+
+        def add(part, cls) -> None:
+            nonlocal mesh
+            before = len(mesh.triangles)
+            mesh += part
+            labels.append(np.broadcast_to(np.asarray(cls, dtype=np.uint32), (len(mesh.triangles) - before,)))
+
         for x0, y0, z0, x1, y1, z1 in self.boxes:
             b = o3d.geometry.TriangleMesh.create_box(x1 - x0, y1 - y0, z1 - z0)
             b.translate((x0, y0, z0))
-            mesh += b
+            add(b, STATIC_CLASSES["building"])
         for x0, y0, x1, y1 in self.segments:
-            mesh += _wall_quad(o3d, x0, y0, x1, y1, self.wall_height)
+            add(_wall_quad(o3d, x0, y0, x1, y1, self.wall_height), STATIC_CLASSES["building"])
         for x, y, r, h in self.cylinders:
             c = o3d.geometry.TriangleMesh.create_cylinder(radius=r, height=h, resolution=16)
             c.translate((x, y, h / 2))
-            mesh += c
+            add(c, STATIC_CLASSES["pole"])
         if len(self.oriented_boxes):
-            mesh += _triangle_mesh(o3d, *_oriented_box_arrays(self.oriented_boxes))
+            per_box = np.array([STATIC_CLASSES.get(str(lab), STATIC_CLASSES["other"]) for lab in self.box_labels]
+                               if len(self.box_labels) == len(self.oriented_boxes)
+                               else [STATIC_CLASSES["other"]] * len(self.oriented_boxes), dtype=np.uint32)
+            add(_triangle_mesh(o3d, *_oriented_box_arrays(self.oriented_boxes)), np.repeat(per_box, 12))
         if self.ground:
             keep = None
             if self.terrain_radius is not None:
                 keep = _near_polyline(self.waypoints, self.terrain_radius, self.closed)
-            mesh += _terrain(o3d, self.extent, keep=keep)
-        return mesh
+            add(_terrain(o3d, self.extent, keep=keep), STATIC_CLASSES["road"])
+        tri_labels = np.concatenate(labels) if labels else np.zeros(0, dtype=np.uint32)
+        return mesh, tri_labels
+
+
+STATIC_CLASSES: dict[str, int] = {"building": 50, "car": 10, "canopy": 70, "pole": 80, "road": 40, "other": 99}
+"""SemanticKITTI classes of the static world parts (``labels/NNNNNN.label``, lower 16 bits)."""
 
 
 def _triangle_mesh(o3d, verts: np.ndarray, tris: np.ndarray):

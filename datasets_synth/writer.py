@@ -30,6 +30,7 @@ from submapslam.geometry import matrix_to_se2, se2_array_to_matrices
 from submapslam.io.trajectory import Trajectory, write_kitti, write_tum
 
 from .motion import OdometryNoise, loop_path, open_path, wheel_odometry
+from .movers import MoverCaster, MoverTracks, indoor_movers
 from .sensors import Laser2D, Lidar3D, RayCaster, measure
 from .worlds import WORLDS, World
 
@@ -53,6 +54,11 @@ def write_ply_xyzt(path: Path, points: np.ndarray, times: np.ndarray) -> None:
         fh.write(rec.tobytes())
 
 
+def write_labels(path: Path, classes: np.ndarray) -> None:
+    """SemanticKITTI ``.label``: one little-endian uint32 per point, the class in the lower 16 bits."""
+    np.asarray(classes, dtype="<u4").tofile(path)
+
+
 def _carmen_lines(stamps, ranges_list, odom, max_range) -> list[str]:
     lines = ["# CARMEN log written by datasets_synth",
              "# FLASER num_readings [range_readings] x y theta odom_x odom_y odom_theta ipc_timestamp host logger_timestamp",
@@ -68,26 +74,50 @@ def _carmen_lines(stamps, ranges_list, odom, max_range) -> list[str]:
 
 def cast_scans(out: Path, caster: RayCaster, dev: Laser2D | Lidar3D, T_world_sensor: np.ndarray,
                rng: np.random.Generator, *, keep_ranges: bool = False,
-               progress: Callable[[int], None] | None = None) -> list[np.ndarray]:
+               progress: Callable[[int], None] | None = None, triangle_labels: np.ndarray | None = None,
+               movers: MoverTracks | None = None) -> list[np.ndarray]:
     """Ray-cast ``dev`` from every pose ``(N, 4, 4)`` and write ``out/scans/NNNNNN.ply``.
 
     Points are in the sensor frame with a per-point sweep time in [0, 1] (a 2D laser: 0); the
     scans are not motion distorted. ``keep_ranges``: also return each scan's noisy ranges, with
-    :data:`NO_RETURN` where a beam has no return (for the CARMEN copy). ``progress(k)`` is called
+    :data:`NO_RETURN` where a beam has no return (for the CARMEN copy); then the list holds
+    ``(ranges, beam_labels)`` pairs when labels are written. ``progress(k)`` is called
     after every 100th scan and the last.
+
+    ``triangle_labels`` ``(T,)``: the SemanticKITTI class of each triangle of the caster's mesh;
+    given, every scan's per-point classes are written to ``out/labels/NNNNNN.label`` (uint32,
+    the points' order). ``movers``: objects that move, cast scan by scan in front of the world.
     """
     (out / "scans").mkdir(parents=True, exist_ok=True)
+    if triangle_labels is not None:
+        (out / "labels").mkdir(parents=True, exist_ok=True)
     if isinstance(dev, Laser2D):
         dirs = dev.directions()
         times = np.zeros(len(dirs))
     else:
         dirs, times = dev.directions()
+    mover_caster = MoverCaster(movers, dev.max_range) if movers is not None and len(movers) else None
     kept = []
     for k, T in enumerate(T_world_sensor):
-        r, valid = measure(caster.ranges(T, dirs), dev.max_range, dev.range_noise, dev.dropout, rng)
+        t_hit, prim = caster.cast(T, dirs)
+        cls = None
+        if triangle_labels is not None:
+            cls = np.zeros(len(t_hit), dtype=np.uint32)
+            hit = np.isfinite(t_hit)
+            cls[hit] = triangle_labels[prim[hit]]
+        if mover_caster is not None:
+            t_mover, cls_mover = mover_caster.cast(k, T, dirs)
+            closer = t_mover < t_hit
+            t_hit = np.where(closer, t_mover, t_hit)
+            if cls is not None:
+                cls = np.where(closer, cls_mover, cls)
+        r, valid = measure(t_hit, dev.max_range, dev.range_noise, dev.dropout, rng)
         write_ply_xyzt(out / "scans" / f"{k:06d}.ply", dirs[valid] * r[valid, None], times[valid])
+        if cls is not None:
+            cls[~valid] = 0
+            write_labels(out / "labels" / f"{k:06d}.label", cls[valid])
         if keep_ranges:
-            kept.append(np.where(valid, r, NO_RETURN))
+            kept.append(np.where(valid, r, NO_RETURN) if cls is None else (np.where(valid, r, NO_RETURN), cls))
         if progress is not None and ((k + 1) % 100 == 0 or k + 1 == len(T_world_sensor)):
             progress(k + 1)
     return kept
@@ -125,7 +155,8 @@ def write_landmarks(out: Path, cylinders: np.ndarray | None) -> None:
 
 def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, sensor: str | None = None,
              speed: float | None = None, rate: float = 10.0, odometry_noise: float = 1.0,
-             max_scans: int | None = None, sensor_options: dict | None = None, **world_options) -> Path:
+             max_scans: int | None = None, sensor_options: dict | None = None, movers: int = 0,
+             **world_options) -> Path:
     """Write a synthetic log of ``world`` into ``out_dir``; returns ``out_dir``.
 
     Args:
@@ -137,6 +168,10 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
         odometry_noise: multiplies the default :class:`OdometryNoise` (0 = perfect odometry).
         max_scans: cut the log after this many scans (small test logs).
         sensor_options: overrides of :class:`Laser2D` / :class:`Lidar3D` fields (e.g. max_range).
+        movers: planar worlds: people walking the hallways (some standing, then leaving) and
+            boxes moved halfway through the log (:func:`datasets_synth.movers.indoor_movers`).
+            Every scan's per-point SemanticKITTI classes go to ``labels/NNNNNN.label`` (254 person,
+            259 moved box, 50 walls and pillars); the CARMEN copy gets ``log.clf.labels``.
         world_options: passed to the world builder (e.g. size, feature_density).
     """
     if world not in WORLDS:
@@ -170,7 +205,15 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
     if sensor == "laser2d" or w.planar:
         T_cast[:, 2, 3] = dev.mount_height
     out = Path(out_dir)
-    carmen_ranges = cast_scans(out, RayCaster(w.mesh()), dev, T_cast, rng, keep_ranges=sensor == "laser2d")
+    tracks = None
+    if movers:
+        if not w.planar:
+            raise SubmapSlamError("movers are built for the planar worlds (rectangle, rooms, figure8) and synth kitti")
+        tracks = indoor_movers(truth_xyt, rate, movers, np.random.default_rng([seed, 3131]))
+    mesh, triangle_labels = w.labelled_mesh()
+    cast = cast_scans(out, RayCaster(mesh), dev, T_cast, rng, keep_ranges=sensor == "laser2d",
+                      triangle_labels=triangle_labels, movers=tracks)
+    carmen_ranges = [r for r, _ in cast]
     stamps = write_trajectories(out, truth, odom, rate)
     summary = odometry_summary(truth, odom)
     write_meta(out, {
@@ -180,9 +223,14 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
         "loop_length_m": round(w.loop_length(), 3), "odometry_noise": asdict(noise),
         "odometry_end_drift_m": summary["odometry_end_drift_m"], "T_base_sensor": np.eye(4).tolist(),
         "path_length_m": summary["path_length_m"],
+        "movers": tracks.counts() if tracks is not None else {},
     })
     write_landmarks(out, w.cylinders)
     if sensor == "laser2d" and abs(dev.fov_deg - 180.0) < 1e-9:
         (out / "log.clf").write_text("\n".join(_carmen_lines(stamps, carmen_ranges, odom, dev.max_range)) + "\n")
+        (out / "log.clf.labels").write_text(
+            "# one line per FLASER line of log.clf: num_readings, then the SemanticKITTI class of each beam "
+            "(0: no return; 254 person, 259 moved object)\n"
+            + "".join(f"{len(c)} {' '.join(map(str, c.tolist()))}\n" for _, c in cast))
     log.info("wrote %d scans of %s to %s", len(truth), world, out)
     return out

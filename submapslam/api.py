@@ -401,3 +401,98 @@ def report_run(run_dir: str | Path, out_path: str | Path | None = None, *, ref: 
             reference.cancel()
             raise
         return write_run_report(record, out, reference.result, align=mode, reference_name=Path(ref).name)
+
+
+def evaluate_map_file(map_path: str | Path, log_path: str | Path, *, poses: str | Path | None = None,
+                      voxel: float = 0.1, radius: float = 0.15) -> dict:
+    """DynamicMap scores (SA, DA, AA) of a map file (PLY/PCD cloud or map_server grid) against a
+    labelled log (``labels/NNNNNN.label``) placed at ``poses`` (default: the log's ground truth).
+
+    For a grid the truth is voxelised into 2D cells of the grid's resolution and the radius is
+    at least 0.75 cells (a wall point's cell centre is up to 0.71 cells from its centroid).
+    """
+    from .errors import SubmapSlamError
+    from .evaluation.dynamic_map import LabelledVoxels, score_map
+    from .io.labels import count_scans, labelled_scans, read_map_points, scan_poses
+
+    if voxel <= 0 or radius <= 0:
+        raise SubmapSlamError(f"--voxel and --radius must be > 0 (got {voxel}, {radius})")
+    map_points, resolution = read_map_points(map_path)
+    T = scan_poses(log_path, poses, count_scans(log_path))
+    planar_grid = resolution is not None
+    cell = resolution if planar_grid else voxel
+    truth = None
+    for k, points, labels, planar in labelled_scans(log_path):
+        if truth is None:
+            truth = LabelledVoxels(cell, planar=planar or planar_grid)
+        truth.add(points @ T[k][:3, :3].T + T[k][:3, 3], labels)
+    if truth is None:
+        raise SubmapSlamError(f"{log_path}: no scans")
+    r = max(radius, 0.75 * resolution) if planar_grid else radius
+    scores = score_map(truth, map_points, r).as_dict()
+    return {"map": str(map_path), "log": str(log_path), "voxel": cell, "radius": r,
+            "grid": planar_grid, "gt_points": truth.points, **scores}
+
+
+def clean_log(log_path: str | Path, poses: str | Path, out_dir: str | Path, *, format: str | None = None,
+              params=None, progress: bool = False, overwrite: bool = False) -> dict:
+    """Remove what moved from a log given one pose per scan (TUM or KITTI ``T_world_base``, scan order);
+    write ``map_static.ply``, ``map_dynamic.ply`` (voxel centroids, world frame) and ``summary.json``
+    into ``out_dir`` (checked first, written through a staging folder; ``overwrite`` replaces an
+    earlier result). Returns the summary (points and voxels kept/removed, wall time, peak memory).
+    """
+    import time
+
+    from .errors import InputError, SubmapSlamError
+    from .io.clean_results import write_clean_results
+    from .io.output_folder import check_out_folder, staged_folder
+    from .io.registry import open_log
+    from .io.trajectory import read_trajectory
+    from .mapping.dynamic_removal import RemovalParams, remove_dynamic_points
+    from .process_stats import peak_memory_mb
+
+    t0 = time.perf_counter()
+    params = params or RemovalParams()
+    check_out_folder(out_dir, inputs=[log_path, poses], overwrite=overwrite)
+    traj = read_trajectory(poses)
+    reader = open_log(log_path, format)
+    planar = bool(getattr(reader, "planar", False))
+    counted = {"scans": 0}
+
+    def scans():
+        for k, scan in enumerate(open_log(log_path, format)):
+            if k >= len(traj.poses):
+                raise InputError(Path(poses), f"{len(traj.poses)} poses, but the log has more scans "
+                                              "(one pose per scan, in scan order)")
+            counted["scans"] = k + 1
+            yield scan.points
+
+    bar = progress_bar(None) if progress else None
+    if bar is not None:
+        bar.start()
+        task = bar.add_task("scans", total=2 * len(traj.poses))
+    try:
+        result = remove_dynamic_points(
+            scans, traj.poses, getattr(reader, "T_base_sensor", None), params, planar=planar,
+            progress=None if bar is None else (
+                lambda stage, k: bar.update(task, completed=k + (len(traj.poses) if stage == "evidence" else 0))))
+    finally:
+        if bar is not None:
+            bar.stop()
+    if counted["scans"] != len(traj.poses):
+        raise InputError(Path(poses), f"{len(traj.poses)} poses for {counted['scans']} scans "
+                                      "(one pose per scan, in scan order)")
+    if not len(result.keys):
+        raise SubmapSlamError(f"{log_path}: the scans hold no points")
+    summary = {
+        "log": str(log_path), "poses": str(poses), "scans": counted["scans"],
+        "points_kept": result.points_kept, "points_removed": result.points_removed,
+        "voxels_kept": int((~result.dynamic).sum()), "voxels_removed": int(result.dynamic.sum()),
+        "voxel_m": params.voxel, "output": "one point per voxel: the centroid of the scan points in it",
+        "seconds": result.seconds, "params": {k: getattr(params, k) for k in params.__dataclass_fields__},
+    }
+    summary["wall_time_s"] = round(time.perf_counter() - t0, 3)
+    summary["peak_memory_mb"] = round(peak_memory_mb(), 1)
+    with staged_folder(out_dir, "clean", overwrite=overwrite, inputs=[log_path, poses]) as staging:
+        write_clean_results(staging, result.centroids[~result.dynamic], result.centroids[result.dynamic], summary)
+    return summary

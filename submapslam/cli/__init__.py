@@ -33,9 +33,9 @@ def _main(
 
 
 def _register_commands() -> None:
-    from . import demo, dump_config, ekf, evaluate, localize, report, run, synth
+    from . import clean, demo, dump_config, ekf, eval_map, evaluate, localize, report, run, synth
 
-    for module in (run, dump_config, demo, evaluate, synth, ekf, localize, report):
+    for module in (run, dump_config, demo, evaluate, synth, ekf, localize, report, eval_map, clean):
         module.register(app)
 
 

@@ -27,6 +27,9 @@ def register(app: typer.Typer) -> None:
         poles: Annotated[int, typer.Option(min=0, help="rectangle: free-standing poles (EKF point features).")] = 0,
         path: Annotated[Path | None, typer.Option("--path", help="kitti: KITTI pose file (NN.txt or NN.txt.xz).")] = None,
         rings: Annotated[int, typer.Option(help="kitti: 16 (VLP-16 like) or 64 (HDL-64E like).")] = 16,
+        movers: Annotated[int, typer.Option(min=0, help="Things that move: kitti: cars both ways, pedestrians, parked "
+                                                        "cars that leave; 2D worlds: people and boxes. Labelled in "
+                                                        "labels/NNNNNN.label (SemanticKITTI).")] = 0,
         overwrite: Overwrite = False,
     ) -> None:
         """Generate a synthetic world and write it as a log folder (and CARMEN for 2D).
@@ -46,9 +49,9 @@ def register(app: typer.Typer) -> None:
                 _check_world(world)
             with staged_folder(out, "synth", overwrite=overwrite, inputs=[path]) as staging:
                 if world == "kitti":
-                    meta = _kitti(staging, path, rings, seed, max_scans, odometry_noise)
+                    meta = _kitti(staging, path, rings, seed, max_scans, odometry_noise, movers)
                 else:
-                    meta = _world(world, staging, seed, laps or 2, sensor, max_scans, odometry_noise, poles)
+                    meta = _world(world, staging, seed, laps or 2, sensor, max_scans, odometry_noise, poles, movers)
         except SubmapSlamError as exc:
             raise fail(exc) from None
         console.print(f"{meta} -> {out}")
@@ -76,20 +79,20 @@ def _check_kitti_options(path, rings, *, laps, sensor, poles) -> None:
         raise SubmapSlamError(f"--path {path}: no such KITTI pose file")
 
 
-def _world(world, out, seed, laps, sensor, max_scans, odometry_noise, poles) -> str:
+def _world(world, out, seed, laps, sensor, max_scans, odometry_noise, poles, movers=0) -> str:
     import yaml
 
     from datasets_synth import generate
 
     extra = {"poles": poles} if poles else {}
     path = generate(world, out, seed=seed, laps=laps, sensor=sensor, max_scans=max_scans,
-                    odometry_noise=odometry_noise, **extra)
+                    odometry_noise=odometry_noise, movers=movers, **extra)
     meta = yaml.safe_load((path / "meta.yaml").read_text())
     return (f"{meta['n_scans']} scans of {world} ({meta['sensor']['type']}), loop {meta['loop_length_m']:.0f} m "
-            f"x {meta['laps']} laps, wheel odometry end drift {meta['odometry_end_drift_m']:.2f} m")
+            f"x {meta['laps']} laps, wheel odometry end drift {meta['odometry_end_drift_m']:.2f} m{_movers_text(meta)}")
 
 
-def _kitti(out, path, rings, seed, max_scans, odometry_noise) -> str:
+def _kitti(out, path, rings, seed, max_scans, odometry_noise, movers=0) -> str:
     import yaml
 
     from datasets_synth import generate_kitti_drive
@@ -99,9 +102,14 @@ def _kitti(out, path, rings, seed, max_scans, odometry_noise) -> str:
     with progress_bar(None) as bar:
         task = bar.add_task("scans", total=None)
         log = generate_kitti_drive(path, out, rings=rings, seed=seed, max_scans=max_scans,
-                                   odometry_noise=odometry_noise,
+                                   odometry_noise=odometry_noise, movers=movers,
                                    progress=lambda done, total: bar.update(task, completed=done, total=total))
     meta = yaml.safe_load((log / "meta.yaml").read_text())
     return (f"{meta['n_scans']} scans along {path.name} ({rings}-ring LiDAR), "
             f"{meta['path_length_m'] / 1000:.2f} km, {meta['city']['buildings']} buildings, "
-            f"{meta['city']['cars']} parked cars")
+            f"{meta['city']['cars']} parked cars{_movers_text(meta)}")
+
+
+def _movers_text(meta: dict) -> str:
+    counts = meta.get("movers") or {}
+    return (", movers: " + ", ".join(f"{n} {kind}" for kind, n in counts.items())) if counts else ""

@@ -1,0 +1,453 @@
+"""Dynamic-point removal given poses: voxels that a later (or earlier) beam passed through are not there.
+
+Two passes over the scans (the DynamicMap benchmark's setting: scans plus one pose each):
+
+1. **Voxel map.** Every scan point, moved into the world frame, falls into a ``voxel`` cell;
+   each occupied voxel keeps its centroid and point count (:class:`VoxelAccumulator`).
+2. **Free-space evidence by ray casting, through the range image.** Each scan (every
+   ``stride``-th) becomes a fine range image in the sensor frame (``el_bin_deg`` x
+   ``az_bin_deg`` pixels, each the nearest return in its direction). Every voxel centroid within
+   ``max_range`` is projected into it: when the pixel holds a beam and that beam ended more than
+   ``margin(r) = max(margin, margin_per_m * r)`` beyond the centroid, the beam passed through the
+   voxel and the voxel gets a *free* vote for that scan. Looking a voxel up in the image is the
+   ray traversal run backwards: the same test, but one lookup per voxel instead of one step per
+   voxel along every ray, so a 600-scan 16-ring drive takes seconds of numpy.
+
+A voxel with ``min_free`` votes or more is dynamic: something was there in one scan and
+another scan saw through it (a car that drove on, a pedestrian who walked away, a parked car
+that left). The margin that grows with range keeps grazing beams over rough ground and along
+walls from voting (a beam through a ground voxel at range r ends within about
+``r * roughness / sensor height`` of it).
+
+Frames: points ``(N, 3)`` in the base frame, ``T_world_base`` ``(4, 4)``, ``T_base_sensor``
+``(4, 4)`` (the ray origin). Units: metres, degrees where named.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+_BITS = 21
+
+
+def voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
+    """One int64 key ``(N,)`` per point ``(N, 3)``: its ``voxel`` cell's integer coordinates, 21 bits each."""
+    ijk = np.floor(np.asarray(points, dtype=np.float64) / voxel).astype(np.int64) + (1 << (_BITS - 1))
+    return (ijk[:, 0] << (2 * _BITS)) | (ijk[:, 1] << _BITS) | ijk[:, 2]
+
+
+class VoxelAccumulator:
+    """Occupied voxels of a scan sequence: sorted keys, centroid sums, point counts and the first and
+    last scan that had a point in each voxel (merged in batches)."""
+
+    def __init__(self, voxel: float, merge_points: int = 4_000_000) -> None:
+        self.voxel = voxel
+        self.merge_points = merge_points
+        self._parts: list[tuple[np.ndarray, ...]] = []
+        self._pending = 0
+
+    def add(self, points_world: np.ndarray, scan: int) -> None:
+        """Add the ``(N, 3)`` world points of scan number ``scan``."""
+        p = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+        if not len(p):
+            return
+        n = len(p)
+        scans = np.full(n, scan, dtype=np.int32)
+        self._parts.append(_reduce(voxel_keys(p, self.voxel), p, np.ones(n, dtype=np.int64), scans, scans))
+        self._pending += n
+        if self._pending >= self.merge_points:
+            self._merge()
+
+    def _merge(self) -> None:
+        if len(self._parts) > 1:
+            self._parts = [_reduce(*(np.concatenate(a) for a in zip(*self._parts)))]
+        self._pending = 0
+
+    def result(self) -> tuple[np.ndarray, ...]:
+        """Sorted keys ``(V,)``, centroids ``(V, 3)``, point counts ``(V,)``, first and last scan ``(V,)``."""
+        self._merge()
+        if not self._parts:
+            z = np.zeros(0, dtype=np.int64)
+            return z, np.zeros((0, 3)), z, z.astype(np.int32), z.astype(np.int32)
+        keys, sums, counts, first, last = self._parts[0]
+        return keys, sums / counts[:, None], counts, first, last
+
+
+def _reduce(keys, sums, counts, first, last):
+    """Group rows by key: sum ``sums`` ``(N, 3)`` and ``counts``, min of ``first``, max of ``last``."""
+    order = np.argsort(keys, kind="stable")
+    keys = keys[order]
+    start = np.flatnonzero(np.concatenate([[True], keys[1:] != keys[:-1]]))
+    return (keys[start], np.add.reduceat(sums[order], start, axis=0), np.add.reduceat(counts[order], start),
+            np.minimum.reduceat(first[order], start), np.maximum.reduceat(last[order], start))
+
+
+@dataclass(frozen=True)
+class RemovalParams:
+    """Settings of :func:`remove_dynamic_points` (see the module docstring)."""
+
+    voxel: float = 0.1  # [m] map voxel; also the output resolution
+    max_range: float = 50.0  # [m] voxels farther from the sensor get no evidence from that scan
+    margin: float = 0.3  # [m] a beam must end this far beyond a voxel to free it ...
+    margin_per_m: float = 0.05  # ... or this fraction of the voxel's range, whichever is larger
+    min_free: int = 2  # voxels with a free vote a cluster needs at least
+    stride: int = 1  # evidence from every stride-th scan
+    window: int = 50  # scans after a voxel's last sighting (and before its first) that test it
+    tolerance: float = 0.5  # a beam passes a voxel within this fraction of the voxel of its centre
+    grow_slack: int = 2  # scans: neighbours seen within this of each other's sightings are one cluster
+    cluster_fraction: float = 0.3  # a cluster with this fraction of free-voted voxels moved
+    cluster_sample: int = 300  # voxels tested of a larger cluster (a sample, by key hash)
+    protect: bool = True  # a vote beside a voxel seen long before or after the voted one does not count ...
+    protect_slack: int = 20  # ... longer than this many scans
+    protect_min_seen: int = 5  # scans between the first and last sighting of a protecting voxel
+    planar_clusters: bool = False  # 2D logs: clusters too (else each voxel is decided by its own votes)
+    ground_cell: float = 1.0  # [m] columns whose lowest voxel is the ground ...
+    ground_band: float = 0.15  # [m] ... and the voxels this far above it, never removed
+    el_bin_deg: float = 0.25  # range-image pixel: elevation ...
+    az_bin_deg: float = 0.2  # ... and azimuth
+
+
+@dataclass
+class RemovalResult:
+    """Voxels of all scans and which of them moved.
+
+    ``centroids`` ``(V, 3)`` world frame; ``counts`` ``(V,)`` points per voxel; ``free_votes``
+    ``(V,)`` scans that saw through the voxel; ``dynamic`` ``(V,)`` bool; ``keys`` ``(V,)`` sorted
+    voxel keys (:func:`voxel_keys` at ``params.voxel``); ``seconds`` per pass.
+    """
+
+    keys: np.ndarray
+    centroids: np.ndarray
+    counts: np.ndarray
+    free_votes: np.ndarray
+    dynamic: np.ndarray
+    params: RemovalParams
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def points_kept(self) -> int:
+        return int(self.counts[~self.dynamic].sum())
+
+    @property
+    def points_removed(self) -> int:
+        return int(self.counts[self.dynamic].sum())
+
+    def dynamic_mask(self, points_world: np.ndarray) -> np.ndarray:
+        """``(N,)`` bool: which world points ``(N, 3)`` fall into a dynamic voxel."""
+        k = voxel_keys(points_world, self.params.voxel)
+        pos = np.clip(np.searchsorted(self.keys, k), 0, max(len(self.keys) - 1, 0))
+        found = len(self.keys) > 0
+        return found & (self.keys[pos] == k) & self.dynamic[pos] if found else np.zeros(len(k), dtype=bool)
+
+
+class _TileIndex:
+    """Voxels sorted into square ``tile`` [m] columns, to fetch those near a sensor quickly."""
+
+    def __init__(self, centroids: np.ndarray, tile: float) -> None:
+        self.tile = tile
+        ij = np.floor(centroids[:, :2] / tile).astype(np.int64)
+        self.lo = ij.min(axis=0) if len(ij) else np.zeros(2, dtype=np.int64)
+        ij -= self.lo
+        self.shape = ij.max(axis=0) + 1 if len(ij) else np.ones(2, dtype=np.int64)
+        flat = ij[:, 0] * self.shape[1] + ij[:, 1]
+        self.order = np.argsort(flat, kind="stable")
+        self.starts = np.searchsorted(flat[self.order], np.arange(self.shape[0] * self.shape[1] + 1))
+
+    def near(self, xy: np.ndarray, radius: float) -> np.ndarray:
+        """Indices of the voxels in the tiles within ``radius`` of ``xy`` (a superset of the disc)."""
+        lo = np.floor((xy - radius) / self.tile).astype(np.int64) - self.lo
+        hi = np.floor((xy + radius) / self.tile).astype(np.int64) - self.lo
+        lo, hi = np.maximum(lo, 0), np.minimum(hi, self.shape - 1)
+        if np.any(hi < lo):
+            return np.zeros(0, dtype=np.int64)
+        parts = [self.order[self.starts[i * self.shape[1] + lo[1]]:self.starts[i * self.shape[1] + hi[1] + 1]]
+                 for i in range(lo[0], hi[0] + 1)]
+        return np.concatenate(parts) if parts else np.zeros(0, dtype=np.int64)
+
+
+class RangeImage:
+    """The nearest return per (elevation, azimuth) pixel of one scan in its sensor frame, with the
+    return's exact direction, so a lookup can tell whether that beam passed through a voxel."""
+
+    def __init__(self, points_sensor: np.ndarray, el_bin_deg: float, az_bin_deg: float) -> None:
+        r, el, az = _spherical(points_sensor)
+        ok = r > 1e-6
+        r, el, az = r[ok], el[ok], az[ok]
+        self.del_ = np.deg2rad(el_bin_deg)
+        self.daz = np.deg2rad(az_bin_deg)
+        self.cols = int(np.ceil(2 * np.pi / self.daz))
+        self.el_lo = float(el.min()) - 2 * self.del_ if len(el) else 0.0
+        rows = np.floor((el - self.el_lo) / self.del_).astype(np.int64)
+        self.rows = int(rows.max()) + 3 if len(rows) else 1
+        size = self.rows * self.cols
+        self.range = np.zeros(size, dtype=np.float32)  # 0: no beam
+        self.el = np.zeros(size, dtype=np.float32)
+        self.az = np.zeros(size, dtype=np.float32)
+        flat = rows * self.cols + self._col(az)
+        order = np.argsort(-r)  # nearest written last: duplicates keep the nearest return
+        f = flat[order]
+        self.range[f], self.el[f], self.az[f] = r[order], el[order], az[order]
+
+    def _col(self, az: np.ndarray) -> np.ndarray:
+        return np.floor((az + np.pi) / self.daz).astype(np.int64) % self.cols
+
+    def passes(self, points_sensor: np.ndarray, tolerance: float, margin: Callable[[np.ndarray], np.ndarray]):
+        """For sensor-frame voxel centres ``(M, 3)``: ``(r, free, hit)``, each ``(M,)``.
+
+        A beam *passes* a centre when its direction comes within ``tolerance`` [m] of it (the
+        beams of the centre's pixel and the pixels above and below). ``free``: at least one beam
+        passes and every passing beam ended more than ``margin(r)`` beyond the centre; ``hit``:
+        a passing beam ended within the margin of it.
+        """
+        r, el, az = _spherical(points_sensor)
+        rows = np.floor((el - self.el_lo) / self.del_).astype(np.int64)
+        cols = self._col(az)
+        m = margin(r)
+        any_pass = np.zeros(len(r), dtype=bool)
+        short = np.zeros(len(r), dtype=bool)
+        cos_el = np.cos(el)
+        for dr in (-1, 0, 1):
+            rr = rows + dr
+            inside = (rr >= 0) & (rr < self.rows)
+            flat = np.where(inside, rr, 0) * self.cols + cols
+            measured = self.range[flat]
+            d_az = _wrap(self.az[flat] - az)
+            passing = inside & (measured > 0) & (np.abs(self.el[flat] - el) * r < tolerance) \
+                & (d_az * cos_el * r < tolerance)
+            any_pass |= passing
+            short |= passing & (measured <= r + m)
+        return r, any_pass & ~short, short
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    """|angle| wrapped into [0, pi]."""
+    a = np.abs(a)
+    return np.minimum(a, 2 * np.pi - a)
+
+
+def _spherical(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Range, elevation and azimuth ``(N,)`` of sensor-frame points ``(N, 3)``."""
+    r = np.sqrt(np.einsum("ij,ij->i", p, p))
+    el = np.arcsin(np.clip(p[:, 2] / np.maximum(r, 1e-9), -1.0, 1.0))
+    return r, el, np.arctan2(p[:, 1], p[:, 0])
+
+
+def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_base: np.ndarray,
+                          T_base_sensor: np.ndarray | None = None, params: RemovalParams = RemovalParams(),
+                          progress: Callable[[str, int], None] | None = None, planar: bool = False) -> RemovalResult:
+    """Find the voxels of a posed scan sequence that something passed through.
+
+    Args:
+        scans: called twice, each time returns the scans in order, points ``(N, 3)`` in the base frame.
+        T_world_base: ``(S, 4, 4)`` one pose per scan.
+        T_base_sensor: ``(4, 4)`` the sensor's mounting (ray origin and range-image frame); identity if None.
+        params: voxel, range, margin and vote settings.
+        progress: called as ``progress(pass_name, scans_done)``.
+        planar: 2D laser scans (z = 0): there is no ground to keep.
+    """
+    T_bs = np.eye(4) if T_base_sensor is None else np.asarray(T_base_sensor, dtype=np.float64)
+    t0 = time.perf_counter()
+    acc = VoxelAccumulator(params.voxel)
+    n = 0
+    for k, pts in enumerate(scans()):
+        if k >= len(T_world_base):
+            break
+        T = T_world_base[k]
+        acc.add(np.asarray(pts, dtype=np.float64) @ T[:3, :3].T + T[:3, 3], k)
+        n += 1
+        if progress is not None:
+            progress("voxels", k + 1)
+    keys, centroids, counts, first, last = acc.result()
+    t1 = time.perf_counter()
+    votes = np.zeros(len(keys), dtype=np.int32)
+    # the ground is never removed, so never tested; the rest is tested by the scans up to `window`
+    # after the last one that saw a point in it and up to `window` before the first (a free vote
+    # while points still arrive is an edge effect). The decision is per cluster, by the fraction
+    # of voted voxels: of a large cluster a sample of about `cluster_sample` voxels is tested.
+    ground = np.zeros(len(keys), dtype=bool) if planar else ground_voxels(centroids, params.ground_cell,
+                                                                           params.ground_band)
+    per_voxel = planar and not params.planar_clusters
+    if per_voxel:  # a 2D wall is one long cluster: decide voxel by voxel
+        cluster = np.where(ground, -1, np.arange(len(keys)))
+    else:
+        cluster = co_observed_clusters(keys, first, last, ~ground, params.grow_slack)
+    tested = _sample_clusters(cluster, keys, params.cluster_sample)
+    t_cluster = time.perf_counter() - t1
+    by_last = tested[np.argsort(last[tested], kind="stable")]
+    by_first = tested[np.argsort(first[tested], kind="stable")]
+    last_sorted, first_sorted = last[by_last], first[by_first]
+    centroids32 = centroids.astype(np.float32)
+    tolerance = params.tolerance * params.voxel
+    W = params.window
+
+    def margin(r: np.ndarray) -> np.ndarray:
+        return np.maximum(params.margin, params.margin_per_m * r)
+
+    for k, pts in enumerate(scans()):
+        if k >= n:
+            break
+        if k % params.stride:
+            continue
+        after = by_last[np.searchsorted(last_sorted, k - W):np.searchsorted(last_sorted, k)]
+        before = by_first[np.searchsorted(first_sorted, k, side="right"):np.searchsorted(first_sorted, k + W, side="right")]
+        cand = np.concatenate([after, before])
+        if not len(cand):
+            continue
+        T_ws = T_world_base[k] @ T_bs
+        local = (centroids32[cand] - T_ws[:3, 3].astype(np.float32)) @ T_ws[:3, :3].astype(np.float32)
+        near = np.einsum("ij,ij->i", local, local) < params.max_range ** 2
+        cand, local = cand[near], local[near]
+        pts_sensor = (np.asarray(pts, dtype=np.float64) - T_bs[:3, 3]) @ T_bs[:3, :3]
+        image = RangeImage(pts_sensor, params.el_bin_deg, params.az_bin_deg)
+        _, free, _ = image.passes(local, tolerance, margin)
+        votes[cand[free]] += 1
+        if progress is not None:
+            progress("evidence", k + 1)
+    t2 = time.perf_counter()
+    hit = votes >= (params.min_free if per_voxel else 1)
+    if params.protect:
+        hit &= ~protected_by_static(keys, first, last, hit, params.protect_slack, params.protect_min_seen)
+    voted = np.zeros(len(keys), dtype=np.int8) - 1  # -1: not tested
+    voted[tested] = hit[tested]
+    dynamic = dynamic_clusters(cluster, voted, params.cluster_fraction, 1 if per_voxel else params.min_free) & ~ground
+    t3 = time.perf_counter()
+    return RemovalResult(keys, centroids, counts, votes, dynamic, params,
+                         {"voxels": round(t1 - t0, 3), "clusters": round(t_cluster, 3),
+                          "evidence": round(t2 - t1 - t_cluster, 3), "decision": round(t3 - t2, 3)})
+
+
+_NEIGHBOURS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)])
+
+
+def ground_voxels(centroids: np.ndarray, cell: float, band: float) -> np.ndarray:
+    """``(V,)`` bool: voxels within ``band`` [m] above the lowest voxel of their ``cell`` x ``cell`` column."""
+    if not len(centroids):
+        return np.zeros(0, dtype=bool)
+    ij = np.floor(centroids[:, :2] / cell).astype(np.int64)
+    col = (ij[:, 0] << 32) + (ij[:, 1] & 0xFFFFFFFF)
+    uniq, idx = np.unique(col, return_inverse=True)
+    lowest = np.full(len(uniq), np.inf)
+    np.minimum.at(lowest, idx, centroids[:, 2])
+    return centroids[:, 2] <= lowest[idx] + band
+
+
+def co_observed_clusters(keys: np.ndarray, first: np.ndarray, last: np.ndarray, members: np.ndarray,
+                         slack: int) -> np.ndarray:
+    """Cluster id ``(V,)`` of every voxel (-1 for non-members): ``members`` joined with each
+    26-neighbour member seen at overlapping times (sightings ``[first, last]`` +- ``slack`` scans).
+    One object seen at one time is one cluster; so is the smear a car leaves along its lane."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    idx = np.flatnonzero(members)
+    labels = np.full(len(keys), -1, dtype=np.int64)
+    if not len(idx):
+        return labels
+    src, nb = _neighbour_pairs(keys, idx, half=True)
+    ok = members[nb] & (first[nb] <= last[src] + slack) & (first[src] <= last[nb] + slack)
+    src, nb = src[ok], nb[ok]
+    n = len(keys)
+    graph = coo_matrix((np.ones(len(src), dtype=np.int8), (src, nb)), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    labels[idx] = comp[idx]
+    return labels
+
+
+def _sample_clusters(cluster: np.ndarray, keys: np.ndarray, sample: int) -> np.ndarray:
+    """Indices (ascending) of the voxels to test: all of a cluster up to ``sample`` voxels, about
+    ``sample`` of a larger one (chosen by a hash of the voxel key: the same every run)."""
+    member = np.flatnonzero(cluster >= 0)
+    if not len(member):
+        return member
+    _, idx, size = np.unique(cluster[member], return_inverse=True, return_counts=True)
+    p = np.minimum(1.0, sample / size[idx])
+    return member[_unit_hash(keys[member]) < p]
+
+
+def _unit_hash(keys: np.ndarray) -> np.ndarray:
+    """A uniform number in [0, 1) per key (splitmix64's finaliser): deterministic sampling."""
+    z = keys.astype(np.uint64) + np.uint64(0x9E3779B97F4A7C15)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    z = z ^ (z >> np.uint64(31))
+    return (z >> np.uint64(11)).astype(np.float64) / float(1 << 53)
+
+
+def dynamic_clusters(cluster: np.ndarray, voted: np.ndarray, fraction: float, min_voted: int) -> np.ndarray:
+    """``(V,)`` bool: voxels of clusters where at least ``fraction`` of the tested voxels (and
+    ``min_voted``) have a free vote (``voted``: 1 voted, 0 not, -1 not tested). A pole or a wall
+    has a few voted voxels (range noise scatters points into the free space beside it); a car
+    that drove on is voted nearly everywhere."""
+    member = cluster >= 0
+    if not member.any():
+        return np.zeros(len(cluster), dtype=bool)
+    uniq, idx = np.unique(cluster[member], return_inverse=True)
+    tested = voted[member] >= 0
+    size = np.bincount(idx, tested.astype(np.int64))
+    n_voted = np.bincount(idx, (voted[member] == 1).astype(np.int64))
+    good = (n_voted >= min_voted) & (n_voted >= fraction * size)
+    out = np.zeros(len(cluster), dtype=bool)
+    out[member] = good[idx]
+    return out
+
+
+_HALF = _NEIGHBOURS[:13]  # one of each +-offset pair: enough for an undirected graph
+
+
+def _neighbour_pairs(keys: np.ndarray, of: np.ndarray, half: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """``(src, nb)``: every occupied 26-neighbour ``nb`` of each voxel index in ``of`` (``of``
+    ascending; ``half``: 13 of the 26 directions, each pair once)."""
+    nbs = _HALF if half else _NEIGHBOURS
+    offsets = (nbs[:, 0] << (2 * _BITS)) + (nbs[:, 1] << _BITS) + nbs[:, 2]
+    srcs, found = [], []
+    if len(of) and len(keys):
+        base = keys[of]
+        for off in offsets:
+            q = base + off  # ascending like keys[of]: a cache-friendly search
+            pos = np.minimum(np.searchsorted(keys, q), len(keys) - 1)
+            hit = keys[pos] == q
+            srcs.append(of[hit])
+            found.append(pos[hit])
+    if not srcs:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    return np.concatenate(srcs), np.concatenate(found)
+
+
+def protected_by_static(keys: np.ndarray, first: np.ndarray, last: np.ndarray, dynamic: np.ndarray,
+                        slack: int, min_seen: int = 0) -> np.ndarray:
+    """Which voted (``dynamic``) voxels touch a static voxel that was seen before their first or after their last
+    sighting (by more than ``slack`` scans): range noise scatters a pole's or a wall's points into
+    the free space beside it, where later beams rightly pass; what moved has no such neighbour.
+    Only neighbours seen over ``min_seen`` scans or more protect (not another car that drove the
+    same lane later).
+    """
+    src, nb = _neighbour_pairs(keys, np.flatnonzero(dynamic))
+    keep = ~dynamic[nb] & ((last[nb] > last[src] + slack) | (first[nb] < first[src] - slack)) \
+        & (last[nb] - first[nb] >= min_seen)
+    out = np.zeros(len(keys), dtype=bool)
+    out[src[keep]] = True
+    return out
+
+
+def grow_dynamic(keys: np.ndarray, first: np.ndarray, last: np.ndarray, dynamic: np.ndarray, slack: int,
+                 rounds: int) -> np.ndarray:
+    """Spread the dynamic flag to the 26 neighbours of dynamic voxels that were seen only while
+    their dynamic neighbour was (scans ``[first, last]`` inside the neighbour's, +- ``slack``):
+    the rest of a car whose every voxel no beam happened to cross. A ground or wall voxel next
+    to a mover is seen long before and after it, so it stays. ``rounds`` steps of one voxel.
+    """
+    dynamic = dynamic.copy()
+    frontier = np.flatnonzero(dynamic)
+    for _ in range(rounds):
+        src, nb = _neighbour_pairs(keys, frontier)
+        free = ~dynamic[nb]
+        src, nb = src[free], nb[free]
+        inside = (first[nb] >= first[src] - slack) & (last[nb] <= last[src] + slack)
+        grown = np.unique(nb[inside])
+        dynamic[grown] = True
+        frontier = grown
+    return dynamic

@@ -1,0 +1,167 @@
+"""Worlds with movers and their labels; ``clean``'s free-space evidence, its parts and its command."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from datasets_synth import generate_kitti_drive
+from submapslam.api import clean_log, evaluate_map_file
+from submapslam.cli import app
+from submapslam.io.labels import labelled_scans
+from submapslam.io.ply import write_ply
+from submapslam.mapping.dynamic_removal import (
+    RangeImage,
+    VoxelAccumulator,
+    co_observed_clusters,
+    ground_voxels,
+    voxel_keys,
+)
+
+from .cli_errors import assert_one_error_line
+from .conftest import shared_data
+
+
+def test_range_image_frees_a_voxel_only_when_its_beam_ended_beyond_it():
+    # one beam straight ahead ending at 10 m, one 90 deg to the left ending at 3 m
+    image = RangeImage(np.array([[10.0, 0.0, 0.0], [0.0, 3.0, 0.0]]), 0.25, 0.2)
+    centres = np.array([[5.0, 0.0, 0.0],     # the beam passed it and went on: free
+                        [9.9, 0.0, 0.0],     # the beam ended there: hit
+                        [5.0, 0.5, 0.0],     # no beam came near: neither
+                        [0.0, 5.0, 0.0]])    # behind the 3 m return: neither
+    r, free, hit = image.passes(centres, 0.05, lambda r: np.maximum(0.3, 0.05 * r))
+    assert np.allclose(r, [5.0, 9.9, np.hypot(5.0, 0.5), 5.0])
+    assert free.tolist() == [True, False, False, False]
+    assert hit.tolist() == [False, True, False, True]
+
+
+def test_voxels_keep_first_and_last_sighting():
+    acc = VoxelAccumulator(0.1, merge_points=1)
+    acc.add(np.array([[0.05, 0.05, 0.05], [1.05, 0.05, 0.05]]), 3)
+    acc.add(np.array([[0.07, 0.05, 0.05]]), 9)
+    keys, centroids, counts, first, last = acc.result()
+    assert np.all(np.diff(keys) > 0)
+    assert counts.tolist() == [2, 1] and first.tolist() == [3, 3] and last.tolist() == [9, 3]
+    assert np.allclose(centroids[0], [0.06, 0.05, 0.05])
+
+
+def test_clusters_join_neighbours_seen_together_only():
+    pts = np.array([[0.05, 0.05, 1.05], [0.15, 0.05, 1.05], [0.25, 0.05, 1.05], [0.95, 0.05, 1.05]])
+    keys = np.sort(voxel_keys(pts, 0.1))
+    order = np.argsort(voxel_keys(pts, 0.1))
+    first = np.array([0, 1, 40, 0])[order]
+    last = np.array([2, 3, 45, 2])[order]
+    cluster = co_observed_clusters(keys, first, last, np.ones(4, dtype=bool), slack=2)
+    c = cluster[np.argsort(order)]
+    assert c[0] == c[1]           # adjacent, seen at overlapping times
+    assert c[2] != c[1]           # adjacent, but seen 40 scans later: another object
+    assert c[3] not in (c[0], c[2])  # far away
+    ground = ground_voxels(np.array([[0.5, 0.5, 0.0], [0.5, 0.6, 0.1], [0.5, 0.5, 0.5]]), 1.0, 0.15)
+    assert ground.tolist() == [True, True, False]
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    """80 scans of a 16-ring drive along KITTI 00 with 16 movers, and the same drive without movers."""
+    path = shared_data("trajectories", "kitti_gt", "00.txt.xz")
+    root = tmp_path_factory.mktemp("movers")
+    with_movers = generate_kitti_drive(path, root / "movers", rings=16, max_scans=80, movers=16)
+    return with_movers, path, root
+
+
+def test_movers_are_labelled_per_point(drive):
+    log, path, root = drive
+    meta = yaml.safe_load((log / "meta.yaml").read_text())
+    assert sum(meta["movers"].values()) == 16 and set(meta["movers"]) == {"car", "parked_car", "person"}
+    classes = np.concatenate([labels & 0xFFFF for _, _, labels, _ in labelled_scans(log)])
+    present = set(np.unique(classes).tolist())
+    assert {252, 254}.issubset(present) and {40, 50}.issubset(present)
+    assert present <= {10, 40, 50, 70, 80, 99, 252, 254}
+    # without movers: the same city, nothing labelled moving
+    static = generate_kitti_drive(path, root / "static", rings=16, max_scans=3)
+    for _, points, labels, _ in labelled_scans(static):
+        assert len(points) == len(labels) and not np.any((labels >= 252) & (labels <= 259))
+
+
+def test_clean_removes_the_movers_and_keeps_the_city(drive, tmp_path):
+    log, _, _ = drive
+    s = clean_log(log, log / "groundtruth_tum.txt", tmp_path / "clean")
+    files = json.loads((tmp_path / "clean" / "summary.json").read_text())
+    assert files["points_removed"] == s["points_removed"] > 0 and s["points_kept"] > 5 * s["points_removed"]
+    assert s["wall_time_s"] > 0 and s["peak_memory_mb"] > 0 and s["scans"] == 80
+    scores = evaluate_map_file(tmp_path / "clean" / "map_static.ply", log)
+    assert scores["SA"] >= 0.99 and scores["DA"] >= 0.8, scores
+    # the removed points are the movers: the dynamic map scores the other way round
+    removed = evaluate_map_file(tmp_path / "clean" / "map_dynamic.ply", log)
+    assert removed["SA"] < 0.05 and removed["DA"] < 0.2
+    # no removal at all keeps every mover
+    everything = np.vstack([p @ T[:3, :3].T + T[:3, 3] for (_, p, _, _), T in
+                            zip(labelled_scans(log), _poses(log))])
+    write_ply(tmp_path / "all.ply", everything.astype(np.float32))
+    assert evaluate_map_file(tmp_path / "all.ply", log)["DA"] == 0.0
+
+
+def _poses(log):
+    from submapslam.io.trajectory import read_tum
+
+    return read_tum(log / "groundtruth_tum.txt").poses
+
+
+def test_clean_cli_never_overwrites_and_checks_the_poses(drive, tmp_path):
+    log, _, _ = drive
+    runner = CliRunner()
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "map_static.ply").write_text("mine")
+    assert_one_error_line(runner.invoke(app, ["clean", str(log), "--poses", str(log / "groundtruth_tum.txt"),
+                                              "--out", str(out)]), "holds files of yours")
+    assert (out / "map_static.ply").read_text() == "mine"
+    short = tmp_path / "short.txt"
+    short.write_text("".join((log / "groundtruth_tum.txt").read_text().splitlines(keepends=True)[:50]))
+    assert_one_error_line(runner.invoke(app, ["clean", str(log), "--poses", str(short), "--out",
+                                              str(tmp_path / "o2")]), "50 poses")
+    assert_one_error_line(runner.invoke(app, ["clean", str(log), "--poses", str(tmp_path / "nope.txt"), "--out",
+                                              str(tmp_path / "o3")]), "no such trajectory file")
+
+
+def test_planar_movers_label_the_carmen_beams_too(tmp_path):
+    from datasets_synth import generate
+
+    log = generate("rectangle", tmp_path / "rect", max_scans=120, movers=6)
+    meta = yaml.safe_load((log / "meta.yaml").read_text())
+    assert meta["movers"] == {"box": 2, "person": 4}
+    lines = [ln.split() for ln in (log / "log.clf.labels").read_text().splitlines() if not ln.startswith("#")]
+    flaser = [ln for ln in (log / "log.clf").read_text().splitlines() if ln.startswith("FLASER")]
+    assert len(lines) == len(flaser) == 120
+    seen = set()
+    for (_, points, labels, planar), beams, row in zip(labelled_scans(log), lines, flaser):
+        assert len(points) == len(labels)
+        classes = np.array(beams[1:], dtype=np.uint32)
+        assert planar and int(beams[0]) == len(classes) == int(row.split()[1])
+        # the beams with a return are the scan's points, in order, with the same classes
+        assert np.array_equal(classes[classes > 0], labels)
+        ranges = np.array(row.split()[2:2 + len(classes)], dtype=float)
+        assert np.all((ranges < 80.0) == (classes > 0))
+        seen |= set(np.unique(labels).tolist())
+    assert seen <= {50, 254, 259} and 50 in seen and seen & {254, 259}
+
+
+def test_bench_tool_runs_clean_and_no_removal_side_by_side(drive, tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    log, _, _ = drive
+    tool = Path(__file__).resolve().parents[1] / "tools" / "bench_dynamic.py"
+    proc = subprocess.run([sys.executable, str(tool), str(log), "--methods", "clean,none", "--out", str(tmp_path)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    runs = {r["method"]: r for r in json.loads((tmp_path / "results.json").read_text())}
+    assert runs["none"]["DA"] == 0.0 and runs["none"]["SA"] == 1.0
+    assert runs["clean"]["DA"] >= 0.8 and runs["clean"]["SA"] >= 0.99
+    assert all(r["seconds"] > 0 and r["peak_mb"] > 0 for r in runs.values())
+    assert "| clean |" in proc.stdout and "| none |" in proc.stdout
