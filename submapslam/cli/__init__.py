@@ -33,9 +33,9 @@ def _main(
 
 
 def _register_commands() -> None:
-    from . import demo, dump_config, ekf, evaluate, localize, run, synth
+    from . import batch, demo, dump_config, ekf, evaluate, localize, run, synth
 
-    for module in (run, dump_config, demo, evaluate, synth, ekf, localize):
+    for module in (run, dump_config, demo, evaluate, synth, ekf, localize, batch):
         module.register(app)
 
 

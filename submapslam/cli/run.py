@@ -17,9 +17,12 @@ def register(app: typer.Typer) -> None:
 
     @app.command()
     def run(
-        log: Annotated[Path, typer.Argument(help="Log: CARMEN file, folder of .bin/.ply/.pcd scans, synthetic log folder, "
-                                            "ROS bag (.bag, ROS 2 folder, .mcap).")],
+        logs: Annotated[list[Path], typer.Argument(
+            metavar="LOG...", help="Log: CARMEN file, folder of .bin/.ply/.pcd scans, synthetic log folder, "
+            "ROS bag (.bag, ROS 2 folder, .mcap). Several logs: one map from all (one session each).")],
         out: OutFolder,
+        map_dir: Annotated[Path | None, typer.Option(
+            "--map", help="Add the log(s) as new sessions to this map (a run's output folder).")] = None,
         config: Annotated[Path | None, typer.Option("--config", "-c", help="YAML config (see dump-config).")] = None,
         format: Annotated[str | None, typer.Option("--format", "-f", help="Force the log format.")] = None,
         hints: Annotated[Path | None, typer.Option("--hints", help="Manual loop hints: 'a b' scan indices or timestamps per line.")] = None,
@@ -32,14 +35,26 @@ def register(app: typer.Typer) -> None:
             "--base-frame", help="ROS bag: robot frame the points are moved into through /tf_static "
             "(default: the odometry's child_frame_id, else base_link).")] = None,
     ) -> None:
-        """Build a map and trajectory from LOG; write poses, graph, map and summary into OUT."""
+        """Build a map and trajectory from LOG; write poses, graph, map and summary into OUT.
+
+        OUT/map/ is the map itself: `run LOG2 --map OUT --out OUT2` adds LOG2 to it."""
         from ..api import run_log
 
+        if len(logs) > 1 or map_dir is not None:
+            from ._sessions import run_many
+
+            return run_many(logs, out, map_dir=map_dir, config=config, format=format, hints=hints,
+                            max_scans=max_scans, loops=not no_loops,
+                            reader_options={"topic": topic, "odometry_topic": odometry_topic, "base_frame": base_frame})
+        log = logs[0]
         try:
             result, paths = run_log(log, out, config=config, format=format, hints=hints,
                                     max_scans=max_scans, loops=not no_loops, progress=True,
                                     reader_options={"topic": topic, "odometry_topic": odometry_topic,
                                                     "base_frame": base_frame})
+            from ._sessions import save_run_map
+
+            save_run_map(result, log, out)
         except SubmapSlamError as exc:
             raise fail(exc) from None
         # summary.json is written last: its wall time and peak memory include the writing
