@@ -292,9 +292,11 @@ class SessionConfig(_Strict):
     enough_links: int = Field(
         6, ge=1, description="stop place recognition once consistent links come from this many session submaps")
     min_agreement: float = Field(
-        0.5, ge=0, le=1, description="share of the session submaps a placement puts on the map that must be "
+        0.3, ge=0, le=1, description="share of the session submaps a placement puts on the map that must be "
         "verified there (a false placement by look-alike places is contradicted by the rest of the session)")
     guided_per_submap: int = Field(2, ge=0, description="nearest map submaps tested per session submap once placed")
+    densify_per_submap: int = Field(
+        3, ge=0, description="after a placement and optimisation, nearest map submaps tested per session submap")
     consistency_tolerance_m: float = Field(1.0, gt=0, description="[m] two links agree when they place the session "
                                            "submaps within this (plus consistency_per_m of the path between them)")
     consistency_per_m: float = Field(0.02, ge=0, description="[m/m] tolerance growth with the session path")

@@ -206,8 +206,13 @@ class SessionPlacer:
         radius = loops.spatial_min_radius or (5.0 if self.closer.planar else 20.0)
         map_xyz = np.array([map_poses[i][:3, 3] for i in map_ids])
         on_map = 0
+        # the frame each verified link implies, by session submap: a session submap is searched
+        # for through the link nearest to it along the session (drift between the two sessions
+        # bends the frame along the way; one frame for all would miss the far end)
+        local = {link_js[k]: frames[k] for k in group}
         for j in session_ids:
-            Q = F @ session_poses[j]
+            F_j = local[min(local, key=lambda m: (abs(m - j), m))]
+            Q = F_j @ session_poses[j]
             d = np.linalg.norm(map_xyz - Q[:3, 3], axis=1)
             near = [map_ids[k] for k in np.argsort(d, kind="stable")[: cfg.guided_per_submap] if d[k] <= radius]
             on_map += bool(near) or j in linked
@@ -216,12 +221,14 @@ class SessionPlacer:
                     continue
                 guess = inverse(map_poses[i]) @ Q
                 rec = self._verify(Hypothesis(i, j, "session", guess, None, loops.min_search_window), submaps, graph)
-                if rec.accepted and not consistent(F, implied_frame(map_poses[i], rec.T_i_j, session_poses[j]),
-                                                   session_poses[j], session_poses[j], cfg):
+                frame = implied_frame(map_poses[i], rec.T_i_j, session_poses[j]) if rec.accepted else None
+                if rec.accepted and not consistent(F_j, frame, session_poses[j], session_poses[j], cfg):
                     rec.accepted, rec.information = False, None
                     rec.reason = "inconsistent with the session's placement"
                 records.append(rec)
-                linked |= {j} if rec.accepted else set()
+                if rec.accepted:
+                    linked.add(j)
+                    local.setdefault(j, frame)
         agreement = len(linked) / max(on_map, 1)
         if agreement < cfg.min_agreement:
             for rec in records:
@@ -237,3 +244,30 @@ class SessionPlacer:
         return Placement(F, records, (
             f"placed by {n_links} verified link(s) ({len(group)} agreeing by place recognition, from {support} "
             f"session submaps; {len(linked)} of the {on_map} session submaps on the map confirm it)"))
+
+    def densify(self, submaps: list[Submap], map_ids: list[int], map_poses: dict[int, np.ndarray],
+                session_ids: list[int], session_poses: dict[int, np.ndarray],
+                tested: set[tuple[int, int]]) -> list[LoopRecord]:
+        """After a placement and an optimisation: test each session submap against the map
+        submaps near it in the current estimate (``session_poses`` now in the map frame), as the
+        loop closer's spatial hypotheses; pairs in ``tested`` are skipped. A link must agree with
+        the estimate within the consistency tolerance. Returns every tested record."""
+        cfg, loops = self.config, self.loops
+        graph = _MapPoses(map_poses)
+        radius = loops.spatial_min_radius or (5.0 if self.closer.planar else 20.0)
+        map_xyz = np.array([map_poses[i][:3, 3] for i in map_ids])
+        records = []
+        for j in session_ids:
+            Q = session_poses[j]
+            d = np.linalg.norm(map_xyz - Q[:3, 3], axis=1)
+            near = [map_ids[k] for k in np.argsort(d, kind="stable")[: cfg.densify_per_submap] if d[k] <= radius]
+            for i in near:
+                if (i, j) in tested:
+                    continue
+                rec = self._verify(Hypothesis(i, j, "session", inverse(map_poses[i]) @ Q, None,
+                                              loops.min_search_window), submaps, graph)
+                if rec.accepted and not consistent(np.eye(4), implied_frame(map_poses[i], rec.T_i_j, Q), Q, Q, cfg):
+                    rec.accepted, rec.information = False, None
+                    rec.reason = "inconsistent with the merged estimate"
+                records.append(rec)
+        return records
