@@ -58,7 +58,7 @@ def run_sessions(
         base = load_map(map_dir)
         taken = [s.name for s in base.sessions]
     cfg = _config(config) if config is not None or base is None else base.result.config
-    names = session_names([*taken, *logs])[len(taken):]
+    names = session_names(logs, taken)
     if hints is not None and len(logs) > 1:
         raise SubmapSlamError("--hints applies to one log; give one log with --hints")
     runs = []

@@ -27,10 +27,11 @@ from ..submaps import Submap
 log = logging.getLogger(__name__)
 
 
-def session_names(sources: list[str | Path]) -> list[str]:
+def session_names(sources: list[str | Path], taken: list[str] | tuple[str, ...] = ()) -> list[str]:
     """One unique name per log: the file name without its extensions (``intel.clf.bz2`` ->
-    ``intel``), a folder's own name; repeats get ``_2``, ``_3`` ...; unsafe characters become ``_``."""
-    names: list[str] = []
+    ``intel``), a folder's own name; repeats (also of the ``taken`` names, e.g. a map's sessions)
+    get ``_2``, ``_3`` ...; unsafe characters become ``_``."""
+    names: list[str] = list(taken)
     for src in sources:
         p = Path(src)
         base = p.name if p.is_dir() else p.name.split(".")[0] or p.name
@@ -39,7 +40,7 @@ def session_names(sources: list[str | Path]) -> list[str]:
         while name in names or name == "merged":
             name, k = f"{base}_{k}", k + 1
         names.append(name)
-    return names
+    return names[len(taken):]
 
 
 def session_map_from_result(result: SlamResult, name: str) -> SessionMap:
