@@ -295,6 +295,9 @@ class SessionConfig(_Strict):
         0.3, ge=0, le=1, description="share of the session submaps a placement puts on the map that must be "
         "verified there (a false placement by look-alike places is contradicted by the rest of the session)")
     guided_per_submap: int = Field(2, ge=0, description="nearest map submaps tested per session submap once placed")
+    densify_passes: int = Field(
+        3, ge=0, description="rounds of (search near the optimised estimate, optimise) after a placement; "
+        "stops early when a round adds no link")
     densify_per_submap: int = Field(
         3, ge=0, description="after a placement and optimisation, nearest map submaps tested per session submap")
     consistency_tolerance_m: float = Field(1.0, gt=0, description="[m] two links agree when they place the session "

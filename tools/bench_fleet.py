@@ -10,7 +10,7 @@ and, for comparison, one run over the whole log, and scores both against a refer
         --reference out/kitti00/poses_gt.txt --out out/bench_fleet_kitti
 
 ``--reverse-last`` plays the last piece backwards (a cloud folder only: its scans renamed in
-reverse order, timestamps kept), so that session drives the path in the other direction.
+reverse order, each with its own timestamp), so that session drives the path the other way.
 Prints a JSON summary (ATE of the merged map and of the single run, sessions placed, times).
 """
 
@@ -56,23 +56,31 @@ def split_carmen(log: Path, cuts: list[int], out: Path) -> list[Path]:
 
 
 def split_folder(log: Path, cuts: list[int], out: Path, reverse_last: bool) -> list[Path]:
-    """Cut a cloud-folder log (scan files + ``timestamps.txt``) into folders of symlinks."""
-    scans = sorted(p for p in log.iterdir() if p.suffix in (".bin", ".ply", ".pcd", ".npy"))
-    stamps = (log / "timestamps.txt").read_text().split()
+    """Cut a cloud-folder log (scans in ``log`` or ``log/scans``, ``times.txt``, ``meta.yaml``)
+    into folders of symlinks; the pieces get no wheel odometry (no link between them)."""
+    from submapslam.io.cloud_folder import _find_scans
+    from submapslam.io.compression import open_text
+
+    folder, scans = _find_scans(log)
+    times = next((p for p in (log / "times.txt", folder / "times.txt") if p.is_file()), None)
+    stamps = open_text(times).read().split() if times else [str(k) for k in range(len(scans))]
     bounds = [0, *cuts, len(scans)]
     pieces = []
     for k in range(len(bounds) - 1):
         d = out / f"{log.name}_part{k + 1}"
         if d.exists():
             shutil.rmtree(d)
-        d.mkdir(parents=True)
+        (d / "scans").mkdir(parents=True)
         idx = list(range(bounds[k], bounds[k + 1]))
         if reverse_last and k == len(bounds) - 2:
             idx = idx[::-1]
         for n, i in enumerate(idx):
-            (d / f"{n:06d}{scans[i].suffix}").symlink_to(scans[i].resolve())
-        # timestamps keep their order (time runs forward while the piece drives the path back)
-        (d / "timestamps.txt").write_text("\n".join(stamps[bounds[k]:bounds[k + 1]]) + "\n")
+            (d / "scans" / f"{n:06d}{scans[i].suffix}").symlink_to(scans[i].resolve())
+        # each scan keeps its own timestamp (a reversed piece's run backwards): the merged
+        # trajectory is scored against the reference at the right poses
+        (d / "times.txt").write_text("\n".join(stamps[i] for i in idx) + "\n")
+        if (log / "meta.yaml").is_file():
+            shutil.copy(log / "meta.yaml", d / "meta.yaml")
         pieces.append(d)
     return pieces
 
@@ -86,7 +94,7 @@ def run(cmd: list[str]) -> float:
 def ate(est: Path, ref: Path, raw: Path | None, align: str) -> float:
     from submapslam.api import evaluate_files
 
-    return float(evaluate_files(est, ref, align=align, raw_log=raw)["ate"].rmse)
+    return float(evaluate_files(est, ref, align=align, raw_log=raw)["ate"]["rmse"])
 
 
 def main() -> None:

@@ -236,15 +236,16 @@ def merge_sessions(base: SessionMap, additions: list[SessionMap],
             for k in s.submaps:  # the session's anchors now lie in the map frame
                 submaps[k].T_odom_anchor = result.submap_poses[k]
             _mark_rejected(result, _optimise(result, sessions, config))
-            if config.sessions.densify_per_submap:  # more links where the optimised estimate now puts it
+            for _ in range(config.sessions.densify_passes):  # more links where the optimised estimate puts it
                 others = [k for m in sessions if m.placed and m is not s for k in m.submaps]
                 tested = {(lp.i, lp.j) for lp in result.loops}
                 dense = placer.densify(submaps, others, {k: result.submap_poses[k] for k in others}, ids,
                                        {k: result.submap_poses[k] for k in ids}, tested)
                 result.loops.extend(dense)
                 s.links += sum(r.accepted for r in dense)
-                if any(r.accepted for r in dense):
-                    _mark_rejected(result, _optimise(result, sessions, config))
+                if not any(r.accepted for r in dense):
+                    break
+                _mark_rejected(result, _optimise(result, sessions, config))
             for k in range(result.n_submaps):
                 submaps[k].T_odom_anchor = result.submap_poses[k]
             log.info("session %s: %s", s.name, s.note)
