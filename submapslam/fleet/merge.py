@@ -236,6 +236,7 @@ def merge_sessions(base: SessionMap, additions: list[SessionMap],
             for k in s.submaps:  # the session's anchors now lie in the map frame
                 submaps[k].T_odom_anchor = result.submap_poses[k]
             _mark_rejected(result, _optimise(result, sessions, config))
+            added = 0
             for _ in range(config.sessions.densify_passes):  # more links where the optimised estimate puts it
                 others = [k for m in sessions if m.placed and m is not s for k in m.submaps]
                 tested = {(lp.i, lp.j) for lp in result.loops}
@@ -243,9 +244,12 @@ def merge_sessions(base: SessionMap, additions: list[SessionMap],
                                        {k: result.submap_poses[k] for k in ids}, tested)
                 result.loops.extend(dense)
                 s.links += sum(r.accepted for r in dense)
+                added += sum(r.accepted for r in dense)
                 if not any(r.accepted for r in dense):
                     break
                 _mark_rejected(result, _optimise(result, sessions, config))
+            if added:
+                s.note += f"; {added} more link(s) near the optimised estimate"
             for k in range(result.n_submaps):
                 submaps[k].T_odom_anchor = result.submap_poses[k]
             log.info("session %s: %s", s.name, s.note)
