@@ -54,7 +54,11 @@ def run_sessions(
     base = None
     taken: list[str] = []
     if map_dir is not None:
-        read_manifest(map_dir)  # one clear line for a folder that is not a map, before any work
+        manifest = read_manifest(map_dir)  # one clear line for a folder that is not a map, before any work
+        folder = Path(manifest["_folder"]).resolve()
+        if Path(out_dir).resolve() in (folder, folder.parent):
+            raise SubmapSlamError(f"--out {out_dir} would overwrite the map it extends ({map_dir}); "
+                                  "write the extended map to a new folder")
         base = load_map(map_dir)
         taken = [s.name for s in base.sessions]
     cfg = _config(config) if config is not None or base is None else base.result.config

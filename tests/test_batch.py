@@ -52,6 +52,15 @@ def test_run_with_a_folder_that_is_not_a_map_is_one_red_line(logs, tmp_path):
     assert not (tmp_path / "x").exists()  # failed before any work
 
 
+def test_run_never_overwrites_the_map_it_extends(logs, tmp_path):
+    _, a, _, _ = logs
+    assert runner.invoke(app, ["run", str(a), "--out", str(tmp_path / "m"), "--max-scans", "30"]).exit_code == 0
+    before = (tmp_path / "m" / "map" / "scans.npz").read_bytes()
+    res = runner.invoke(app, ["run", str(a), "--map", str(tmp_path / "m"), "--out", str(tmp_path / "m")])
+    assert res.exit_code == 1 and "would overwrite the map" in res.output
+    assert (tmp_path / "m" / "map" / "scans.npz").read_bytes() == before
+
+
 @pytest.fixture(scope="module")
 def sequential(logs, tmp_path_factory):
     _, a, b, bad = logs
