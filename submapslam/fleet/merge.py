@@ -150,7 +150,8 @@ def _optimise(result: SlamResult, sessions: list[SessionInfo], config: PipelineC
     from ..backend.pose_graph import PoseGraph, floor_information
 
     graph = PoseGraph(config.backend)
-    start = {s.submap_start for s in sessions}
+    start = {s.submap_start for s in sessions if s.placed}
+    own_frame = {s.submap_start for s in sessions if not s.placed}  # held where they are
     # weak: a later session's start may be anywhere (placed ones are held by their links); a
     # planar session's z, roll and pitch stay pinned like the map's (not observable in 2D)
     sigma = np.array([np.pi] * 3 + [config.sessions.start_prior_sigma_m] * 3)
@@ -158,7 +159,7 @@ def _optimise(result: SlamResult, sessions: list[SessionInfo], config: PipelineC
         sigma[[0, 1, 5]] = 1e-4
     weak = np.diag(1.0 / sigma**2)
     for k, T in enumerate(result.submap_poses):
-        prior = PRIOR_INFORMATION if k == 0 else (weak if k in start else None)
+        prior = PRIOR_INFORMATION if k == 0 or k in own_frame else (weak if k in start else None)
         graph.add_node(k, T, prior)
     floor_m, floor_rad = config.backend.loop_sigma_floor_m, float(np.deg2rad(config.backend.loop_sigma_floor_deg))
     for i, j, T_i_j, info, kind in result.edges:
@@ -166,9 +167,14 @@ def _optimise(result: SlamResult, sessions: list[SessionInfo], config: PipelineC
     for rec in result.loops:  # cross-session links not yet edges
         if rec.accepted and rec.source == "session" and not any(e[0] == rec.i and e[1] == rec.j for e in result.edges):
             graph.add_between(rec.i, rec.j, rec.T_i_j, floor_information(rec.information, floor_m, floor_rad), "loop")
-    graph.update()
-    weights = graph.optimize_batch() if config.backend.final_batch else {}
-    dropped = graph.final_check() if config.backend.final_batch and config.backend.final_check else []
+    try:
+        graph.update()
+        weights = graph.optimize_batch() if config.backend.final_batch else {}
+        dropped = graph.final_check() if config.backend.final_batch and config.backend.final_check else []
+    except RuntimeError as exc:  # gtsam: an ill-conditioned system; keep the placement unoptimised
+        log.warning("merged graph not optimised (%s); sessions keep their placed poses",
+                    str(exc).strip().splitlines()[0])
+        return []
     rejected = [(i, j, f"rejected by the optimiser (GNC weight {w:.2f})") for (i, j), w in weights.items() if w < 0.5]
     rejected += dropped
     covs = graph.all_marginal_covariances()
