@@ -6,10 +6,11 @@ and, for comparison, one run over the whole log, and scores both against a refer
 
     python tools/bench_fleet.py carmen ../shared/data/carmen/intel.clf.bz2 --cuts 4500 9000 \\
         --reference ../shared/data/carmen/corrected/intel-corrected.log.gz --out out/bench_fleet_intel
-    python tools/bench_fleet.py folder out/kitti00 --cuts 700 --reverse-last \\
-        --reference out/kitti00/poses_gt.txt --out out/bench_fleet_kitti
+    python tools/bench_fleet.py folder out/kitti00 --cuts 600 --overlap 200 --reverse-last \\
+        --reference out/kitti00/groundtruth_tum.txt --out out/bench_fleet_kitti
 
-``--reverse-last`` plays the last piece backwards (a cloud folder only: its scans renamed in
+``--overlap N`` starts each later cloud-folder piece N scans before its cut (that session drives
+the stretch again). ``--reverse-last`` plays the last piece backwards (a cloud folder only: its scans renamed in
 reverse order, each with its own timestamp), so that session drives the path the other way.
 Prints a JSON summary (ATE of the merged map and of the single run, sessions placed, times).
 """
@@ -55,9 +56,11 @@ def split_carmen(log: Path, cuts: list[int], out: Path) -> list[Path]:
     return pieces
 
 
-def split_folder(log: Path, cuts: list[int], out: Path, reverse_last: bool) -> list[Path]:
+def split_folder(log: Path, cuts: list[int], out: Path, reverse_last: bool, overlap: int = 0) -> list[Path]:
     """Cut a cloud-folder log (scans in ``log`` or ``log/scans``, ``times.txt``, ``meta.yaml``)
-    into folders of symlinks; the pieces get no wheel odometry (no link between them)."""
+    into folders of symlinks; the pieces get no wheel odometry (no link between them). With
+    ``overlap``, each piece after the first starts that many scans before its cut (the later
+    session drives that stretch again)."""
     from submapslam.io.cloud_folder import _find_scans
     from submapslam.io.compression import open_text
 
@@ -71,7 +74,7 @@ def split_folder(log: Path, cuts: list[int], out: Path, reverse_last: bool) -> l
         if d.exists():
             shutil.rmtree(d)
         (d / "scans").mkdir(parents=True)
-        idx = list(range(bounds[k], bounds[k + 1]))
+        idx = list(range(max(0, bounds[k] - (overlap if k else 0)), bounds[k + 1]))
         if reverse_last and k == len(bounds) - 2:
             idx = idx[::-1]
         for n, i in enumerate(idx):
@@ -105,12 +108,13 @@ def main() -> None:
     ap.add_argument("--reference", type=Path, required=True)
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--reverse-last", action="store_true")
+    ap.add_argument("--overlap", type=int, default=0, help="folder logs: later pieces start this many scans early")
     ap.add_argument("--align", default="se3")
     ap.add_argument("--skip-single", action="store_true", help="reuse OUT/single from an earlier run")
     args = ap.parse_args()
     cli = [sys.executable, "-m", "submapslam"]
     pieces = (split_carmen(args.log, args.cuts, args.out / "pieces") if args.kind == "carmen"
-              else split_folder(args.log, args.cuts, args.out / "pieces", args.reverse_last))
+              else split_folder(args.log, args.cuts, args.out / "pieces", args.reverse_last, args.overlap))
     raw = args.log if args.kind == "carmen" else None
     for d in ("merged", *([] if args.skip_single else ["single"])):
         shutil.rmtree(args.out / d, ignore_errors=True)
