@@ -105,13 +105,15 @@ class LogOutcome:
 
 @dataclass
 class BatchReport:
-    """What ``batch`` did: per log, the merged map's folder, the wall time, the executor."""
+    """What ``batch`` did: per log, the merged map's folder, the wall time (and of it the front
+    ends' share: from the start until every log's task finished), the executor."""
 
     logs: list[LogOutcome]
     merged_dir: Path | None
     wall_time_s: float
     executor: str  # "ray" | "sequential"
     merged: SessionMap | None = field(default=None, repr=False)
+    front_end_s: float = 0.0
 
 
 def front_end(log_path: str, name: str, out_dir: str, config: PipelineConfig, format: str | None = None,
@@ -209,6 +211,7 @@ def batch_logs(
                 record(k, front_end(*a), None)
             except Exception as exc:  # a failed log is reported; the others go on
                 record(k, None, exc)
+    front_end_s = time.perf_counter() - t0
     good = [o for o in outcomes if o.ok]
     merged = merged_dir = None
     if good:
@@ -219,7 +222,7 @@ def batch_logs(
         by_name = {s.name: s for s in merged.sessions}
         for o in good:
             o.placed, o.links = by_name[o.name].placed, by_name[o.name].links
-    return BatchReport(outcomes, merged_dir, time.perf_counter() - t0, executor, merged)
+    return BatchReport(outcomes, merged_dir, time.perf_counter() - t0, executor, merged, front_end_s)
 
 
 def _one_line(exc: BaseException) -> str:

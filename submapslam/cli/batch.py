@@ -49,7 +49,8 @@ def register(app: typer.Typer) -> None:
                                 format=format, max_scans=max_scans, on_done=done, num_cpus=num_cpus)
         except SubmapSlamError as exc:
             raise fail(exc) from None
-        table = Table(title=f"batch: {len(logs)} logs ({report.executor}), {report.wall_time_s:.1f} s")
+        table = Table(title=f"batch: {len(logs)} logs ({report.executor}), {report.wall_time_s:.1f} s "
+                            f"(front ends {report.front_end_s:.1f} s, merge and writing the rest)")
         for col in ("log", "status", "scans", "submaps", "loops", "seconds", "merged", "results"):
             table.add_column(col)
         for o in report.logs:
