@@ -37,3 +37,5 @@ def test_pieces_hold_every_scan_once_each_from_its_own_origin(tmp_path):
     # (the CARMEN log rounds ranges to mm; the folder keeps them)
     assert np.allclose(last[0].points, whole[-1].points, atol=2e-3) and last[0].timestamp == whole[-1].timestamp
     assert np.allclose(last[-1].points, whole[25].points, atol=2e-3)
+    rows = (folders[1] / "odometry_tum.txt").read_text().splitlines()
+    assert len(rows) == 15 and float(rows[0].split()[0]) == whole[-1].timestamp  # each scan's own odometry

@@ -58,7 +58,8 @@ def split_carmen(log: Path, cuts: list[int], out: Path) -> list[Path]:
 
 def split_folder(log: Path, cuts: list[int], out: Path, reverse_last: bool, overlap: int = 0) -> list[Path]:
     """Cut a cloud-folder log (scans in ``log`` or ``log/scans``, ``times.txt``, ``meta.yaml``)
-    into folders of symlinks; the pieces get no wheel odometry (no link between them). With
+    into folders of symlinks, each scan with its own timestamp and wheel-odometry row (a piece's
+    odometry starts from its own origin: no link between the pieces). With
     ``overlap``, each piece after the first starts that many scans before its cut (the later
     session drives that stretch again)."""
     from submapslam.io.cloud_folder import _find_scans
@@ -67,6 +68,11 @@ def split_folder(log: Path, cuts: list[int], out: Path, reverse_last: bool, over
     folder, scans = _find_scans(log)
     times = next((p for p in (log / "times.txt", folder / "times.txt") if p.is_file()), None)
     stamps = open_text(times).read().split() if times else [str(k) for k in range(len(scans))]
+    odo_path = next((p for p in (log / "odometry_tum.txt", folder / "odometry_tum.txt") if p.is_file()), None)
+    odometry = [ln for ln in open_text(odo_path).read().splitlines() if ln.strip() and not ln.startswith("#")] \
+        if odo_path else []
+    if odometry and len(odometry) != len(scans):
+        odometry = []  # not one row per scan: leave the pieces without
     bounds = [0, *cuts, len(scans)]
     pieces = []
     for k in range(len(bounds) - 1):
@@ -84,6 +90,8 @@ def split_folder(log: Path, cuts: list[int], out: Path, reverse_last: bool, over
         (d / "times.txt").write_text("\n".join(stamps[i] for i in idx) + "\n")
         if (log / "meta.yaml").is_file():
             shutil.copy(log / "meta.yaml", d / "meta.yaml")
+        if odometry:  # each scan keeps its own wheel-odometry pose; a piece starts from its own origin
+            (d / "odometry_tum.txt").write_text("\n".join(odometry[i] for i in idx) + "\n")
         pieces.append(d)
     return pieces
 
