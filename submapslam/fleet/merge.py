@@ -142,6 +142,32 @@ def _scan_poses_after(result: SlamResult, sessions: list[SessionInfo], new_ancho
     return out
 
 
+def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo], config: PipelineConfig) -> None:
+    """3D: the engine's soft prior that the ground under each anchor is level (as the graph
+    builder adds it), the up direction of the map frame for placed sessions and of its own
+    frame for an unplaced one; without it the merged graph may tilt where the links are few."""
+    sigma = config.backend.ground_attitude_sigma_deg
+    if result.planar or sigma is None:
+        return
+    from ..mapping.height_band import ground_normal
+
+    map_up = None
+    for s in sessions:
+        own_up = None
+        for k in s.submaps:
+            up = ground_normal(result.submap_points[k])
+            if up is None:
+                continue
+            world = result.submap_poses[k][:3, :3] @ up
+            if s.placed:
+                map_up = world if map_up is None else map_up
+                target = map_up
+            else:
+                own_up = world if own_up is None else own_up
+                target = own_up
+            graph.add_attitude(k, up, target, np.deg2rad(sigma))
+
+
 def _optimise(result: SlamResult, sessions: list[SessionInfo], config: PipelineConfig) -> list[tuple[int, int, str]]:
     """Optimise the merged graph in place: anchors, scans, covariances, edges kept.
 
@@ -161,6 +187,7 @@ def _optimise(result: SlamResult, sessions: list[SessionInfo], config: PipelineC
     for k, T in enumerate(result.submap_poses):
         prior = PRIOR_INFORMATION if k == 0 or k in own_frame else (weak if k in start else None)
         graph.add_node(k, T, prior)
+    _add_ground_attitudes(graph, result, sessions, config)
     floor_m, floor_rad = config.backend.loop_sigma_floor_m, float(np.deg2rad(config.backend.loop_sigma_floor_deg))
     for i, j, T_i_j, info, kind in result.edges:
         graph.add_between(i, j, T_i_j, info, kind)
