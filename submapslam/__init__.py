@@ -18,7 +18,12 @@ from .scan import Scan  # noqa: E402
 __all__ = [
     "ConfigError", "InputError", "PipelineConfig", "Scan", "SubmapSLAM", "SubmapSlamError",
     "SlamResult", "dump_config", "load_config", "open_log", "run", "run_log", "write_results", "build_map_outputs",
+    "SessionMap", "load_map", "save_map", "merge_sessions", "session_map_from_result", "run_sessions", "batch_logs",
 ]
+
+_SESSIONS = {"SessionMap": "session_map", "load_map": "io.map_store", "save_map": "io.map_store",
+             "merge_sessions": "fleet", "session_map_from_result": "fleet", "run_sessions": "fleet_api",
+             "batch_logs": "fleet_api"}
 
 
 def __getattr__(name: str):
@@ -43,4 +48,8 @@ def __getattr__(name: str):
         from .api import run_log
 
         return run_log
+    if name in _SESSIONS:  # maps from several sessions
+        from importlib import import_module
+
+        return getattr(import_module(f".{_SESSIONS[name]}", __name__), name)
     raise AttributeError(name)

@@ -49,6 +49,8 @@ def run_log(
     stop: threading.Event | None = None,
     resume: bool = False,
     observer: RunObserver | None = None,
+    save_map: bool = True,
+    session_name: str | None = None,
 ) -> tuple[SlamResult, dict[str, Path]]:
     """Open ``log_path``, run the pipeline, write results to ``out_dir`` (if given).
 
@@ -64,6 +66,9 @@ def run_log(
     ``config.checkpoint_every_submaps`` submaps and when stopped, and removed when the run
     completes; ``resume=True`` continues the run that wrote ``out_dir`` from its checkpoint
     (its log, options and config; ``log_path`` may be None) to the result an uninterrupted run gives.
+
+    ``save_map``: also write the run as a map that can be extended (``OUT/map/``, a one-session
+    map named ``session_name``, default the log's file name without extensions).
 
     Returns the result and the written paths. Input errors found mid-log keep what was
     computed: results are written and ``result.input_error`` says what stopped the reading.
@@ -143,7 +148,14 @@ def run_log(
         with staged_folder(out_dir, "run", overwrite=overwrite, inputs=inputs) as staging:
             written = write_results(result, staging, maps, run_started=t_start)
             written["input.json"] = write_provenance(staging, input_provenance(log_path, result.timestamps))
-        paths = {name: Path(out_dir) / p.name for name, p in written.items()}
+            if save_map:  # OUT/map/: what `run --map OUT` extends (io/map_store.py)
+                from .fleet import session_map_from_result, session_names
+                from .io.map_store import save_map as save_session_map
+
+                name = session_name or session_names([log_path])[0]
+                written.update({f"map/{k}": v for k, v in save_session_map(
+                    session_map_from_result(result, name), staging / "map").items()})
+        paths = {name: Path(out_dir) / name for name in written}
         if not result.interrupted:
             from .io.checkpoint import remove_checkpoint
 

@@ -318,6 +318,38 @@ class LocalizationConfig(_Strict):
         return self
 
 
+class SessionConfig(_Strict):
+    """Several sessions in one map: placing a new session (unknown start) against the map."""
+
+    descriptor_top_k: int = Field(5, ge=1, description="map submaps tested per session submap by place recognition")
+    descriptor_max_distance: float = Field(
+        0.8, gt=0, le=1.0, description="place-recognition candidates up to this descriptor distance (looser than "
+        "loops': there is no pose to propose by, and every candidate is verified and must agree with others)")
+    max_recognition_tests: int = Field(
+        300, ge=1, description="cap on place-recognition tests per session (each a correspondence test)")
+    min_links: int = Field(
+        3, ge=1, description="session submaps with verified, mutually consistent links to the map needed to "
+        "place a session (links of one session submap count once)")
+    enough_links: int = Field(
+        6, ge=1, description="stop place recognition once consistent links come from this many session submaps")
+    min_agreement: float = Field(
+        0.3, ge=0, le=1, description="share of the session submaps a placement puts on the map that must be "
+        "verified there (a false placement by look-alike places is contradicted by the rest of the session)")
+    guided_per_submap: int = Field(2, ge=0, description="nearest map submaps tested per session submap once placed")
+    densify_passes: int = Field(
+        3, ge=0, description="rounds of (search near the optimised estimate, optimise) after a placement; "
+        "stops early when a round adds no link")
+    densify_per_submap: int = Field(
+        3, ge=0, description="after a placement and optimisation, nearest map submaps tested per session submap")
+    consistency_tolerance_m: float = Field(1.0, gt=0, description="[m] two links agree when they place the session "
+                                           "submaps within this (plus consistency_per_m of the path between them)")
+    consistency_per_m: float = Field(0.02, ge=0, description="[m/m] tolerance growth with the session path")
+    consistency_tolerance_deg: float = Field(5.0, gt=0, description="[deg] rotation tolerance between links")
+    start_prior_sigma_m: float = Field(
+        100.0, gt=0, description="[m] weak prior on each later session's first anchor (keeps an unplaced session "
+        "in its own frame; negligible for a placed one)")
+
+
 class PipelineConfig(_Strict):
     """The whole run."""
 
@@ -333,6 +365,8 @@ class PipelineConfig(_Strict):
     localization: LocalizationConfig = Field(
         default_factory=LocalizationConfig, description="`localize` in a fixed map (not used by `run`)")
     ekf: EkfConfig = Field(default_factory=EkfConfig, description="the `ekf` command (not used by `run`)")
+    sessions: SessionConfig = Field(
+        default_factory=SessionConfig, description="several logs in one map (`run LOG1 LOG2`, `run --map`, `batch`)")
 
 
 def _format_validation_error(exc: ValidationError, source: str) -> str:

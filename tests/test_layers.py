@@ -17,15 +17,15 @@ PKG = Path(__file__).resolve().parents[1] / "submapslam"
 # low to high; a module belongs to the first entry that is its name or a package above it
 LAYERS: list[tuple[str, ...]] = [
     ("geometry", "config", "errors", "trajectory", "landmark_log", "result", "process_stats", "_deps", "scan",
-     "checkpoint", "observer"),
+     "checkpoint", "observer", "session_map"),
     ("registration",),
     ("odometry", "submaps", "mapping", "topology", "backend", "ekf"),
     ("graph_builder",),
-    ("pipeline", "localization"),
+    ("pipeline", "localization", "fleet"),
     ("evaluation",),
     ("io",),
     ("viz",),  # live views (observers), above the engine and evaluation, below the CLI
-    ("api", ""),  # "": the package's __init__, the public facade over api/io/pipeline
+    ("api", "fleet_api", ""),  # "": the package's __init__, the public facade over api/io/pipeline
     ("cli", "__main__"),
 ]
 

@@ -33,9 +33,21 @@ def _main(
 
 
 def _register_commands() -> None:
-    from . import clean, demo, dump_config, ekf, eval_map, evaluate, localize, report, run, synth
+    from . import (
+        batch,
+        clean,
+        demo,
+        dump_config,
+        ekf,
+        eval_map,
+        evaluate,
+        localize,
+        report,
+        run,
+        synth,
+    )
 
-    for module in (run, dump_config, demo, evaluate, synth, ekf, localize, report, eval_map, clean):
+    for module in (run, dump_config, demo, evaluate, synth, ekf, localize, report, eval_map, clean, batch):
         module.register(app)
 
 

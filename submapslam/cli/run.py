@@ -19,10 +19,13 @@ def register(app: typer.Typer) -> None:
 
     @app.command()
     def run(
-        log: Annotated[Path | None, typer.Argument(
-            help="Log: CARMEN file, folder of .bin/.ply/.pcd scans, synthetic log folder, "
-            "ROS bag (.bag, ROS 2 folder, .mcap). Not needed with --resume.")] = None,
+        logs: Annotated[list[Path] | None, typer.Argument(
+            metavar="LOG...", help="Log: CARMEN file, folder of .bin/.ply/.pcd scans, synthetic log folder, "
+            "ROS bag (.bag, ROS 2 folder, .mcap). Several logs: one map from all (one session each). "
+            "Not needed with --resume.")] = None,
         out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder.")] = None,
+        map_dir: Annotated[Path | None, typer.Option(
+            "--map", help="Add the log(s) as new sessions to this map (a run's output folder).")] = None,
         resume: Annotated[Path | None, typer.Option(
             "--resume", help="Continue the interrupted run that writes into this folder, from its checkpoint "
             "(same log, options and config), to the result an uninterrupted run gives.")] = None,
@@ -51,25 +54,36 @@ def register(app: typer.Typer) -> None:
         """Build a map and trajectory from LOG; write poses, graph, map and summary into OUT.
 
         OUT is checked before the log is read; the files appear in OUT only when all are written.
+        OUT/map/ is the map itself: `run LOG2 --map OUT --out OUT2` adds LOG2 to it.
         Ctrl-C (or SIGTERM) stops after the current scan and still writes a complete result
         marked "interrupted" in summary.json; a second Ctrl-C quits at once.
         """
         from ..api import run_log
         from ._live_view import open_live_view
 
+        logs = list(logs or [])
         if resume is not None:
             if out is not None and out.resolve() != resume.resolve():
                 raise fail(f"--resume {resume} continues the run that writes into {resume}; --out {out} differs")
-            given = [name for name, value in (("--config", config), ("--hints", hints), ("--max-scans", max_scans),
-                                              ("--format", format)) if value is not None]
+            given = [name for name, value in (("LOG", logs or None), ("--map", map_dir), ("--config", config),
+                                              ("--hints", hints), ("--max-scans", max_scans), ("--format", format))
+                     if value is not None]
             if given or no_loops:
                 raise fail(f"{', '.join(given + (['--no-loops'] if no_loops else []))} cannot change a resumed run: "
                            "it continues with the options it was started with")
             out = resume
         elif out is None:
             raise fail("--out is needed: the folder the results go into")
-        elif log is None:
+        elif not logs:
             raise fail("LOG is needed (or --resume OUT to continue an interrupted run)")
+        if len(logs) > 1 or map_dir is not None:
+            from ._sessions import run_many
+
+            return run_many(logs, out, map_dir=map_dir, config=config, format=format, hints=hints,
+                            max_scans=max_scans, loops=not no_loops, overwrite=overwrite,
+                            reader_options={"topic": topic, "odometry_topic": odometry_topic, "base_frame": base_frame,
+                                            "laser": laser, "skip_bad": True if skip_bad else None})
+        log = logs[0] if logs else None
         try:
             observer = open_live_view(view, record)
             try:

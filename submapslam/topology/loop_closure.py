@@ -188,18 +188,20 @@ class LoopCloser:
         return True, "ok"
 
     def _neighbour_check(self, hyp: Hypothesis, T_i_j: np.ndarray, first: CorrespondenceResult,
-                         submaps: list[Submap], graph: GraphEstimate) -> tuple[bool, str]:
+                         submaps: list[Submap], graph: GraphEstimate,
+                         neighbours: tuple[int, ...] | None = None) -> tuple[bool, str]:
         """Seed's check: the hypothesis must also explain the submaps adjacent to ``i``.
 
         Submap ``j`` is placed next to ``i - 1`` and ``i + 1`` through the hypothesis and refined
         there. A neighbour that overlaps and lands where the hypothesis says confirms it; one
         that overlaps but has to move away (or fits badly) contradicts it; one without overlap
         says nothing. Accept with no contradiction and at least one confirmation (or, when no
-        neighbour overlaps, a very clear first match).
+        neighbour overlaps, a very clear first match). ``neighbours``: the submaps to check
+        (default ``i - 1`` and ``i + 1``).
         """
         c = self.config
         confirm = contradict = 0
-        for n in (hyp.i - 1, hyp.i + 1):
+        for n in neighbours if neighbours is not None else (hyp.i - 1, hyp.i + 1):
             if n < 0 or n >= hyp.j - c.min_submap_gap + 1 or n >= len(submaps):
                 continue
             T_n_j = inverse(graph.pose(n)) @ graph.pose(hyp.i) @ T_i_j

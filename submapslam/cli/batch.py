@@ -1,0 +1,66 @@
+"""CLI command ``batch``: many logs, each log's front end a Ray task, then one merged map."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.markup import escape
+
+from ..errors import SubmapSlamError
+from ._common import OutFolder, console, fail
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``batch`` to ``app``."""
+
+    @app.command()
+    def batch(
+        logs: Annotated[list[Path], typer.Argument(metavar="LOG...", help="Logs (any format `run` reads).")],
+        out: OutFolder,
+        address: Annotated[str | None, typer.Option(
+            "--address", help="Ray cluster address (default: a local Ray instance).")] = None,
+        no_ray: Annotated[bool, typer.Option("--no-ray", help="Run the logs one after another in this process.")] = False,
+        config: Annotated[Path | None, typer.Option("--config", "-c", help="YAML config (see dump-config).")] = None,
+        format: Annotated[str | None, typer.Option("--format", "-f", help="Force the log format.")] = None,
+        max_scans: Annotated[int | None, typer.Option("--max-scans", help="Stop each log after N scans.")] = None,
+        num_cpus: Annotated[int | None, typer.Option("--num-cpus", help="CPUs of the local Ray instance.")] = None,
+    ) -> None:
+        """Run every LOG (a Ray task each; without Ray one after another), then merge them into one map.
+
+        Each log's results go to OUT/<log name without extensions>/, the merged map to OUT/merged/."""
+        from rich.table import Table
+
+        from ..fleet_api import batch_logs
+
+        missing = [str(p) for p in logs if not p.exists()]
+        if missing:
+            raise fail(f"no such log: {', '.join(missing)}")
+
+        def done(o) -> None:
+            if o.ok:
+                console.print(f"[green]done[/green] {o.name}: {o.scans} scans, {o.submaps} submaps, "
+                              f"{o.loops_accepted} loops, {o.seconds:.1f} s", highlight=False, markup=True)
+            else:
+                console.print(f"[red]failed[/red] {escape(o.name)}: {escape(o.error)}", highlight=False, markup=True)
+
+        try:
+            report = batch_logs(logs, out, address=address, use_ray=False if no_ray else None, config=config,
+                                format=format, max_scans=max_scans, on_done=done, num_cpus=num_cpus)
+        except SubmapSlamError as exc:
+            raise fail(exc) from None
+        table = Table(title=f"batch: {len(logs)} logs ({report.executor}), {report.wall_time_s:.1f} s "
+                            f"(front ends {report.front_end_s:.1f} s, merge and writing the rest)")
+        for col in ("log", "status", "scans", "submaps", "loops", "seconds", "merged", "results"):
+            table.add_column(col)
+        for o in report.logs:
+            merged = "-" if o.placed is None else ("placed" if o.placed else "own frame")
+            table.add_row(o.name, "ok" if o.ok else f"failed: {o.error}", str(o.scans), str(o.submaps),
+                          str(o.loops_accepted), f"{o.seconds:.1f}", merged, str(Path(out) / o.name))
+        console.print(table)
+        if report.merged_dir is not None:
+            console.print(f"merged map in {report.merged_dir}")
+        failed = [o.name for o in report.logs if not o.ok]
+        if failed:
+            raise fail(f"{len(failed)} of {len(logs)} logs failed: {', '.join(failed)} (the others are kept)")

@@ -1,0 +1,10 @@
+"""Maps from many sessions: a run's result as a one-session map, sessions placed and merged.
+
+``session_map_from_result`` makes a :class:`~submapslam.session_map.SessionMap` of one run;
+``merge_sessions`` places further sessions against it (:mod:`submapslam.topology.session_placement`)
+and optimises the merged graph (:mod:`submapslam.backend`), one map in one frame.
+"""
+
+from .merge import merge_sessions, session_map_from_result, session_names
+
+__all__ = ["merge_sessions", "session_map_from_result", "session_names"]

@@ -1,0 +1,307 @@
+"""Merge sessions into one map: place each new session, then optimise the merged graph.
+
+The merged graph holds every session's submaps (global ids, session order), every session's
+own edges (odometry and its loops), and the cross-session links that placed a session (robust
+loop edges, checked again by GNC and the final check). Session 0's first anchor is the map
+frame (a hard prior); each later session's first anchor has a weak prior only, so a session
+that was never placed keeps its own frame instead of making the system singular.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from ..config import PipelineConfig
+from ..geometry import blend_poses_many
+from ..graph_builder import PRIOR_INFORMATION
+from ..result import SlamResult
+from ..session_map import SessionInfo, SessionMap
+from ..submaps import Submap
+
+log = logging.getLogger(__name__)
+
+
+def session_names(sources: list[str | Path], taken: list[str] | tuple[str, ...] = ()) -> list[str]:
+    """One unique name per log: the file name without its extensions (``intel.clf.bz2`` ->
+    ``intel``), a folder's own name; repeats (also of the ``taken`` names, e.g. a map's sessions)
+    get ``_2``, ``_3`` ...; unsafe characters become ``_``."""
+    names: list[str] = list(taken)
+    for src in sources:
+        p = Path(src)
+        base = p.name if p.is_dir() else p.name.split(".")[0] or p.name
+        base = re.sub(r"[^A-Za-z0-9_.-]", "_", base) or "session"
+        name, k = base, 2
+        while name in names or name == "merged":
+            name, k = f"{base}_{k}", k + 1
+        names.append(name)
+    return names[len(taken):]
+
+
+def session_map_from_result(result: SlamResult, name: str) -> SessionMap:
+    """One run as a one-session map (its place descriptors computed from its submap clouds)."""
+    from ..topology.descriptors import compute_descriptor
+
+    desc = [compute_descriptor(p, planar=result.planar, max_range=result.config.loops.descriptor_radius)
+            for p in result.submap_points]
+    descriptors = np.array(desc) if desc else np.zeros((0, 0, 0))
+    info = SessionInfo(name, result.source, 0, result.n_scans, 0, result.n_submaps, placed=True, links=0,
+                       note="defines the map frame")
+    return SessionMap(result, [info], descriptors)
+
+
+def _concatenate(maps: list[SessionMap]) -> tuple[SlamResult, list[SessionInfo], np.ndarray]:
+    """Every map's sessions in one result with global scan and submap numbering."""
+    parts, sessions, descs = [], [], []
+    scan_off = sub_off = 0
+    for m in maps:
+        r = m.result
+        sessions += [replace(s, scan_start=s.scan_start + scan_off, scan_end=s.scan_end + scan_off,
+                             submap_start=s.submap_start + sub_off, submap_end=s.submap_end + sub_off)
+                     for s in m.sessions]
+        parts.append((r, scan_off, sub_off))
+        descs.append(m.descriptors)
+        scan_off += r.n_scans
+        sub_off += r.n_submaps
+    first = maps[0].result
+    cat = SlamResult(
+        timestamps=np.concatenate([r.timestamps for r, _, _ in parts]),
+        poses=np.concatenate([r.poses.reshape(-1, 4, 4) for r, _, _ in parts]),
+        odometry_poses=np.concatenate([r.odometry_poses.reshape(-1, 4, 4) for r, _, _ in parts]),
+        submap_poses=np.concatenate([r.submap_poses.reshape(-1, 4, 4) for r, _, _ in parts]),
+        submap_covariances=np.concatenate([r.submap_covariances.reshape(-1, 6, 6) for r, _, _ in parts]),
+        submap_points=[p for r, _, _ in parts for p in r.submap_points],
+        submap_scan_indices=[[i + so for i in idx] for r, so, _ in parts for idx in r.submap_scan_indices],
+        submap_scan_poses=[p for r, _, _ in parts for p in r.submap_scan_poses],
+        submap_scan_points=[p for r, _, _ in parts for p in r.submap_scan_points],
+        edges=[(i + mo, j + mo, T, info, kind) for r, _, mo in parts for i, j, T, info, kind in r.edges],
+        loops=[replace(lp, i=lp.i + mo, j=lp.j + mo) for r, _, mo in parts for lp in r.loops],
+        planar=first.planar, config=first.config,
+        stage_seconds={}, wall_time_s=sum(r.wall_time_s for r, _, _ in parts),
+        map_voxel_size=first.map_voxel_size, path_length_m=sum(r.path_length_m for r, _, _ in parts),
+        memory_mb_by_km=[], peak_memory_mb=max(r.peak_memory_mb for r, _, _ in parts),
+        input_error=next((r.input_error for r, _, _ in parts if r.input_error), None),
+        source=" + ".join(r.source for r, _, _ in parts if r.source),
+    )
+    shapes = {d.shape[1:] for d in descs if len(d)}
+    descriptors = np.concatenate([d for d in descs if len(d)]) if shapes else np.zeros((0, 0, 0))
+    return cat, sessions, descriptors
+
+
+def _submaps(result: SlamResult) -> list[Submap]:
+    """The result's submaps as :class:`Submap` objects (global ids) for the correspondence tests."""
+    out = []
+    for k, (T, poses, pts, idx) in enumerate(zip(result.submap_poses, result.submap_scan_poses,
+                                                  result.submap_points, result.submap_scan_indices)):
+        steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1) if len(poses) > 1 else np.zeros(0)
+        out.append(Submap(id=k, scan_indices=list(idx), T_odom_anchor=T, T_anchor_scans=poses, points=pts,
+                          distance=float(steps.sum()), planar=result.planar))
+    return out
+
+
+def _move_session(result: SlamResult, s: SessionInfo, T: np.ndarray) -> None:
+    """Apply ``T`` (4, 4) to every pose of session ``s`` (scans and anchors), in place."""
+    result.poses[s.scans] = T @ result.poses[s.scans]
+    result.submap_poses[s.submap_start:s.submap_end] = T @ result.submap_poses[s.submap_start:s.submap_end]
+
+
+def _scan_poses_after(result: SlamResult, sessions: list[SessionInfo], new_anchor_poses: np.ndarray) -> np.ndarray:
+    """Scan poses ``(N, 4, 4)`` moved with their submaps' anchors.
+
+    Each scan takes its submap's correction (new anchor @ old anchor^-1), blended towards the
+    next submap's of the same session by the share of the path between the two anchors it has
+    covered (as the engine spreads corrections inside a submap).
+    """
+    old = result.submap_poses
+    corr = new_anchor_poses @ np.linalg.inv(old)
+    out = result.poses.copy()
+    for s in sessions:
+        owner = np.full(s.scan_end - s.scan_start, -1, dtype=np.int64)
+        for k in s.submaps:
+            owner[np.asarray(result.submap_scan_indices[k], dtype=np.int64) - s.scan_start] = k
+        poses = result.poses[s.scans]
+        steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1) if len(poses) > 1 else np.zeros(0)
+        travelled = np.concatenate([[0.0], np.cumsum(steps)])
+        for k in s.submaps:
+            rows = np.flatnonzero(owner == k)
+            if not len(rows):
+                continue
+            start_k = travelled[result.submap_scan_indices[k][0] - s.scan_start]
+            if k + 1 < s.submap_end:
+                span = travelled[result.submap_scan_indices[k + 1][0] - s.scan_start] - start_k
+                if span > 1e-9:
+                    alpha = np.clip((travelled[rows] - start_k) / span, 0.0, 1.0)
+                    out[s.scan_start + rows] = blend_poses_many(corr[k], corr[k + 1], alpha) @ poses[rows]
+                    continue
+            out[s.scan_start + rows] = corr[k] @ poses[rows]
+    return out
+
+
+def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo], config: PipelineConfig) -> None:
+    """3D: the engine's soft prior that the ground under each anchor is level (as the graph
+    builder adds it), the up direction of the map frame for placed sessions and of its own
+    frame for an unplaced one; without it the merged graph may tilt where the links are few."""
+    sigma = config.backend.ground_attitude_sigma_deg
+    if result.planar or sigma is None:
+        return
+    from ..mapping.height_band import ground_normal
+
+    map_up = None
+    for s in sessions:
+        own_up = None
+        for k in s.submaps:
+            up = ground_normal(result.submap_points[k])
+            if up is None:
+                continue
+            world = result.submap_poses[k][:3, :3] @ up
+            if s.placed:
+                map_up = world if map_up is None else map_up
+                target = map_up
+            else:
+                own_up = world if own_up is None else own_up
+                target = own_up
+            graph.add_attitude(k, up, target, np.deg2rad(sigma))
+
+
+def _optimise(result: SlamResult, sessions: list[SessionInfo], config: PipelineConfig) -> list[tuple[int, int, str]]:
+    """Optimise the merged graph in place: anchors, scans, covariances, edges kept.
+
+    Returns ``(i, j, why)`` of loop edges the optimiser rejected.
+    """
+    from ..backend.pose_graph import PoseGraph, floor_information
+
+    graph = PoseGraph(config.backend)
+    start = {s.submap_start for s in sessions if s.placed}
+    own_frame = {s.submap_start for s in sessions if not s.placed}  # held where they are
+    # weak: a later session's start may be anywhere (placed ones are held by their links); a
+    # planar session's z, roll and pitch stay pinned like the map's (not observable in 2D)
+    sigma = np.array([np.pi] * 3 + [config.sessions.start_prior_sigma_m] * 3)
+    if result.planar:
+        sigma[[0, 1, 5]] = 1e-4
+    weak = np.diag(1.0 / sigma**2)
+    for k, T in enumerate(result.submap_poses):
+        prior = PRIOR_INFORMATION if k == 0 or k in own_frame else (weak if k in start else None)
+        graph.add_node(k, T, prior)
+    _add_ground_attitudes(graph, result, sessions, config)
+    floor_m, floor_rad = config.backend.loop_sigma_floor_m, float(np.deg2rad(config.backend.loop_sigma_floor_deg))
+    for i, j, T_i_j, info, kind in result.edges:
+        graph.add_between(i, j, T_i_j, info, kind)
+    for rec in result.loops:  # cross-session links not yet edges
+        if rec.accepted and rec.source == "session" and not any(e[0] == rec.i and e[1] == rec.j for e in result.edges):
+            graph.add_between(rec.i, rec.j, rec.T_i_j, floor_information(rec.information, floor_m, floor_rad), "loop")
+    try:
+        graph.update()
+        weights = graph.optimize_batch() if config.backend.final_batch else {}
+        dropped = graph.final_check() if config.backend.final_batch and config.backend.final_check else []
+    except RuntimeError as exc:  # gtsam: an ill-conditioned system; keep the placement unoptimised
+        log.warning("merged graph not optimised (%s); sessions keep their placed poses",
+                    str(exc).strip().splitlines()[0])
+        return []
+    rejected = [(i, j, f"rejected by the optimiser (GNC weight {w:.2f})") for (i, j), w in weights.items() if w < 0.5]
+    rejected += dropped
+    covs = graph.all_marginal_covariances()
+    n = result.n_submaps
+    new_poses = np.array([graph.pose(k) for k in range(n)]).reshape(-1, 4, 4)
+    result.poses = _scan_poses_after(result, sessions, new_poses)
+    result.submap_poses = new_poses
+    result.submap_covariances = np.array([covs[k] for k in range(n)]).reshape(-1, 6, 6)
+    result.edges = [(e.i, e.j, e.T_i_j, e.information, e.kind) for e in graph.active_edges()]
+    return rejected
+
+
+def merge_sessions(base: SessionMap, additions: list[SessionMap],
+                   config: PipelineConfig | None = None) -> SessionMap:
+    """Add the sessions of ``additions`` to the map ``base``: each is placed against the sessions
+    already in the map frame (retried after every success, so sessions in any order find their
+    place through each other), then the merged graph is optimised.
+
+    Returns the merged map (``base`` and ``additions`` are not changed); a session that found no
+    consistent overlap is kept with ``placed`` False, in its own frame, with the reason in ``note``.
+    """
+    from ..topology.loop_closure import LoopCloser
+    from ..topology.session_placement import SessionPlacer
+
+    t0 = time.perf_counter()
+    config = config or base.result.config
+    maps = [base, *additions]
+    if len({m.result.planar for m in maps}) > 1:
+        from ..errors import InputError
+
+        odd = next(m for m in additions if m.result.planar != base.result.planar)
+        raise InputError(odd.result.source or odd.sessions[0].name,
+                         "a 2D laser session cannot join a 3D LiDAR map (or the reverse)")
+    result, sessions, descriptors = _concatenate(maps)
+    result.poses, result.submap_poses = result.poses.copy(), result.submap_poses.copy()
+    n_base = base.n_sessions
+    for s in sessions[n_base:]:
+        s.placed, s.links, s.note = False, 0, ""
+    planar = result.planar
+    voxel = config.submaps.voxel_size or _submap_voxel(result)
+    closer = LoopCloser(config.loops, planar=planar, voxel_size=voxel, max_range=config.odometry.max_range,
+                        submap_length=config.submaps.max_distance or (5.0 if planar else 12.0))
+    placer = SessionPlacer(closer, config.sessions)
+    submaps = _submaps(result)
+    progress = True
+    while progress:
+        progress = False
+        for s in sessions[n_base:]:
+            if s.placed:
+                continue
+            map_ids = [k for m in sessions if m.placed for k in m.submaps]
+            if not map_ids:
+                continue
+            ids = list(s.submaps)
+            placement = placer.place(
+                submaps, map_ids, {k: result.submap_poses[k] for k in map_ids}, {k: descriptors[k] for k in map_ids},
+                ids, {k: result.submap_poses[k] for k in ids}, {k: descriptors[k] for k in ids})
+            s.note = placement.reason
+            fresh = [r for r in placement.records if (r.i, r.j) not in {(lp.i, lp.j) for lp in result.loops}]
+            result.loops.extend(fresh)
+            if placement.T_map_session is None:
+                continue
+            _move_session(result, s, placement.T_map_session)
+            s.placed, s.links, progress = True, len(placement.links), True
+            for k in s.submaps:  # the session's anchors now lie in the map frame
+                submaps[k].T_odom_anchor = result.submap_poses[k]
+            _mark_rejected(result, _optimise(result, sessions, config))
+            added = 0
+            for _ in range(config.sessions.densify_passes):  # more links where the optimised estimate puts it
+                others = [k for m in sessions if m.placed and m is not s for k in m.submaps]
+                tested = {(lp.i, lp.j) for lp in result.loops}
+                dense = placer.densify(submaps, others, {k: result.submap_poses[k] for k in others}, ids,
+                                       {k: result.submap_poses[k] for k in ids}, tested)
+                result.loops.extend(dense)
+                s.links += sum(r.accepted for r in dense)
+                added += sum(r.accepted for r in dense)
+                if not any(r.accepted for r in dense):
+                    break
+                _mark_rejected(result, _optimise(result, sessions, config))
+            if added:
+                s.note += f"; {added} more link(s) near the optimised estimate"
+            for k in range(result.n_submaps):
+                submaps[k].T_odom_anchor = result.submap_poses[k]
+            log.info("session %s: %s", s.name, s.note)
+    if not any(s.placed for s in sessions[n_base:]) and len(sessions) > n_base:
+        _mark_rejected(result, _optimise(result, sessions, config))  # covariances of the joint graph
+    result.stage_seconds = {**result.stage_seconds, "merge": time.perf_counter() - t0}
+    result.wall_time_s += time.perf_counter() - t0
+    return SessionMap(result, sessions, descriptors)
+
+
+def _mark_rejected(result: SlamResult, rejected: list[tuple[int, int, str]]) -> None:
+    why = {(i, j): w for i, j, w in rejected}
+    for rec in result.loops:
+        if rec.accepted and (rec.i, rec.j) in why:
+            rec.accepted, rec.reason = False, why[(rec.i, rec.j)]
+
+
+def _submap_voxel(result: SlamResult) -> float:
+    """The submap voxel the run used (the odometry's default resolution: half its voxel)."""
+    from ..odometry import Odometry
+
+    return Odometry(result.config.odometry, result.planar).voxel_size / 2.0

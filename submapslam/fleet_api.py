@@ -1,0 +1,239 @@
+"""Library calls behind ``run LOG1 LOG2 … [--map MAP]`` and ``batch``: several logs, one map.
+
+``run_sessions`` runs each log through the engine, places the sessions in one map (a loaded
+``MAP`` first, when given) and writes the merged results. ``batch_logs`` runs each log's front
+end as a Ray task (one after another without Ray, same results), writes each log's own results,
+then merges them in this process.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from .config import PipelineConfig, load_config
+from .errors import SubmapSlamError
+from .session_map import SessionMap
+
+log = logging.getLogger(__name__)
+
+
+def _config(config: str | Path | PipelineConfig | None) -> PipelineConfig:
+    return config if isinstance(config, PipelineConfig) else load_config(config)
+
+
+def run_sessions(
+    logs: list[str | Path],
+    out_dir: str | Path,
+    *,
+    map_dir: str | Path | None = None,
+    config: str | Path | PipelineConfig | None = None,
+    format: str | None = None,
+    max_scans: int | None = None,
+    loops: bool = True,
+    progress: bool = False,
+    reader_options: dict | None = None,
+    hints: str | Path | None = None,
+    overwrite: bool = False,
+) -> tuple[SessionMap, dict[str, Path]]:
+    """Build one map from ``logs`` (added to the map at ``map_dir`` when given) into ``out_dir``.
+
+    Each log is one session with its own timestamps, run from its own origin, then placed against
+    the sessions already in the map frame (:func:`~submapslam.fleet.merge_sessions`). A map given
+    by ``map_dir`` is read first, so a bad one fails before any log is run. ``hints`` apply to a
+    single log only. ``out_dir`` is checked before any work and written through a staging folder
+    (:mod:`.io.output_folder`; ``overwrite`` replaces an earlier result). Returns the merged map
+    and the written paths.
+    """
+    from .api import run_log
+    from .fleet import merge_sessions, session_map_from_result, session_names
+    from .io.map_store import load_map, read_manifest
+    from .io.output_folder import check_out_folder, staged_folder
+
+    if not logs:
+        raise SubmapSlamError("no log given")
+    inputs = [*logs, map_dir, hints, config if not isinstance(config, PipelineConfig) else None]
+    check_out_folder(out_dir, inputs=inputs, overwrite=overwrite)
+    base = None
+    taken: list[str] = []
+    if map_dir is not None:
+        manifest = read_manifest(map_dir)  # one clear line for a folder that is not a map, before any work
+        folder = Path(manifest["_folder"]).resolve()
+        if Path(out_dir).resolve() in (folder, folder.parent):
+            raise SubmapSlamError(f"--out {out_dir} would overwrite the map it extends ({map_dir}); "
+                                  "write the extended map to a new folder")
+        base = load_map(map_dir)
+        taken = [s.name for s in base.sessions]
+    cfg = _config(config) if config is not None or base is None else base.result.config
+    names = session_names(logs, taken)
+    if hints is not None and len(logs) > 1:
+        raise SubmapSlamError("--hints applies to one log; give one log with --hints")
+    runs = []
+    for path, name in zip(logs, names):
+        log.info("session %s: %s", name, path)
+        result, _ = run_log(path, None, config=cfg, format=format, hints=hints, max_scans=max_scans, loops=loops,
+                            progress=progress, reader_options=reader_options)
+        runs.append(session_map_from_result(result, name))
+    if base is None:
+        base, runs = runs[0], runs[1:]
+    merged = merge_sessions(base, runs, cfg) if runs else base
+    with staged_folder(out_dir, "run", overwrite=overwrite, inputs=inputs) as staging:
+        written = write_session_map(merged, staging)
+    return merged, {name: Path(out_dir) / name for name in written}
+
+
+def write_session_map(session_map: SessionMap, out_dir: str | Path) -> dict[str, Path]:
+    """Fuse the placed sessions' maps and write everything (:func:`~submapslam.io.session_results.
+    write_session_results`)."""
+    from .io.session_results import write_session_results
+    from .mapping.global_map import build_map_outputs
+
+    return write_session_results(session_map, out_dir, build_map_outputs(session_map.placed_result()))
+
+
+# ---------------------------------------------------------------------- batch
+@dataclass
+class LogOutcome:
+    """One log of a batch: its session name, where its results are, and how it went."""
+
+    log: str
+    name: str
+    ok: bool = False
+    error: str = ""
+    scans: int = 0
+    submaps: int = 0
+    loops_accepted: int = 0
+    seconds: float = 0.0
+    placed: bool | None = None  # in the merged map (None: not merged)
+    links: int = 0
+
+
+@dataclass
+class BatchReport:
+    """What ``batch`` did: per log, the merged map's folder, the wall time (and of it the front
+    ends' share: from the start until every log's task finished), the executor."""
+
+    logs: list[LogOutcome]
+    merged_dir: Path | None
+    wall_time_s: float
+    executor: str  # "ray" | "sequential"
+    merged: SessionMap | None = field(default=None, repr=False)
+    front_end_s: float = 0.0
+
+
+def front_end(log_path: str, name: str, out_dir: str, config: PipelineConfig, format: str | None = None,
+              max_scans: int | None = None) -> dict:
+    """One log's task: run it, write its results and its one-session map into ``out_dir``;
+    return a small summary dict (what travels back from a Ray worker)."""
+    from .api import run_log
+
+    t0 = time.perf_counter()
+    result, _ = run_log(log_path, out_dir, config=config, format=format, max_scans=max_scans, session_name=name,
+                        overwrite=True)
+    return {"scans": result.n_scans, "submaps": result.n_submaps, "loops_accepted": result.loops_accepted,
+            "seconds": time.perf_counter() - t0, "input_error": result.input_error}
+
+
+def _ray_module():
+    try:
+        import ray
+    except ImportError:
+        return None
+    return ray
+
+
+def batch_logs(
+    logs: list[str | Path],
+    out_dir: str | Path,
+    *,
+    address: str | None = None,
+    use_ray: bool | None = None,
+    config: str | Path | PipelineConfig | None = None,
+    format: str | None = None,
+    max_scans: int | None = None,
+    on_done: Callable[[LogOutcome], None] | None = None,
+    num_cpus: int | None = None,
+) -> BatchReport:
+    """Run every log's front end (a Ray task each, or one after another), then merge.
+
+    Each log's results go to ``out_dir/<name>/`` (``name``: the log's file name without its
+    extensions), the merged map to ``out_dir/merged/``. A log that fails is reported (``ok``
+    False, ``error``) and left out of the merge; the others are kept. ``use_ray``: None = Ray
+    when installed (or when ``address`` is given), False = sequential; ``address``: an existing
+    Ray cluster (default: a local instance with ``num_cpus``). ``on_done`` is called as each log
+    finishes.
+    """
+    from .fleet import merge_sessions, session_names
+    from .io.map_store import load_map
+
+    t0 = time.perf_counter()
+    cfg = _config(config)
+    out = Path(out_dir)
+    names = session_names(logs)
+    outcomes = [LogOutcome(str(p), n) for p, n in zip(logs, names)]
+    ray = _ray_module() if use_ray is not False else None
+    if (use_ray or address) and ray is None:
+        raise SubmapSlamError("Ray is not installed: pip install 'submapslam[ray]' (or run without --address)")
+    args = [(str(p), n, str(out / n), cfg, format, max_scans) for p, n in zip(logs, names)]
+
+    def record(k: int, value: dict | None, error: BaseException | None) -> None:
+        o = outcomes[k]
+        if error is not None:
+            o.ok, o.error = False, _one_line(error)
+        else:
+            o.ok = True
+            o.scans, o.submaps, o.loops_accepted, o.seconds = (value["scans"], value["submaps"],
+                                                               value["loops_accepted"], value["seconds"])
+            o.error = value.get("input_error") or ""
+        if on_done is not None:
+            on_done(o)
+
+    if ray is not None:
+        executor = "ray"
+        started_here = not ray.is_initialized()
+        if started_here:
+            ray.init(address=address, num_cpus=None if address else num_cpus, include_dashboard=False,
+                     log_to_driver=False, configure_logging=False)
+        try:
+            task = ray.remote(num_cpus=1, max_retries=0)(front_end)
+            pending = {task.remote(*a): k for k, a in enumerate(args)}
+            while pending:
+                done, _ = ray.wait(list(pending), num_returns=1)
+                k = pending.pop(done[0])
+                try:
+                    record(k, ray.get(done[0]), None)
+                except Exception as exc:  # a failed log is reported; the others go on
+                    record(k, None, exc)
+        finally:
+            if started_here:
+                ray.shutdown()
+    else:
+        executor = "sequential"
+        for k, a in enumerate(args):
+            try:
+                record(k, front_end(*a), None)
+            except Exception as exc:  # a failed log is reported; the others go on
+                record(k, None, exc)
+    front_end_s = time.perf_counter() - t0
+    good = [o for o in outcomes if o.ok]
+    merged = merged_dir = None
+    if good:
+        maps = [load_map(out / o.name / "map") for o in good]
+        merged = merge_sessions(maps[0], maps[1:], cfg) if len(maps) > 1 else maps[0]
+        merged_dir = out / "merged"
+        write_session_map(merged, merged_dir)
+        by_name = {s.name: s for s in merged.sessions}
+        for o in good:
+            o.placed, o.links = by_name[o.name].placed, by_name[o.name].links
+    return BatchReport(outcomes, merged_dir, time.perf_counter() - t0, executor, merged, front_end_s)
+
+
+def _one_line(exc: BaseException) -> str:
+    """A task's error as one line (Ray wraps the worker's exception; its cause is what matters)."""
+    cause = getattr(exc, "cause", None) or exc
+    text = str(cause).strip().splitlines()
+    return f"{type(cause).__name__}: {text[-1]}" if text and not isinstance(cause, SubmapSlamError) \
+        else (text[-1] if text else type(cause).__name__)

@@ -1,0 +1,273 @@
+"""Place a new session in an existing map: cross-session cycle hypotheses, verified like loops.
+
+A new session starts with an unknown pose relative to the map. Its submaps are matched to the
+map's by place descriptor (independent of any pose), and each hypothesis goes through the loop
+closer's own gates (:class:`~submapslam.topology.loop_closure.LoopCloser`): the correspondence
+test, the 3D structure gates, and the seed's check that the submaps adjacent in the map
+confirm it. The verified links must then agree with each other: each implies a transform
+``T_map_session``, and only the largest group of pairwise-consistent links (their implied
+transforms put the session's submaps within a tolerance of each other) places the session. With
+the session placed, every session submap is tested against the map submaps near where it now
+lies (a guided search, as the loop closer's spatial hypotheses). Nothing here writes a graph:
+the accepted links are returned as :class:`~submapslam.result.LoopRecord` for the caller.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..config import LoopConfig, SessionConfig
+from ..geometry import inverse, rotation_angle
+from ..result import LoopRecord
+from ..submaps import Submap
+from .descriptors import DescriptorIndex
+from .loop_closure import Hypothesis, LoopCloser
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Placement:
+    """Outcome of placing one session.
+
+    ``T_map_session``: ``(4, 4)`` pose of the session's frame in the map (None: not placed);
+    ``records``: every tested cross-session hypothesis (``i`` a map submap, ``j`` a session
+    submap, global ids), accepted ones being the links; ``reason``: why placed or not.
+    """
+
+    T_map_session: np.ndarray | None
+    records: list[LoopRecord] = field(default_factory=list)
+    reason: str = ""
+
+    @property
+    def links(self) -> list[LoopRecord]:
+        return [r for r in self.records if r.accepted]
+
+
+class _MapPoses:
+    """The map's submap poses, read the way the loop closer reads a graph."""
+
+    def __init__(self, poses: dict[int, np.ndarray]) -> None:
+        self._poses = poses
+        self.keys = poses.keys()
+
+    def pose(self, key: int) -> np.ndarray:
+        return self._poses[key]
+
+
+def implied_frame(T_map_i: np.ndarray, T_i_j: np.ndarray, T_session_j: np.ndarray) -> np.ndarray:
+    """``T_map_session`` that a link ``T_i_j`` (map submap i, session submap j) implies."""
+    return T_map_i @ T_i_j @ inverse(T_session_j)
+
+
+def consistent(F_a: np.ndarray, F_b: np.ndarray, T_session_a: np.ndarray, T_session_b: np.ndarray,
+               config: SessionConfig) -> bool:
+    """Do two links agree? Each link's frame places both session submaps; the two placements
+    must be within ``config``'s tolerance (grows with the session path between the two)."""
+    d = float(np.linalg.norm(T_session_a[:3, 3] - T_session_b[:3, 3]))
+    tol_m = config.consistency_tolerance_m + config.consistency_per_m * d
+    tol_rad = np.deg2rad(config.consistency_tolerance_deg)
+    for T in (T_session_a, T_session_b):
+        delta = inverse(F_a @ T) @ (F_b @ T)
+        if np.linalg.norm(delta[:3, 3]) > tol_m or rotation_angle(delta) > tol_rad:
+            return False
+    return True
+
+
+def largest_consistent_group(frames: list[np.ndarray], session_poses: list[np.ndarray], session_ids: list[int],
+                             config: SessionConfig, scores: list[float] | None = None) -> list[int]:
+    """Indices of the best set of pairwise-consistent links (greedy cliques from every seed).
+
+    Best = most distinct session submaps (links of one session submap to adjacent map submaps
+    are one observation, not independent evidence), then most links, then the highest summed
+    ``scores`` (fitness).
+    """
+    n = len(frames)
+    if n == 0:
+        return []
+    scores = scores or [0.0] * n
+    ok = np.eye(n, dtype=bool)
+    for a in range(n):
+        for b in range(a + 1, n):
+            ok[a, b] = ok[b, a] = consistent(frames[a], frames[b], session_poses[a], session_poses[b], config)
+    degree = ok.sum(axis=1)
+    best: list[int] = []
+    best_key = (0, 0, 0.0)
+    for seed in range(n):
+        group = [seed]
+        for c in sorted(np.flatnonzero(ok[seed]), key=lambda c: (-degree[c], -scores[c], c)):
+            c = int(c)
+            if c not in group and all(ok[c, g] for g in group):
+                group.append(c)
+        key = (len({session_ids[g] for g in group}), len(group), sum(scores[g] for g in group))
+        if key > best_key:
+            best, best_key = sorted(group), key
+    return best
+
+
+def distinct(group: list[int], session_ids: list[int]) -> int:
+    """Distinct session submaps among the links ``group``."""
+    return len({session_ids[g] for g in group})
+
+
+class SessionPlacer:
+    """Places sessions against a map with the loop closer's verification.
+
+    ``closer``: a :class:`LoopCloser` built for the map's kind of log (its gates, registration
+    voxel and prepared clouds); ``config``: the placement's own settings.
+    """
+
+    def __init__(self, closer: LoopCloser, config: SessionConfig) -> None:
+        self.closer = closer
+        self.config = config
+
+    @property
+    def loops(self) -> LoopConfig:
+        return self.closer.config
+
+    def _verify(self, hyp: Hypothesis, submaps: list[Submap], map_poses: _MapPoses) -> LoopRecord:
+        """The loop closer's gates without the odometry-chain plausibility (there is no chain
+        between sessions): correspondence, distance, structure (3D), adjacent map submaps."""
+        closer = self.closer
+        res = closer._correspond(submaps[hyp.i], submaps[hyp.j], hyp.initial_guess, hyp.yaw_hint, hyp.search_radius)
+        accepted, reason = res.accepted, res.reason
+        if accepted:
+            accepted, reason = closer._near_enough(res.T_target_source)
+        if accepted and not closer.planar:
+            accepted, reason = closer._structure_gate(res)
+        if accepted:
+            adjacent = tuple(n for n in (hyp.i - 1, hyp.i + 1) if n in map_poses.keys)  # the map's own only
+            accepted, reason = closer._neighbour_check(hyp, res.T_target_source, res, submaps, map_poses, adjacent)
+        return LoopRecord(hyp.i, hyp.j, hyp.source, accepted, res.fitness, res.overlap, res.inlier_rmse, reason,
+                          res.T_target_source, res.structure_overlap, res.plane_rmse,
+                          res.information_gtsam if accepted else None)
+
+    def place(self, submaps: list[Submap], map_ids: list[int], map_poses: dict[int, np.ndarray],
+              map_descriptors: dict[int, np.ndarray], session_ids: list[int],
+              session_poses: dict[int, np.ndarray], session_descriptors: dict[int, np.ndarray]) -> Placement:
+        """Place one session.
+
+        ``submaps``: every submap, indexed by global id (map's and session's); ``map_ids`` /
+        ``session_ids``: global ids of each side; ``map_poses``: ``T_map_submap``;
+        ``session_poses``: ``T_session_submap`` (the session's own frame); descriptors per id.
+        """
+        cfg, loops = self.config, self.loops
+        graph = _MapPoses(map_poses)
+        index = DescriptorIndex()
+        for i in map_ids:
+            index.add(i, map_descriptors[i])
+        records: list[LoopRecord] = []
+        frames: list[np.ndarray] = []
+        link_poses: list[np.ndarray] = []
+        link_js: list[int] = []
+        fitness: list[float] = []
+        group: list[int] = []
+        tested = 0
+        # 1. place recognition: descriptor hypotheses, verified; stop once enough links agree
+        for j in session_ids:
+            for i, dist, yaw in index.query(session_descriptors[j], cfg.descriptor_top_k):
+                if dist > cfg.descriptor_max_distance or tested >= cfg.max_recognition_tests:
+                    continue
+                tested += 1
+                rec = self._verify(Hypothesis(i, j, "session", None, yaw, None), submaps, graph)
+                records.append(rec)
+                if rec.accepted:
+                    frames.append(implied_frame(map_poses[i], rec.T_i_j, session_poses[j]))
+                    link_poses.append(session_poses[j])
+                    link_js.append(j)
+                    fitness.append(rec.fitness)
+            group = largest_consistent_group(frames, link_poses, link_js, cfg, fitness)
+            if distinct(group, link_js) >= cfg.enough_links:
+                break
+        accepted = [r for r in records if r.accepted]
+        support = distinct(group, link_js)
+        if support < cfg.min_links:
+            for rec in accepted:
+                rec.accepted, rec.information = False, None
+                rec.reason = (f"not confirmed: consistent links from {support} session submap(s) "
+                              f"< {cfg.min_links} needed")
+            why = (f"not placed: {len(accepted)} verified match(es) with the map, consistent ones from at most "
+                   f"{support} session submap(s) (need {cfg.min_links}); {tested} hypotheses tested")
+            return Placement(None, records, why)
+        members = {id(accepted[k]) for k in group}
+        for rec in accepted:
+            if id(rec) not in members:
+                rec.accepted, rec.information = False, None
+                rec.reason = "inconsistent with the other cross-session links"
+        best = max(group, key=lambda k: accepted[k].fitness)
+        F = frames[best]
+        # 2. guided search: each session submap against the map submaps near where it now lies;
+        # a right placement is confirmed by most session submaps that land on the map
+        done = {(r.i, r.j) for r in records}
+        linked = {link_js[k] for k in group}
+        radius = loops.spatial_min_radius or (5.0 if self.closer.planar else 20.0)
+        map_xyz = np.array([map_poses[i][:3, 3] for i in map_ids])
+        on_map = 0
+        # the frame each verified link implies, by session submap: a session submap is searched
+        # for through the link nearest to it along the session (drift between the two sessions
+        # bends the frame along the way; one frame for all would miss the far end)
+        local = {link_js[k]: frames[k] for k in group}
+        for j in session_ids:
+            F_j = local[min(local, key=lambda m: (abs(m - j), m))]
+            Q = F_j @ session_poses[j]
+            d = np.linalg.norm(map_xyz - Q[:3, 3], axis=1)
+            near = [map_ids[k] for k in np.argsort(d, kind="stable")[: cfg.guided_per_submap] if d[k] <= radius]
+            on_map += bool(near) or j in linked
+            for i in near:
+                if (i, j) in done:
+                    continue
+                guess = inverse(map_poses[i]) @ Q
+                rec = self._verify(Hypothesis(i, j, "session", guess, None, loops.min_search_window), submaps, graph)
+                frame = implied_frame(map_poses[i], rec.T_i_j, session_poses[j]) if rec.accepted else None
+                if rec.accepted and not consistent(F_j, frame, session_poses[j], session_poses[j], cfg):
+                    rec.accepted, rec.information = False, None
+                    rec.reason = "inconsistent with the session's placement"
+                records.append(rec)
+                if rec.accepted:
+                    linked.add(j)
+                    local.setdefault(j, frame)
+        agreement = len(linked) / max(on_map, 1)
+        if agreement < cfg.min_agreement:
+            for rec in records:
+                if rec.accepted:
+                    rec.accepted, rec.information = False, None
+                    rec.reason = "placement not confirmed by the other session submaps"
+            return Placement(None, records, (
+                f"not placed: the best placement ({support} session submaps agreeing by place recognition) is "
+                f"confirmed by only {len(linked)} of the {on_map} session submaps it puts on the map "
+                f"({agreement:.0%} < {cfg.min_agreement:.0%})"))
+        n_links = sum(r.accepted for r in records)
+        log.info("session placed by %d links (%d in the recognition group)", n_links, len(group))
+        return Placement(F, records, (
+            f"placed by {n_links} verified link(s) ({len(group)} agreeing by place recognition, from {support} "
+            f"session submaps; {len(linked)} of the {on_map} session submaps on the map confirm it)"))
+
+    def densify(self, submaps: list[Submap], map_ids: list[int], map_poses: dict[int, np.ndarray],
+                session_ids: list[int], session_poses: dict[int, np.ndarray],
+                tested: set[tuple[int, int]]) -> list[LoopRecord]:
+        """After a placement and an optimisation: test each session submap against the map
+        submaps near it in the current estimate (``session_poses`` now in the map frame), as the
+        loop closer's spatial hypotheses; pairs in ``tested`` are skipped. A link must agree with
+        the estimate within the consistency tolerance. Returns every tested record."""
+        cfg, loops = self.config, self.loops
+        graph = _MapPoses(map_poses)
+        radius = loops.spatial_min_radius or (5.0 if self.closer.planar else 20.0)
+        map_xyz = np.array([map_poses[i][:3, 3] for i in map_ids])
+        records = []
+        for j in session_ids:
+            Q = session_poses[j]
+            d = np.linalg.norm(map_xyz - Q[:3, 3], axis=1)
+            near = [map_ids[k] for k in np.argsort(d, kind="stable")[: cfg.densify_per_submap] if d[k] <= radius]
+            for i in near:
+                if (i, j) in tested:
+                    continue
+                rec = self._verify(Hypothesis(i, j, "session", inverse(map_poses[i]) @ Q, None,
+                                              loops.min_search_window), submaps, graph)
+                if rec.accepted and not consistent(np.eye(4), implied_frame(map_poses[i], rec.T_i_j, Q), Q, Q, cfg):
+                    rec.accepted, rec.information = False, None
+                    rec.reason = "inconsistent with the merged estimate"
+                records.append(rec)
+        return records

@@ -1,0 +1,110 @@
+"""``run`` with several logs or ``--map``, and ``batch`` (Ray tasks or one after another)."""
+
+from __future__ import annotations
+
+import csv
+
+import pytest
+from typer.testing import CliRunner
+
+from datasets_synth import generate
+from submapslam.cli import app
+from submapslam.fleet_api import batch_logs
+
+runner = CliRunner()
+SCANS = 200
+BATCH_SCANS = 60  # batch tests: a few submaps per log are enough
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("batch")
+    a = generate("rectangle", root / "hall.a", seed=0, laps=1, size=(20.0, 12.0), max_scans=SCANS)
+    b = generate("rectangle", root / "hall.b", seed=1, laps=1, size=(20.0, 12.0), max_scans=SCANS)
+    bad = root / "broken.clf"
+    bad.write_text("FLASER 3 1.0 oops\n")
+    return root, a, b, bad
+
+
+def test_run_adds_a_session_to_a_saved_map(logs, tmp_path):
+    _, a, _, _ = logs
+    first = runner.invoke(app, ["run", str(a), "--out", str(tmp_path / "one")])
+    assert first.exit_code == 0, first.output
+    assert (tmp_path / "one" / "map" / "manifest.json").is_file()
+    second = runner.invoke(app, ["run", str(a), "--map", str(tmp_path / "one"), "--out", str(tmp_path / "two")])
+    assert second.exit_code == 0, second.output
+    rows = list(csv.DictReader(open(tmp_path / "two" / "sessions.csv")))
+    # the folder log keeps its name; the second session of the same log gets a suffix
+    assert [r["session"] for r in rows] == ["hall.a", "hall.a_2"]
+    assert rows[1]["placed"] == "1", rows[1]["note"]
+    one = (tmp_path / "one" / "poses_tum.txt").read_text().splitlines()
+    merged = (tmp_path / "two" / "poses_tum.txt").read_text().splitlines()
+    assert len(merged) == 2 * len(one)  # both sessions, in input order, own timestamps
+    assert [ln.split()[0] for ln in merged[len(one):]] == [ln.split()[0] for ln in one]
+    assert (tmp_path / "two" / "poses_tum_hall.a_2.txt").is_file()
+
+
+def test_run_with_a_folder_that_is_not_a_map_is_one_red_line(logs, tmp_path):
+    _, a, _, _ = logs
+    res = runner.invoke(app, ["run", str(a), "--map", str(a), "--out", str(tmp_path / "x")])
+    assert res.exit_code == 1
+    assert "not a submapslam map" in res.output and "Traceback" not in res.output
+    assert not (tmp_path / "x").exists()  # failed before any work
+
+
+def test_run_never_overwrites_the_map_it_extends(logs, tmp_path):
+    _, a, _, _ = logs
+    assert runner.invoke(app, ["run", str(a), "--out", str(tmp_path / "m"), "--max-scans", "30"]).exit_code == 0
+    before = (tmp_path / "m" / "map" / "scans.npz").read_bytes()
+    res = runner.invoke(app, ["run", str(a), "--map", str(tmp_path / "m"), "--out", str(tmp_path / "m")])
+    assert res.exit_code == 1 and "is the input" in res.output  # the map is an input: never the output
+    assert (tmp_path / "m" / "map" / "scans.npz").read_bytes() == before
+    res = runner.invoke(app, ["run", str(a), "--map", str(tmp_path / "m"), "--out", str(tmp_path / "m" / "x")])
+    assert res.exit_code == 1 and "is inside the input" in res.output
+
+
+@pytest.fixture(scope="module")
+def sequential(logs, tmp_path_factory):
+    _, a, b, bad = logs
+    out = tmp_path_factory.mktemp("seq")
+    seen = []
+    report = batch_logs([a, bad, b], out, use_ray=False, on_done=seen.append, max_scans=BATCH_SCANS)
+    return out, report, seen
+
+
+def test_batch_reports_a_failed_log_and_merges_the_others(sequential):
+    out, report, seen = sequential
+    assert report.executor == "sequential"
+    assert [o.name for o in report.logs] == ["hall.a", "broken", "hall.b"]
+    assert [o.ok for o in report.logs] == [True, False, True]
+    assert "broken.clf" in report.logs[1].error
+    assert {o.name for o in seen} == {"hall.a", "broken", "hall.b"}
+    for name in ("hall.a", "hall.b"):
+        assert (out / name / "poses_tum.txt").is_file()
+        assert (out / name / "map" / "manifest.json").is_file()
+    rows = list(csv.DictReader(open(out / "merged" / "sessions.csv")))
+    assert [r["session"] for r in rows] == ["hall.a", "hall.b"]
+    assert not (out / "broken" / "poses_tum.txt").exists()
+
+
+def test_batch_on_ray_gives_the_same_trajectories(logs, sequential, tmp_path):
+    pytest.importorskip("ray")
+    _, a, b, _ = logs
+    seq_out, seq, _ = sequential
+    par = batch_logs([a, b], tmp_path / "ray", use_ray=True, num_cpus=2, max_scans=BATCH_SCANS)
+    assert par.executor == "ray" and all(o.ok for o in par.logs)
+    for name in ("hall.a", "hall.b"):
+        assert (tmp_path / "ray" / name / "poses_tum.txt").read_bytes() == (seq_out / name / "poses_tum.txt").read_bytes()
+    assert (tmp_path / "ray" / "merged" / "poses_tum.txt").read_bytes() == \
+        (seq_out / "merged" / "poses_tum.txt").read_bytes()
+
+
+def test_batch_cli_prints_a_table_and_fails_on_a_missing_log(logs, tmp_path):
+    _, a, _, _ = logs
+    res = runner.invoke(app, ["batch", str(a), str(tmp_path / "nope.clf"), "--out", str(tmp_path / "o"), "--no-ray"])
+    assert res.exit_code == 1 and "no such log" in res.output
+    res = runner.invoke(app, ["batch", str(a), "--out", str(tmp_path / "o"), "--no-ray",
+                                "--max-scans", str(BATCH_SCANS)])
+    assert res.exit_code == 0, res.output
+    assert "hall.a" in res.output and "sequential" in res.output
+    assert (tmp_path / "o" / "merged" / "map" / "manifest.json").is_file()

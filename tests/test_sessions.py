@@ -1,0 +1,137 @@
+"""Maps from several sessions: a second session with an unknown start is placed in the map,
+what moved between sessions leaves the merged grid, a map survives save -> load -> save byte for
+byte, a different building is not placed, and the CLI's ``run --map`` / several logs."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from datasets_synth import generate
+from submapslam import open_log
+from submapslam.config import PipelineConfig
+from submapslam.errors import InputError
+from submapslam.fleet import merge_sessions, session_map_from_result, session_names
+from submapslam.geometry import inverse
+from submapslam.io.map_store import load_map, save_map
+from submapslam.io.trajectory import read_tum
+from submapslam.mapping.global_map import build_global_grid
+from submapslam.pipeline import run
+
+SIZE = (20.0, 12.0)  # a small rectangle of hallways: one lap is ~60 m
+START_B = 120  # session B starts this many (thinned) scans into its drive: somewhere else
+
+
+@pytest.fixture(scope="module")
+def sessions(tmp_path_factory):
+    """Session A: one lap with six thin poles standing in the hallways; session B: the same
+    building without the poles, starting elsewhere (its first scan is its own origin)."""
+    root = tmp_path_factory.mktemp("sessions")
+    log_a = generate("rectangle", root / "a", seed=0, laps=1, size=SIZE, poles=6)
+    log_b = generate("rectangle", root / "b", seed=0, laps=2, size=SIZE)
+    scans_a = list(open_log(log_a))[::2]
+    scans_b = list(open_log(log_b))[::2][START_B:START_B + 260]
+    cfg = PipelineConfig()
+    res_a = run(scans_a, cfg, source=str(log_a))
+    res_b = run(scans_b, cfg, source=str(log_b))
+    map_a = session_map_from_result(res_a, "a")
+    merged = merge_sessions(map_a, [session_map_from_result(res_b, "b")], cfg)
+    truth_a = read_tum(log_a / "groundtruth_tum.txt").poses[::2]
+    truth_b = read_tum(log_b / "groundtruth_tum.txt").poses[::2][START_B:START_B + 260]
+    return {"root": root, "map_a": map_a, "merged": merged, "truth_a": truth_a, "truth_b": truth_b,
+            "log_a": log_a, "log_b": log_b, "cfg": cfg,
+            "res_a": res_a, "res_b": res_b}
+
+
+def test_second_session_is_placed_in_the_first_ones_frame(sessions):
+    merged = sessions["merged"]
+    a, b = merged.sessions
+    assert b.placed and b.links >= 2, b.note
+    # the map frame is A's first scan: B's poses there must match the truth seen from it
+    T0 = inverse(sessions["truth_a"][0])
+    truth_b = T0 @ sessions["truth_b"]
+    est_b = merged.result.poses[b.scans]
+    err = np.linalg.norm(est_b[:, :3, 3] - truth_b[:, :3, 3], axis=1)
+    assert err.mean() < 0.15, err.mean()
+    # unplaced, B would sit at its own origin: meters away from where it really drove
+    assert np.linalg.norm(truth_b[0, :3, 3]) > 3.0
+    # each session keeps its own timestamps, in input order
+    assert np.array_equal(merged.result.timestamps[b.scans], sessions["res_b"].timestamps)
+    assert np.array_equal(merged.result.timestamps[a.scans], sessions["res_a"].timestamps)
+    # A was already right: the merge does not move it away
+    est_a = merged.result.poses[a.scans]
+    truth_a = T0 @ sessions["truth_a"]
+    assert np.linalg.norm(est_a[:, :3, 3] - truth_a[:, :3, 3], axis=1).mean() < 0.15
+
+
+def test_poles_seen_only_in_the_first_session_leave_the_merged_grid(sessions):
+    merged = sessions["merged"]
+    from datasets_synth.worlds import rectangle
+
+    poles = rectangle(seed=0, size=SIZE, poles=6).cylinders[:, :2]
+    T0 = inverse(sessions["truth_a"][0])
+    poles_map = (T0[:2, :2] @ poles.T).T + T0[:2, 3]
+
+    def occupied_near(grid, xy, radius=0.15):
+        p = grid.probabilities()
+        rows, cols = np.nonzero(p > 0.65)
+        res = grid.params.resolution
+        centres = grid.origin + (np.stack([cols, rows], axis=1) + 0.5) * res
+        return np.array([(np.linalg.norm(centres - q, axis=1) < radius).any() for q in xy])
+
+    grid_a, _ = build_global_grid(sessions["map_a"].result)
+    grid_ab, _ = build_global_grid(merged.placed_result())
+    seen_a = occupied_near(grid_a, poles_map)
+    assert seen_a.sum() >= 4  # session A's own map has the poles
+    # session B drove past them and saw free space where they stood: gone from the merged map
+    assert occupied_near(grid_ab, poles_map[seen_a]).sum() <= 1
+    # the walls are still there
+    assert (grid_ab.probabilities() > 0.65).sum() > 0.6 * (grid_a.probabilities() > 0.65).sum()
+
+
+def test_map_round_trip_is_byte_identical(sessions, tmp_path):
+    merged = sessions["merged"]
+    first = save_map(merged, tmp_path / "one")
+    loaded = load_map(tmp_path / "one")
+    second = save_map(loaded, tmp_path / "two")
+    for name, path in first.items():
+        assert path.read_bytes() == second[name].read_bytes(), name
+    r0, r1 = merged.result, loaded.result
+    assert np.array_equal(r0.poses, r1.poses) and np.array_equal(r0.timestamps, r1.timestamps)
+    assert all(np.array_equal(p, q) and p.dtype == q.dtype for p, q in zip(r0.submap_points, r1.submap_points))
+    assert [s.to_dict() for s in merged.sessions] == [s.to_dict() for s in loaded.sessions]
+    assert len(r1.edges) == len(r0.edges) and r1.config == r0.config
+
+
+def test_a_map_of_another_version_or_no_map_is_one_clear_line(sessions, tmp_path):
+    save_map(sessions["map_a"], tmp_path / "m")
+    manifest = json.loads((tmp_path / "m" / "manifest.json").read_text())
+    for version, word in ((manifest["version"] + 1, "newer"), (0, "older")):
+        (tmp_path / "m" / "manifest.json").write_text(json.dumps({**manifest, "version": version}))
+        with pytest.raises(InputError, match=word) as exc:
+            load_map(tmp_path / "m")
+        assert "\n" not in str(exc.value)
+    with pytest.raises(InputError, match="not a submapslam map"):
+        load_map(sessions["log_a"])
+
+
+def test_a_session_from_another_building_is_not_placed(sessions, tmp_path):
+    # hallways 5 m wide instead of 3: look-alike corners and doors match here and there, but
+    # those matches never agree with each other
+    log = generate("rectangle", tmp_path / "other", seed=5, laps=1, size=(26.0, 18.0), width=5.0, max_scans=300)
+    res = run(list(open_log(log))[::2], sessions["cfg"], source=str(log))
+    merged = merge_sessions(sessions["map_a"], [session_map_from_result(res, "other")], sessions["cfg"])
+    other = merged.sessions[1]
+    assert not other.placed and other.links == 0
+    assert "not placed" in other.note
+    # it stays in its own frame: its poses are those of its own run
+    assert np.allclose(merged.result.poses[other.scans], res.poses)
+    assert merged.placed_result().n_scans == sessions["map_a"].result.n_scans
+
+
+def test_session_names_are_log_names_without_extensions(tmp_path):
+    (tmp_path / "drive").mkdir()
+    assert session_names(["x/intel.clf.bz2", "y/intel.clf", str(tmp_path / "drive"), "merged.log"]) == \
+        ["intel", "intel_2", "drive", "merged_2"]
