@@ -144,17 +144,19 @@ def run_log(
         from .io.results import write_results
         from .mapping.global_map import build_map_outputs
 
-        maps = build_map_outputs(result)
         with staged_folder(out_dir, "run", overwrite=overwrite, inputs=inputs) as staging:
-            written = write_results(result, staging, maps, run_started=t_start)
-            written["input.json"] = write_provenance(staging, input_provenance(log_path, result.timestamps))
-            if save_map:  # OUT/map/: what `run --map OUT` extends (io/map_store.py)
+            written: dict[str, Path] = {}
+            if save_map:  # OUT/map/: what `run --map OUT` extends (io/map_store.py); before the maps
+                # are built, so that its copies of the clouds and the city-sized grid never coexist
                 from .fleet import session_map_from_result, session_names
                 from .io.map_store import save_map as save_session_map
 
                 name = session_name or session_names([log_path])[0]
                 written.update({f"map/{k}": v for k, v in save_session_map(
                     session_map_from_result(result, name), staging / "map").items()})
+            maps = build_map_outputs(result)
+            written.update(write_results(result, staging, maps, run_started=t_start))
+            written["input.json"] = write_provenance(staging, input_provenance(log_path, result.timestamps))
         paths = {name: Path(out_dir) / name for name in written}
         if not result.interrupted:
             from .io.checkpoint import remove_checkpoint

@@ -345,7 +345,15 @@ class SubmapSLAM:
             input_error=input_error,
             source=source,
             interrupted=interrupted,
+            submap_descriptors=self._descriptors(n),
         )
+
+    def _descriptors(self, n: int) -> np.ndarray | None:
+        """The loop closer's ``n`` submap descriptors in id order, or None (loops off)."""
+        index = self._loop_closer.index if self._loop_closer is not None else None
+        if index is None or index.ids != list(range(n)) or not n:
+            return None
+        return np.array(index.descs)
 
 
 def run(

@@ -65,6 +65,8 @@ class SlamResult:
         source: the log the scans came from.
         interrupted: the run was stopped (Ctrl-C, SIGTERM) before the end of the log; the
             result covers the scans read until then.
+        submap_descriptors: ``(S, rings, sectors)`` the place descriptors the loop closer computed,
+            one per submap in id order (None when loop closure was off).
         log_info: what the reader reports about the log (its ``log_info``: e.g. the CARMEN
             record read, damaged records skipped), written into ``summary.json``.
         hint_problems: one message per manual loop hint the log could not use.
@@ -93,6 +95,7 @@ class SlamResult:
     input_error: str | None = None
     source: str = ""
     interrupted: bool = False
+    submap_descriptors: np.ndarray | None = None
     log_info: dict = field(default_factory=dict)
     hint_problems: list[str] = field(default_factory=list)
 

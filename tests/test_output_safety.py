@@ -216,4 +216,4 @@ def test_summary_is_truthful_about_the_run(small_log, tmp_path):
     summary = json.loads(paths["summary.json"].read_text())
     assert result.wall_time_s + summary["wall_time_s"]["map_fusion"] <= summary["wall_time_total_s"] <= wall
     assert "overlap" in summary["wall_time_s_note"] and summary["interrupted"] is False
-    assert summary["peak_memory_mb"] >= result.peak_memory_mb > 0
+    assert summary["peak_memory_mb"] >= round(result.peak_memory_mb, 1) > 0  # summary.json rounds to 0.1

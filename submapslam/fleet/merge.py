@@ -47,9 +47,12 @@ def session_map_from_result(result: SlamResult, name: str) -> SessionMap:
     """One run as a one-session map (its place descriptors computed from its submap clouds)."""
     from ..topology.descriptors import compute_descriptor
 
-    desc = [compute_descriptor(p, planar=result.planar, max_range=result.config.loops.descriptor_radius)
-            for p in result.submap_points]
-    descriptors = np.array(desc) if desc else np.zeros((0, 0, 0))
+    if result.submap_descriptors is not None and len(result.submap_descriptors) == result.n_submaps:
+        descriptors = result.submap_descriptors  # the loop closer's own, computed once
+    else:
+        desc = [compute_descriptor(p, planar=result.planar, max_range=result.config.loops.descriptor_radius)
+                for p in result.submap_points]
+        descriptors = np.array(desc) if desc else np.zeros((0, 0, 0))
     info = SessionInfo(name, result.source, 0, result.n_scans, 0, result.n_submaps, placed=True, links=0,
                        note="defines the map frame")
     return SessionMap(result, [info], descriptors)
