@@ -14,6 +14,7 @@ from datasets_synth import generate
 from submapslam.api import run_log
 from submapslam.cli import app
 from submapslam.config import PipelineConfig
+from submapslam.errors import SubmapSlamError
 from submapslam.io.checkpoint import checkpoint_folder, read_checkpoint
 
 from .cli_errors import assert_one_error_line
@@ -88,4 +89,6 @@ def test_resume_cli_and_its_errors(tmp_path):
     other = generate("rectangle", tmp_path / "other", seed=3, laps=1, max_scans=60, size=(16.0, 10.0))
     _run_stopped(log, tmp_path / "out2", PipelineConfig(checkpoint_every_submaps=1), 50)
     assert_one_error_line(runner.invoke(app, ["run", str(other), "--resume", str(tmp_path / "out2")]),
-                          "was started on")
+                          "LOG cannot change a resumed run")
+    with pytest.raises(SubmapSlamError, match="was started on"):
+        run_log(other, tmp_path / "out2", resume=True)

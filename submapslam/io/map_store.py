@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import zipfile
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -39,15 +40,20 @@ _FILES = ("config.yaml", "scans.npz", "submaps.npz", "graph.npz", "graph.g2o", "
 _DTYPES = ("float16", "float32", "float64")
 
 
-def _write_npz(path: Path, arrays: dict[str, np.ndarray]) -> None:
-    """An ``.npz`` numpy reads (``np.load``), byte-for-byte the same for the same arrays."""
+def _write_npz(path: Path, arrays: dict[str, np.ndarray] | Iterable[tuple[str, np.ndarray]]) -> None:
+    """An ``.npz`` numpy reads (``np.load``), byte-for-byte the same for the same arrays.
+
+    ``arrays``: a dict, or ``(name, array)`` pairs made one at a time (a generator), so that only
+    one of several large arrays (a city's concatenated clouds) exists at once."""
+    items = arrays.items() if isinstance(arrays, dict) else arrays
     with zipfile.ZipFile(path, "w") as zf:
-        for name, array in arrays.items():
+        for name, array in items:
             info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
             info.compress_type = zipfile.ZIP_DEFLATED
             info._compresslevel = 1  # fast: the clouds are most of the bytes
             with zf.open(info, "w", force_zip64=True) as fh:
                 np.lib.format.write_array(fh, np.ascontiguousarray(array), allow_pickle=False)
+            del array  # before the next one is made
 
 
 def _concat(arrays: list[np.ndarray], width: tuple[int, ...], dtype) -> tuple[np.ndarray, np.ndarray]:
@@ -62,6 +68,29 @@ def _split(data: np.ndarray, offsets: np.ndarray) -> list[np.ndarray]:
     return [data[offsets[k]:offsets[k + 1]] for k in range(len(offsets) - 1)]
 
 
+def _submap_arrays(session_map: SessionMap) -> Iterator[tuple[str, np.ndarray]]:
+    """The arrays of ``submaps.npz`` in file order, each made when it is written."""
+    r = session_map.result
+    yield "anchor_poses", r.submap_poses.reshape(-1, 4, 4)
+    yield "covariances", r.submap_covariances.reshape(-1, 6, 6)
+    yield "descriptors", session_map.descriptors
+    # clouds: each submap keeps its float type (3D clouds are float16 or float32)
+    dtype_code = np.array([_DTYPES.index(np.asarray(p).dtype.name) for p in r.submap_points], dtype=np.int8)
+    yield "point_dtype", dtype_code
+    yield "point_counts", np.array([len(p) for p in r.submap_points], dtype=np.int64)
+    for code, name in enumerate(_DTYPES):
+        yield f"points_{name}", _concat([p for p, c in zip(r.submap_points, dtype_code) if c == code], (3,), name)[0]
+    indices, offsets = _concat([np.asarray(s, dtype=np.int64) for s in r.submap_scan_indices], (), np.int64)
+    yield "scan_indices", indices
+    yield "scan_offsets", offsets
+    yield "scan_poses", _concat(list(r.submap_scan_poses), (4, 4), np.float64)[0]
+    grid_scans = [p for scans in r.submap_scan_points for p in scans]
+    grid_dtype = np.asarray(grid_scans[0]).dtype.name if grid_scans else "float32"
+    yield "grid_points", _concat(grid_scans, (3,), grid_dtype)[0]
+    yield "grid_counts", np.array([len(p) for p in grid_scans], dtype=np.int64)
+    yield "grid_scans_per_submap", np.array([len(s) for s in r.submap_scan_points], dtype=np.int64)
+
+
 def save_map(session_map: SessionMap, folder: str | Path) -> dict[str, Path]:
     """Write ``session_map`` into ``folder`` (created); return ``{file name: path}``."""
     out = Path(folder)
@@ -71,26 +100,7 @@ def save_map(session_map: SessionMap, folder: str | Path) -> dict[str, Path]:
     paths["config.yaml"].write_text(dump_config(r.config))
     _write_npz(paths["scans.npz"], {"timestamps": np.asarray(r.timestamps, dtype=np.float64),
                                     "poses": r.poses.reshape(-1, 4, 4), "odometry_poses": r.odometry_poses.reshape(-1, 4, 4)})
-    submaps: dict[str, np.ndarray] = {
-        "anchor_poses": r.submap_poses.reshape(-1, 4, 4), "covariances": r.submap_covariances.reshape(-1, 6, 6),
-        "descriptors": session_map.descriptors}
-    # clouds: each submap keeps its float type (3D clouds are float16 or float32)
-    dtype_code = np.array([_DTYPES.index(np.asarray(p).dtype.name) for p in r.submap_points], dtype=np.int8)
-    submaps["point_dtype"] = dtype_code
-    counts = np.array([len(p) for p in r.submap_points], dtype=np.int64)
-    submaps["point_counts"] = counts
-    for code, name in enumerate(_DTYPES):
-        chosen = [p for p, c in zip(r.submap_points, dtype_code) if c == code]
-        submaps[f"points_{name}"] = _concat(chosen, (3,), name)[0]
-    submaps["scan_indices"], submaps["scan_offsets"] = _concat(
-        [np.asarray(s, dtype=np.int64) for s in r.submap_scan_indices], (), np.int64)
-    submaps["scan_poses"] = _concat(list(r.submap_scan_poses), (4, 4), np.float64)[0]
-    grid_scans = [p for scans in r.submap_scan_points for p in scans]
-    grid_dtype = np.asarray(grid_scans[0]).dtype.name if grid_scans else "float32"
-    submaps["grid_points"], _ = _concat(grid_scans, (3,), grid_dtype)
-    submaps["grid_counts"] = np.array([len(p) for p in grid_scans], dtype=np.int64)
-    submaps["grid_scans_per_submap"] = np.array([len(s) for s in r.submap_scan_points], dtype=np.int64)
-    _write_npz(paths["submaps.npz"], submaps)
+    _write_npz(paths["submaps.npz"], _submap_arrays(session_map))
     n_edges = len(r.edges)
     _write_npz(paths["graph.npz"], {
         "i": np.array([e[0] for e in r.edges], dtype=np.int64), "j": np.array([e[1] for e in r.edges], dtype=np.int64),
