@@ -50,7 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     cli = [sys.executable, "-m", "submapslam"]
     run_dir = args.out / "run"
     args.out.mkdir(parents=True, exist_ok=True)
-    run_cmd = [*cli, "run", str(args.log), "--out", str(run_dir)]
+    run_cmd = [*cli, "run", str(args.log), "--out", str(run_dir), "--overwrite"]  # the bench's own folder
     if args.max_scans:
         run_cmd += ["--max-scans", str(args.max_scans)]
     run_wall, run_cpu, run_mem = timed(run_cmd)

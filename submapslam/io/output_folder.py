@@ -94,8 +94,9 @@ def check_out_folder(out: str | Path, *, inputs: Iterable[str | Path | None] = (
             raise OutputError(f"{what} {out} is a folder that holds files of yours, not submapslam results: "
                               "choose a new or empty folder")
         if not overwrite:
-            raise OutputError(f"{what} {out} holds the results of an {writer if writer == 'earlier run' else writer!r} "
-                              "command: pass --overwrite to replace them, or choose another folder")
+            earlier = "an earlier run" if writer == "earlier run" else f"an earlier `{writer}` command"
+            raise OutputError(f"{what} {out} holds the results of {earlier}: pass --overwrite to replace them, "
+                              "or choose another folder")
     _writable_parent(path, what)
 
 
