@@ -301,18 +301,27 @@ class LoopCloser:
         reachable, why = self._reachable(hyp, graph)
         if not reachable:
             return LoopRecord(hyp.i, hyp.j, hyp.source, False, 0.0, 0.0, float("inf"), why, None)
+        record = self.verify(hyp, submaps, graph)
+        if record.accepted:
+            log.info("loop %d-%d accepted (%s): %s", hyp.i, hyp.j, hyp.source, record.reason)
+        return record
+
+    def verify(self, hyp: Hypothesis, submaps: list[Submap], graph: GraphEstimate, *, plausibility: bool = True,
+               neighbours: tuple[int, ...] | None = None) -> LoopRecord:
+        """The gates a hypothesis passes to become a constraint: correspondence, distance,
+        structure (3D), plausibility under the estimate's odometry chain (``plausibility``; off
+        between sessions, which have no chain) and the adjacent submaps (``neighbours``: which;
+        default ``i``'s neighbours in the chain)."""
         res = self._correspond(submaps[hyp.i], submaps[hyp.j], hyp.initial_guess, hyp.yaw_hint, hyp.search_radius)
         accepted, reason = res.accepted, res.reason
         if accepted:
             accepted, reason = self._near_enough(res.T_target_source)
         if accepted and not self.planar:
             accepted, reason = self._structure_gate(res)
-        if accepted:
+        if accepted and plausibility:
             accepted, reason = self._plausible(hyp, res.T_target_source, graph)
         if accepted:
-            accepted, reason = self._neighbour_check(hyp, res.T_target_source, res, submaps, graph)
-        if accepted:
-            log.info("loop %d-%d accepted (%s): %s", hyp.i, hyp.j, hyp.source, reason)
+            accepted, reason = self._neighbour_check(hyp, res.T_target_source, res, submaps, graph, neighbours)
         return LoopRecord(hyp.i, hyp.j, hyp.source, accepted, res.fitness, res.overlap, res.inlier_rmse, reason,
                           res.T_target_source, res.structure_overlap, res.plane_rmse,
                           res.information_gtsam if accepted else None)

@@ -131,19 +131,8 @@ class SessionPlacer:
     def _verify(self, hyp: Hypothesis, submaps: list[Submap], map_poses: _MapPoses) -> LoopRecord:
         """The loop closer's gates without the odometry-chain plausibility (there is no chain
         between sessions): correspondence, distance, structure (3D), adjacent map submaps."""
-        closer = self.closer
-        res = closer._correspond(submaps[hyp.i], submaps[hyp.j], hyp.initial_guess, hyp.yaw_hint, hyp.search_radius)
-        accepted, reason = res.accepted, res.reason
-        if accepted:
-            accepted, reason = closer._near_enough(res.T_target_source)
-        if accepted and not closer.planar:
-            accepted, reason = closer._structure_gate(res)
-        if accepted:
-            adjacent = tuple(n for n in (hyp.i - 1, hyp.i + 1) if n in map_poses.keys)  # the map's own only
-            accepted, reason = closer._neighbour_check(hyp, res.T_target_source, res, submaps, map_poses, adjacent)
-        return LoopRecord(hyp.i, hyp.j, hyp.source, accepted, res.fitness, res.overlap, res.inlier_rmse, reason,
-                          res.T_target_source, res.structure_overlap, res.plane_rmse,
-                          res.information_gtsam if accepted else None)
+        adjacent = tuple(n for n in (hyp.i - 1, hyp.i + 1) if n in map_poses.keys)  # the map's own only
+        return self.closer.verify(hyp, submaps, map_poses, plausibility=False, neighbours=adjacent)
 
     def place(self, submaps: list[Submap], map_ids: list[int], map_poses: dict[int, np.ndarray],
               map_descriptors: dict[int, np.ndarray], session_ids: list[int],
