@@ -189,3 +189,58 @@ def test_carmen_trajectory_timestamp_choice_is_checked(tmp_path):
     with pytest.raises(ConfigError) as err:
         read_carmen_trajectory(path, "IPC")
     assert str(err.value) == "unknown CARMEN timestamp 'IPC': use ipc or logger"
+
+
+def _ply_bytes(fields: list[tuple[str, str, str]], records: np.ndarray, order: str = "binary_little_endian") -> bytes:
+    head = ["ply", f"format {order} 1.0", f"element vertex {len(records)}"]
+    head += [f"property {ply_type} {name}" for name, ply_type, _ in fields] + ["end_header"]
+    return ("\n".join(head) + "\n").encode() + records.tobytes()
+
+
+@pytest.mark.parametrize("order, endian", [("binary_little_endian", "<"), ("binary_big_endian", ">")])
+def test_binary_ply_fast_path_reads_what_open3d_reads(tmp_path, order, endian):
+    from submapslam._deps import open3d
+    from submapslam.io.cloud_folder import read_cloud
+
+    rng = np.random.default_rng(5)
+    fields = [("x", "float", "f4"), ("y", "float", "f4"), ("z", "float", "f4"), ("intensity", "float", "f4"),
+              ("ring", "ushort", "u2"), ("time", "float", "f4")]
+    dtype = np.dtype([(name, endian + code) for name, _, code in fields])
+    records = np.zeros(500, dtype=dtype)
+    for name in ("x", "y", "z", "intensity", "time"):
+        records[name] = rng.normal(size=500) * 20
+    records["ring"] = rng.integers(0, 16, 500)
+    path = tmp_path / "scan.ply"
+    path.write_bytes(_ply_bytes(fields, records, order))
+    points, times = read_cloud(path)
+    assert points.dtype == np.float64 and points.shape == (500, 3)
+    assert np.array_equal(points[:, 0], records["x"].astype(np.float64))
+    assert np.array_equal(times, records["time"].astype(np.float64))
+    if order == "binary_little_endian":  # what the open3d reader gives for the same file
+        pcd = open3d().t.io.read_point_cloud(str(path))
+        assert np.array_equal(points, pcd.point.positions.numpy().astype(np.float64))
+    # double coordinates, no time field
+    doubles = np.zeros(7, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+    doubles["x"] = np.arange(7) * 0.1
+    path.write_bytes(_ply_bytes([("x", "double", "f8"), ("y", "double", "f8"), ("z", "double", "f8")], doubles))
+    points, times = read_cloud(path)
+    assert times is None and np.array_equal(points[:, 0], doubles["x"])
+
+
+def test_ply_the_fast_path_does_not_describe_goes_to_open3d(tmp_path):
+    from submapslam.io.cloud_folder import read_cloud
+    from submapslam.io.ply import vertex_dtype
+
+    ascii_ply = b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n" \
+                b"end_header\n1 2 3\n4 5 6\n"
+    assert vertex_dtype(ascii_ply) is None
+    path = tmp_path / "a.ply"
+    path.write_bytes(ascii_ply)
+    points, _ = read_cloud(path)
+    assert np.array_equal(points, [[1, 2, 3], [4, 5, 6]])
+    with_faces = b"ply\nformat binary_little_endian 1.0\nelement face 1\nproperty list uchar int vertex_indices\n" \
+                 b"element vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    assert vertex_dtype(with_faces) is None  # another element first: its size is not known here
+    listed = b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nproperty float y\n" \
+             b"property float z\nproperty list uchar int idx\nend_header\n"
+    assert vertex_dtype(listed) is None

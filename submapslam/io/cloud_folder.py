@@ -24,6 +24,7 @@ import yaml
 from ..errors import InputError
 from .cloud_header import check_cloud_file, header_point_count
 from .compression import open_text
+from .ply import read_ply_vertices
 from .registry import register_reader
 from .scan import Scan, apply_mounting, check_transform
 
@@ -32,6 +33,7 @@ log = logging.getLogger(__name__)
 SCAN_SUFFIXES = (".bin", ".ply", ".pcd")
 _SUBFOLDERS = ("scans", "Scans", "velodyne", "points", "clouds")
 _TIME_FIELDS = ("time", "t", "timestamp")
+_PLY_HEADER_BYTES = 65536
 
 
 def _scan_files(folder: Path) -> list[Path]:
@@ -81,11 +83,17 @@ def read_cloud(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     """PLY/PCD -> ``(N, 3)`` float64 points and ``(N,)`` per-point times (or None)."""
     from .._deps import open3d
 
-    o3d = open3d()
     if path.stat().st_size == 0:
         raise InputError(path, "empty file")
     check_cloud_file(path)  # a header claiming more points than the file holds would stall open3d
-    pcd = o3d.t.io.read_point_cloud(str(path))
+    if path.suffix.lower() == ".ply":
+        with open(path, "rb") as fh:
+            records = read_ply_vertices(path, fh.read(_PLY_HEADER_BYTES))
+        if records is not None:  # binary x/y/z records: numpy reads them ~20x faster than open3d
+            points = np.stack([records["x"], records["y"], records["z"]], axis=1).astype(np.float64)
+            name = next((n for n in _TIME_FIELDS if n in records.dtype.names), None)
+            return points, None if name is None else records[name].astype(np.float64)
+    pcd = open3d().t.io.read_point_cloud(str(path))
     if "positions" not in pcd.point:
         raise InputError(path, "no x/y/z points could be read (not a valid PLY/PCD file?)")
     points = pcd.point.positions.numpy().astype(np.float64).reshape(-1, 3)

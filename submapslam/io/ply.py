@@ -45,3 +45,49 @@ def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None = 
             rows.tofile(fh)
     except OSError as exc:
         raise SubmapSlamError(f"{path}: could not write the PLY file ({exc})") from exc
+
+
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+def vertex_dtype(header: bytes) -> tuple[np.dtype, int, int] | None:
+    """``(record dtype, vertex count, body offset)`` of a binary PLY whose first element is
+    ``vertex`` with scalar properties only (what LiDAR tools and open3d write), from the bytes
+    at the start of the file; None for anything else (ASCII, lists, other elements first)."""
+    end = header.find(b"end_header")
+    if not header.startswith(b"ply") or end < 0:
+        return None
+    lines = [line.split() for line in header[:end].decode("ascii", errors="replace").splitlines()]
+    order, fields, count, element = None, [], None, None
+    for words in lines:
+        if words[:1] == ["format"] and len(words) > 1:
+            order = {"binary_little_endian": "<", "binary_big_endian": ">"}.get(words[1])
+        elif words[:1] == ["element"] and len(words) > 2:
+            if element is not None:
+                break  # the vertex element's properties are complete
+            element = words[1]
+            if element != "vertex" or not words[2].isdigit():
+                return None
+            count = int(words[2])
+        elif words[:1] == ["property"] and element == "vertex":
+            if len(words) != 3 or words[1] not in _PLY_TYPES:
+                return None  # a list property or an unknown type
+            fields.append((words[2], order + _PLY_TYPES[words[1]] if order else ""))
+    names = [name for name, _ in fields]
+    if order is None or count is None or len(set(names)) != len(names) or not {"x", "y", "z"} <= set(names):
+        return None
+    return np.dtype(fields), count, header.find(b"\n", end) + 1
+
+
+def read_ply_vertices(path: str | Path, header: bytes) -> np.ndarray | None:
+    """The vertex records of a binary PLY as a structured array (fields named as in the file),
+    read with numpy in one call; None when :func:`vertex_dtype` does not describe the file or
+    the file is shorter than its header claims (the caller's slower reader then decides)."""
+    layout = vertex_dtype(header)
+    if layout is None:
+        return None
+    dtype, count, offset = layout
+    records = np.fromfile(path, dtype=dtype, count=count, offset=offset)
+    return records if len(records) == count else None
