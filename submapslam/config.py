@@ -37,8 +37,9 @@ class OdometryConfig(_Strict):
     max_range: float = Field(80.0, gt=0, description="drop points farther than this [m]")
     min_range: float = Field(0.3, ge=0, description="drop points closer than this [m]")
     max_points_per_voxel: int | None = Field(
-        None, ge=1, description="points kept per map voxel; None: 20 for planar logs, 3 for 3D (dense scans: "
-        "a few points per 0.8 m voxel still give ICP its neighbours, and the search is ~7x cheaper)"
+        None, ge=1, description="points kept per map voxel; None: 20 for planar logs, 1 for 3D (dense scans: "
+        "one point per 0.8 m voxel still gives ICP its neighbours; on the 3.7 km KITTI-00 city drive 1.7x "
+        "faster than 3 points and less drift, 9.1 m odometry ATE against 14.4)"
     )
     deskew: bool = False
     use_wheel_odometry: bool = Field(True, description="wheel odometry as the ICP initial guess")
@@ -50,7 +51,12 @@ class OdometryConfig(_Strict):
     min_motion_threshold: float = Field(0.1, ge=0)
     max_iterations: int = Field(500, ge=1)
     convergence_criterion: float | None = Field(
-        None, gt=0, description="ICP stops below this pose change; None: 1e-4 for planar logs, 1e-3 for 3D"
+        None, gt=0, description="ICP stops below this pose change; None: 1e-4 for planar logs, 3e-3 for 3D"
+    )
+    separate_process: bool | None = Field(
+        None, description="register scans in a child process, a few scans ahead of the graph work (KISS-ICP "
+        "holds Python's GIL while it registers, so in one process the two wait for each other); the same "
+        "poses either way; None: on for 3D logs, off for 2D lasers"
     )
 
     @model_validator(mode="after")

@@ -17,6 +17,13 @@ from .geometry import inverse, matrix_to_se2, se2_to_matrix
 from .scan import Scan
 
 
+def odometry_voxels(config: OdometryConfig, planar: bool) -> tuple[float, float]:
+    """``(map voxel, frame voxel)`` [m]: KISS-ICP's local-map voxel as resolved for the log's
+    kind, and the voxel each scan is thinned to first (half of it)."""
+    voxel = config.voxel_size or (0.2 if planar else config.max_range / 100.0)
+    return voxel, 0.5 * voxel
+
+
 class Odometry:
     """Incremental odometry: ``register(scan) -> T_odomframe_base`` of that scan.
 
@@ -37,15 +44,14 @@ class Odometry:
         kiss.data.max_range = config.max_range
         kiss.data.min_range = config.min_range
         kiss.data.deskew = config.deskew
-        kiss.mapping.voxel_size = config.voxel_size or (0.2 if planar else config.max_range / 100.0)
-        kiss.mapping.max_points_per_voxel = config.max_points_per_voxel or (20 if planar else 3)
+        kiss.mapping.voxel_size, self.frame_voxel = odometry_voxels(config, planar)
+        kiss.mapping.max_points_per_voxel = config.max_points_per_voxel or (20 if planar else 1)
         kiss.registration.max_num_iterations = config.max_iterations
-        kiss.registration.convergence_criterion = config.convergence_criterion or (1e-4 if planar else 1e-3)
+        kiss.registration.convergence_criterion = config.convergence_criterion or (1e-4 if planar else 3e-3)
         kiss.registration.max_num_threads = 1
         kiss.adaptive_threshold.initial_threshold = config.initial_threshold
         kiss.adaptive_threshold.min_motion_th = config.min_motion_threshold
         self.voxel_size: float = kiss.mapping.voxel_size
-        self.frame_voxel: float = 0.5 * self.voxel_size  # [m] each scan is thinned to this first
         self.last_frame_down = np.zeros((0, 3))
         self.last_xyt: np.ndarray | None = None  # planar: (3,) x, y, yaw of the last scan as refined
         self._preprocessor = get_preprocessor(kiss)

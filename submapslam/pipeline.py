@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterable
 from contextlib import contextmanager
 
@@ -20,8 +21,8 @@ from .errors import InputError, SubmapSlamError
 from .geometry import blend_poses_many, inverse
 from .graph_builder import GraphBuilder
 from .observer import RunObserver, notify_closed_submap
-from .odometry import Odometry
-from .process_stats import current_memory_mb, peak_memory_mb
+from .odometry_stage import InlineOdometry, OdometryProcess, start_odometry
+from .process_stats import combined_peak_mb, current_memory_mb, peak_memory_mb
 from .result import LoopRecord, SlamResult
 from .scan import LoopHint, Scan
 from .submaps import Submap, SubmapBuilder
@@ -68,7 +69,12 @@ class SubmapSLAM:
         self.planar: bool | None = None
         self._fuse_thinned = False  # 3D: fuse the odometry's thinned scans into submaps (set at the first scan)
         self.map_voxel = self.config.mapping.map_voxel_size or 0.1  # resolved for the log's kind at the first scan
-        self._odometry: Odometry | None = None
+        self._odometry: InlineOdometry | OdometryProcess | None = None
+        self._in_flight: deque[Scan] = deque()  # scans submitted for registration, not yet completed
+        self._submitted = 0  # scans handed to the registration stage
+        self._odometry_peak_mb = 0.0  # the odometry child process's peak resident set [MiB], when it ran
+        self._peak_while_odometry_mb = 0.0  # this process's peak [MiB] when the odometry child ended
+        self._odometry_closed = False
         self._wheel_scans = 0  # scans that came with wheel odometry
         self._builder: SubmapBuilder | None = None
         self._graph_builder: GraphBuilder | None = None  # made at the first scan (planar or not)
@@ -91,6 +97,23 @@ class SubmapSLAM:
     # ------------------------------------------------------------------ streaming
     def process_scan(self, scan: Scan) -> None:
         """Register one scan and update submaps, graph and loops as needed."""
+        self.submit_scan(scan)
+        self.complete_scan()
+
+    @property
+    def in_flight(self) -> int:
+        """Scans submitted by :meth:`submit_scan` and not yet completed."""
+        return len(self._in_flight)
+
+    @property
+    def look_ahead(self) -> int:
+        """Scans worth keeping in flight: a few for an odometry child process, none in-process."""
+        return _SCANS_IN_FLIGHT if isinstance(self._odometry, OdometryProcess) else 0
+
+    def submit_scan(self, scan: Scan) -> None:
+        """Hand one scan to the registration stage. With odometry in a child process
+        (``odometry.separate_process``) it is registered there while the caller completes earlier
+        scans; :meth:`complete_scan` takes the oldest. ``process_scan`` is the two in one."""
         if self.planar is None:
             self._start(scan)
         points = scan.points
@@ -103,14 +126,23 @@ class SubmapSLAM:
                 scan.point_times = scan.point_times[finite]
         if len(scan.points) == 0:
             self.empty_scans += 1
-        known = self._replay.known_pose(len(self.timestamps)) if self._replay is not None else None
-        if known is not None and scan.timestamp != self._replay.timestamps[len(self.timestamps)]:
-            raise InputError(scan.source or "log", f"scan {len(self.timestamps)} has timestamp {scan.timestamp}, the "
-                             f"checkpoint's {self._replay.timestamps[len(self.timestamps)]}: not the log it was made from")
-        with self.timer("odometry"):
-            T_odom_base, frame = self._odometry.register(scan, known)
+        index = self._submitted
+        known = self._replay.known_pose(index) if self._replay is not None else None
+        if known is not None and scan.timestamp != self._replay.timestamps[index]:
+            raise InputError(scan.source or "log", f"scan {index} has timestamp {scan.timestamp}, the "
+                             f"checkpoint's {self._replay.timestamps[index]}: not the log it was made from")
+        self._odometry.submit(scan, known)
+        self._in_flight.append(scan)
+        self._submitted += 1
+
+    def complete_scan(self) -> None:
+        """Take the oldest submitted scan's registration; update submaps, graph and loops."""
+        scan = self._in_flight.popleft()
+        with self.timer("odometry"):  # in-process: the registration; a child process: the wait for it
+            registered = self._odometry.result()
+        T_odom_base, frame = registered.pose, registered.frame
         if self.planar:
-            self._planar_poses.append(self._odometry.last_xyt)
+            self._planar_poses.append(registered.xyt)
         self._wheel_scans += scan.odometry is not None
         if self._odom_poses:
             self._travelled += float(np.linalg.norm(T_odom_base[:3, 3] - self._odom_poses[-1][:3, 3]))
@@ -119,7 +151,7 @@ class SubmapSLAM:
         self._scan_submap.append(-1)
         with self.timer("submaps"):
             if self._fuse_thinned:
-                submap = self._builder.add(len(self.timestamps) - 1, T_odom_base, self._odometry.last_frame_down,
+                submap = self._builder.add(len(self.timestamps) - 1, T_odom_base, registered.frame_down,
                                            full_scan=frame)
             else:
                 submap = self._builder.add(len(self.timestamps) - 1, T_odom_base, frame)
@@ -131,7 +163,7 @@ class SubmapSLAM:
     def _start(self, scan: Scan) -> None:
         self.planar = bool(scan.planar)
         cfg = self.config
-        self._odometry = Odometry(cfg.odometry, self.planar)
+        self._odometry = start_odometry(cfg.odometry, self.planar)
         voxel = cfg.submaps.voxel_size or self._odometry.voxel_size / 2.0
         # 3D: a submap at the odometry's thinning voxel or coarser is the same when fused from the
         # thinned scans, with ~5x fewer points to transform and voxelise
@@ -303,6 +335,9 @@ class SubmapSLAM:
         (``interrupted``: the scans stop before the end of the log, marked in the result)."""
         if self.planar is None:
             raise SubmapSlamError(f"{source or 'log'}: no scans were processed")
+        while self._in_flight:
+            self.complete_scan()
+        self.close()
         last = self._builder.flush()
         if last is not None:
             self._close_submap(last, background=False)
@@ -341,12 +376,25 @@ class SubmapSLAM:
             path_length_m=self._travelled,
             memory_mb_by_km=list(self.memory_mb_by_km),
             scans_by_wall_time=list(self.scans_by_wall_time),
-            peak_memory_mb=peak_memory_mb(),
+            peak_memory_mb=combined_peak_mb(peak_memory_mb(), self._peak_while_odometry_mb, self._odometry_peak_mb),
+            main_peak_memory_mb=peak_memory_mb(),
+            odometry_peak_memory_mb=self._odometry_peak_mb,
+            peak_while_odometry_mb=self._peak_while_odometry_mb,
             input_error=input_error,
             source=source,
             interrupted=interrupted,
             submap_descriptors=self._descriptors(n),
         )
+
+    def close(self) -> None:
+        """End the registration stage (an odometry child process stops; scans in flight are
+        dropped). :meth:`finish` calls it; call it yourself when abandoning a run."""
+        if self._odometry is not None and not self._odometry_closed:
+            self._peak_while_odometry_mb = peak_memory_mb()
+            self._odometry.close()
+            self._odometry_peak_mb = self._odometry.peak_memory_mb
+            self._odometry_closed = True
+        self._in_flight.clear()
 
     def _descriptors(self, n: int) -> np.ndarray | None:
         """The loop closer's ``n`` submap descriptors in id order, or None (loops off)."""
@@ -390,44 +438,66 @@ def run(
                               "the checkpoint already covers")
     input_error = None
     interrupted = False
-    n = 0
+    n = 0  # scans completed
+    submitted = 0
     last_checkpoint = 0  # submaps closed at the last checkpoint
-    with ReadAhead(scans) as iterator:
-        while True:
-            if stop is not None and stop.is_set():
-                interrupted = True
-                log.warning("stopped after %d scans on request", n)
-                break
-            try:
-                with slam.timer("read"):  # time spent waiting for the reader
-                    scan = next(iterator)
-            except StopIteration:
-                break
-            except InputError as exc:
-                if n == 0:
-                    raise
-                input_error = str(exc)
-                log.info("stopped reading: %s", exc)  # the result carries it; the CLI prints it once
-                break
-            slam.process_scan(scan)
-            n += 1
-            if (on_checkpoint is not None and checkpoint_every
-                    and len(slam.submaps) >= last_checkpoint + checkpoint_every):
-                last_checkpoint = len(slam.submaps)
-                on_checkpoint(slam.checkpoint(source))
-            if progress is not None:
-                progress(n)
-            if config.max_scans is not None and n >= config.max_scans:
-                break
+
+    def complete_one() -> None:
+        nonlocal n, last_checkpoint
+        slam.complete_scan()
+        n += 1
+        if (on_checkpoint is not None and checkpoint_every
+                and len(slam.submaps) >= last_checkpoint + checkpoint_every):
+            last_checkpoint = len(slam.submaps)
+            on_checkpoint(slam.checkpoint(source))
+        if progress is not None:
+            progress(n)
+
+    try:
+        with ReadAhead(scans) as iterator:
+            while config.max_scans is None or submitted < config.max_scans:
+                if stop is not None and stop.is_set():
+                    interrupted = True
+                    log.warning("stopped after %d scans on request", n)
+                    break
+                try:
+                    with slam.timer("read"):  # time spent waiting for the reader
+                        scan = next(iterator)
+                except StopIteration:
+                    break
+                except InputError as exc:
+                    if submitted == 0:
+                        raise
+                    input_error = str(exc)
+                    log.info("stopped reading: %s", exc)  # the result carries it; the CLI prints it once
+                    break
+                slam.submit_scan(scan)
+                submitted += 1
+                if slam.in_flight > slam.look_ahead:
+                    complete_one()
+        if interrupted:
+            slam.close()  # the result ends with the scan completed when the stop came: drop those in flight
+        while slam.in_flight:  # the scans read are all completed (the end of the log, an input error)
+            complete_one()
+    except BaseException:
+        slam.close()
+        raise
     if n == 0 and interrupted:
+        slam.close()
         raise SubmapSlamError(f"{source or 'log'}: stopped before the first scan was processed")
     if resume_from is not None and n < resume_from.n_scans and input_error is None and not interrupted:
+        slam.close()
         raise InputError(source or "log", f"holds {n} scans, fewer than the {resume_from.n_scans} of the checkpoint")
     if interrupted and on_checkpoint is not None:
         on_checkpoint(slam.checkpoint(source))
     result = slam.finish(input_error=input_error, source=source, interrupted=interrupted)
     result.log_info = dict(getattr(scans, "log_info", None) or {})  # the reader's account (record, skips)
     return result
+
+
+# scans registered ahead of the one being completed: keeps an odometry child process busy
+# while the main process builds submaps (a few scans: ~1 MB each, ~20 ms of registration)
+_SCANS_IN_FLIGHT = 3
 
 
 class ReadAhead:

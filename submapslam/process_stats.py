@@ -10,6 +10,19 @@ def peak_memory_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def combined_peak_mb(main_peak_mb: float, main_peak_when_child_ended_mb: float, child_peak_mb: float) -> float:
+    """Peak [MiB] of this process and a child process that ended before this process's work was
+    done: at most this process's peak when the child ended plus the child's own peak, and after
+    that, this process's peak alone."""
+    return max(main_peak_mb, main_peak_when_child_ended_mb + child_peak_mb)
+
+
+def peaks_by_process(main_peak_mb: float, main_peak_when_child_ended_mb: float, child_peak_mb: float) -> dict:
+    """``summary.json``'s ``peak_memory_mb_by_process``: the figures :func:`combined_peak_mb` adds up."""
+    return {"main": round(main_peak_mb, 1), "odometry": round(child_peak_mb, 1),
+            "main_when_odometry_ended": round(main_peak_when_child_ended_mb, 1)}
+
+
 def current_memory_mb() -> float:
     """Resident set of this process now [MiB] (``/proc/self/statm``; the peak where unavailable)."""
     try:

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import PipelineConfig
+from .process_stats import peaks_by_process
 
 
 @dataclass
@@ -59,7 +60,14 @@ class SlamResult:
         memory_mb_by_km: ``(km travelled, resident MiB)`` when each submap closed.
         scans_by_wall_time: ``(seconds since the engine's start, scans done)`` when each submap
             closed (scans/s along the run).
-        peak_memory_mb: the process's peak resident set [MiB] (``ru_maxrss``) when the result was made.
+        peak_memory_mb: peak resident set [MiB] when the result was made: this process's
+            (``ru_maxrss``); when registration ran in a child process, at least this process's
+            peak when the child ended plus the child's own peak (an upper bound of what both held
+            at once: the child ends before the maps are fused).
+        odometry_peak_memory_mb: the odometry child process's peak resident set [MiB] (its
+            ``VmHWM``); 0 when the scans were registered in this process.
+        main_peak_memory_mb: this process's own peak resident set [MiB] (``ru_maxrss``).
+        peak_while_odometry_mb: this process's peak [MiB] when the odometry child ended (0: none ran).
         input_error: message of an input error that stopped reading early (results cover
             the scans read before it), else None.
         source: the log the scans came from.
@@ -92,6 +100,9 @@ class SlamResult:
     memory_mb_by_km: list[tuple[float, float]] = field(default_factory=list)
     scans_by_wall_time: list[tuple[float, int]] = field(default_factory=list)
     peak_memory_mb: float = 0.0
+    odometry_peak_memory_mb: float = 0.0
+    main_peak_memory_mb: float = 0.0
+    peak_while_odometry_mb: float = 0.0
     input_error: str | None = None
     source: str = ""
     interrupted: bool = False
@@ -128,6 +139,8 @@ class SlamResult:
             "wall_time_total_s": round(self.wall_time_s, 3),
             "scans_per_second": round(self.n_scans / self.wall_time_s, 2) if self.wall_time_s > 0 else None,
             "peak_memory_mb": round(self.peak_memory_mb, 1),
+            "peak_memory_mb_by_process": peaks_by_process(self.main_peak_memory_mb, self.peak_while_odometry_mb,
+                                                          self.odometry_peak_memory_mb),
             "memory_mb_by_km": [[round(km, 4), round(mb, 1)] for km, mb in self.memory_mb_by_km],
             "scans_by_wall_time_s": [[round(t, 3), n] for t, n in self.scans_by_wall_time],
             "input_error": self.input_error,

@@ -12,7 +12,7 @@ import numpy as np
 from ..config import dump_config
 from ..geometry import matrix_to_se2
 from ..mapping.global_map import MapOutputs
-from ..process_stats import peak_memory_mb
+from ..process_stats import combined_peak_mb, peak_memory_mb, peaks_by_process
 from ..result import SlamResult
 from .g2o import write_g2o
 from .ply import write_ply
@@ -62,7 +62,10 @@ def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs,
     summary["wall_time_total_s"] = round(total, 3)
     summary["scans_per_second"] = round(result.n_scans / max(total, 1e-9), 2)
     summary["cleared_cells"] = maps.cleared_cells
-    summary["peak_memory_mb"] = round(peak_memory_mb(), 1)
+    # this process's, and the odometry child's when it ran in one (process_stats.combined_peak_mb)
+    peaks = (peak_memory_mb(), result.peak_while_odometry_mb, result.odometry_peak_memory_mb)
+    summary["peak_memory_mb"] = round(combined_peak_mb(*peaks), 1)
+    summary["peak_memory_mb_by_process"] = peaks_by_process(*peaks)
     paths["summary.json"].write_text(json.dumps(summary, indent=2) + "\n")
     return paths
 

@@ -1,0 +1,249 @@
+"""Where scans are registered: in this process, or in a child process a few scans ahead.
+
+KISS-ICP's registration holds Python's GIL for its whole call (about 20 ms for a 16-ring
+scan), so in one process it cannot overlap with the submap-graph work (loop tests, iSAM2) that
+runs in a thread beside it: each waits for the other. :class:`OdometryProcess` runs the same
+:class:`~submapslam.odometry.Odometry` in a child process with a core of its own; the scans go
+in, ``(pose, frame)`` come back in order, the same numbers the in-process
+:class:`InlineOdometry` gives (the computation is the same, float64 end to end).
+
+Both stages have one interface: :meth:`submit` a scan, :meth:`result` the oldest scan not yet
+returned, :meth:`close` at the end.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import queue
+import struct
+import sys
+import threading
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .config import OdometryConfig
+from .errors import SubmapSlamError
+from .odometry import Odometry, odometry_voxels
+from .scan import Scan
+
+Known = tuple[np.ndarray, np.ndarray | None] | None  # a resumed run's (T_odom_base, xyt or None)
+
+
+@dataclass
+class Registered:
+    """One registered scan.
+
+    pose: ``(4, 4)`` ``T_odom_base``. frame: ``(N, 3)`` the scan's points in its base frame after
+    range filtering and motion compensation. frame_down: the same thinned to the odometry's
+    ``frame_voxel`` (what registration used). xyt: planar logs: ``(3,)`` x, y, yaw as refined.
+    """
+
+    pose: np.ndarray
+    frame: np.ndarray
+    frame_down: np.ndarray
+    xyt: np.ndarray | None
+
+
+class InlineOdometry:
+    """Registration in this process, when :meth:`result` is called."""
+
+    def __init__(self, config: OdometryConfig, planar: bool) -> None:
+        self._odometry = Odometry(config, planar)
+        self.voxel_size, self.frame_voxel = self._odometry.voxel_size, self._odometry.frame_voxel
+        self._pending: deque[tuple[Scan, Known]] = deque()
+        self.peak_memory_mb = 0.0  # no child process
+
+    def submit(self, scan: Scan, known: Known = None) -> None:
+        self._pending.append((scan, known))
+
+    def result(self) -> Registered:
+        scan, known = self._pending.popleft()
+        pose, frame = self._odometry.register(scan, known)
+        return Registered(pose, frame, self._odometry.last_frame_down, self._odometry.last_xyt)
+
+    def close(self) -> None:
+        self._pending.clear()
+
+
+def _send(stream, message: object) -> None:
+    data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+    stream.write(struct.pack("<Q", len(data)))
+    stream.write(data)
+    stream.flush()
+
+
+def _receive(stream) -> object:
+    """One message, or raise EOFError when the other side has closed the pipe."""
+    head = stream.read(8)
+    if len(head) < 8:
+        raise EOFError
+    size = struct.unpack("<Q", head)[0]
+    data = stream.read(size)
+    if len(data) < size:
+        raise EOFError
+    return pickle.loads(data)
+
+
+def _own_peak_kib() -> int:
+    """This process's peak resident set [KiB]: ``VmHWM``, the high-water mark of its own memory
+    image. (``ru_maxrss`` of a child started by fork + exec also counts the parent's image it
+    was forked from, hundreds of MiB it never used.)"""
+    import resource
+
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1])
+    except (OSError, ValueError, IndexError):
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+
+
+def _exact_float32(values: np.ndarray | None) -> np.ndarray | None:
+    """``values`` as float32 when that loses nothing (scans read from float32 files: half the
+    bytes to send), else as they are."""
+    if values is not None and values.dtype == np.float64:
+        single = values.astype(np.float32)
+        if np.array_equal(single, values):
+            return single
+    return values
+
+
+def _kept_points(points: np.ndarray, frame: np.ndarray, config: OdometryConfig) -> np.ndarray | None:
+    """A boolean mask with ``points[mask] == frame`` exactly (the frame is the scan range-filtered,
+    not deskewed: 30x fewer bytes to send than the frame), or None when it is not that."""
+    if config.deskew:
+        return None
+    distance = np.linalg.norm(points, axis=1)
+    mask = (distance < config.max_range) & (distance > config.min_range)
+    return mask if int(mask.sum()) == len(frame) and np.array_equal(points[mask], frame) else None
+
+
+def _serve() -> None:
+    """The child process (``python -m submapslam.odometry_stage``): the config first, then
+    scans from stdin until None, each answered on stdout; last, its peak resident set [KiB].
+    Anything a library prints goes to stderr: stdout carries only the messages."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it finishes the scans in flight
+    inbox, outbox = sys.stdin.buffer, os.fdopen(os.dup(1), "wb")
+    os.dup2(2, 1)
+    try:
+        config, planar = _receive(inbox)
+        odometry = Odometry(OdometryConfig(**config), planar)
+        while (item := _receive(inbox)) is not None:
+            points, point_times, wheel, known = item
+            points = points.astype(np.float64)
+            point_times = None if point_times is None else point_times.astype(np.float64)
+            try:
+                pose, frame = odometry.register(Scan(0, 0.0, points, point_times, wheel, planar), known)
+                kept = _kept_points(points, frame, odometry.config)
+                _send(outbox, ("ok", (pose, frame if kept is None else kept, odometry.last_frame_down,
+                                      odometry.last_xyt)))
+            except Exception as exc:  # noqa: BLE001 - handed to the parent, raised there
+                _send(outbox, ("error", f"{exc.__class__.__name__}: {exc}"))
+        _send(outbox, ("peak", _own_peak_kib()))
+    except (EOFError, BrokenPipeError):  # the parent is gone
+        pass
+
+
+class OdometryProcess:
+    """Registration in a child process (``python -m submapslam.odometry_stage``, a fresh
+    interpreter: nothing of this process is copied or re-run, not even a caller's script).
+
+    Scans are queued without waiting (a writer thread feeds the child); :meth:`result` waits for
+    the oldest. The child ignores SIGINT (the parent decides what an interrupt means) and ends
+    when its input closes.
+    """
+
+    def __init__(self, config: OdometryConfig, planar: bool) -> None:
+        import subprocess
+
+        self.voxel_size, self.frame_voxel = odometry_voxels(config, planar)
+        package_root = str(Path(__file__).resolve().parent.parent)
+        env = dict(os.environ, PYTHONPATH=os.pathsep.join(
+            [package_root, *filter(None, [os.environ.get("PYTHONPATH")])]))
+        self._process = subprocess.Popen([sys.executable, "-m", "submapslam.odometry_stage"], stdin=subprocess.PIPE,
+                                         stdout=subprocess.PIPE, env=env)
+        self._outbox: queue.Queue = queue.Queue()
+        self._writer = threading.Thread(target=self._feed, name="odometry-feeder", daemon=True)
+        self._writer.start()
+        self._outbox.put((config.model_dump(), planar))
+        self._in_flight = 0
+        self._submitted: deque[np.ndarray] = deque()  # the points of the scans in flight
+        self.peak_memory_mb = 0.0  # the child's peak resident set [MiB], known after close()
+
+    def _feed(self) -> None:
+        try:
+            while True:
+                message = self._outbox.get()
+                _send(self._process.stdin, message)
+                if message is None:
+                    break
+        except (BrokenPipeError, OSError, ValueError):  # the child has ended: result() says so
+            pass
+
+    def submit(self, scan: Scan, known: Known = None) -> None:
+        self._outbox.put((_exact_float32(scan.points), _exact_float32(scan.point_times), scan.odometry, known))
+        self._submitted.append(scan.points)
+        self._in_flight += 1
+
+    def _answer(self) -> tuple[str, object]:
+        try:
+            return _receive(self._process.stdout)
+        except EOFError:
+            code = self._process.wait()
+            raise SubmapSlamError(f"the odometry process ended unexpectedly (exit code {code})") from None
+
+    def result(self) -> Registered:
+        if not self._in_flight:
+            raise SubmapSlamError("no scan was submitted to the odometry process")
+        kind, value = self._answer()
+        self._in_flight -= 1
+        points = self._submitted.popleft()
+        if kind == "error":
+            raise SubmapSlamError(f"odometry: {value}")
+        pose, frame, frame_down, xyt = value
+        return Registered(pose, points[frame] if frame.dtype == bool else frame, frame_down, xyt)
+
+    def close(self) -> None:
+        """Stop the child (scans still in flight are dropped) and record its peak memory."""
+        if self._process.poll() is None:
+            self._outbox.put(None)
+            try:
+                while True:
+                    kind, value = self._answer()
+                    if kind == "peak":
+                        self.peak_memory_mb = value / 1024.0
+                        break
+            except SubmapSlamError:
+                pass
+            try:
+                self._process.wait(timeout=10.0)
+            except Exception:  # noqa: BLE001 - a child that does not end is stopped
+                self._process.kill()
+                self._process.wait()
+        self._writer.join(timeout=1.0)
+        for stream in (self._process.stdin, self._process.stdout):
+            try:
+                stream.close()
+            except OSError:
+                pass
+        self._in_flight = 0
+        self._submitted.clear()
+
+
+def start_odometry(config: OdometryConfig, planar: bool) -> InlineOdometry | OdometryProcess:
+    """The registration stage ``config.separate_process`` asks for (None: a child process for
+    3D logs, in this process for 2D lasers, whose scans register in about a millisecond)."""
+    separate = config.separate_process if config.separate_process is not None else not planar
+    return OdometryProcess(config, planar) if separate else InlineOdometry(config, planar)
+
+
+if __name__ == "__main__":
+    _serve()

@@ -1,0 +1,94 @@
+"""Registration in a child process: the same poses as in this process, its memory counted,
+a dead child reported in one line, and a caller's script never re-run by it."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from datasets_synth import generate
+from submapslam.config import OdometryConfig
+from submapslam.errors import SubmapSlamError
+from submapslam.io.registry import open_log
+from submapslam.odometry_stage import InlineOdometry, OdometryProcess, start_odometry
+
+CLI = [sys.executable, "-m", "submapslam"]
+
+
+@pytest.fixture(scope="module")
+def outdoor_log(tmp_path_factory):
+    return generate("outdoor", tmp_path_factory.mktemp("odo") / "log", seed=3, laps=1, blocks=(1, 1), max_scans=40)
+
+
+def test_child_process_registers_exactly_as_this_process(outdoor_log):
+    scans = list(open_log(outdoor_log))
+    inline, child = InlineOdometry(OdometryConfig(), False), OdometryProcess(OdometryConfig(), False)
+    try:
+        for scan in scans:  # all queued before the first answer: the child works ahead
+            child.submit(scan)
+        for scan in scans:
+            inline.submit(scan)
+            a, b = inline.result(), child.result()
+            assert np.array_equal(a.pose, b.pose)
+            assert np.array_equal(a.frame, b.frame) and np.array_equal(a.frame_down, b.frame_down)
+        assert (child.voxel_size, child.frame_voxel) == (inline.voxel_size, inline.frame_voxel)
+        moved = np.linalg.norm(a.pose[:3, 3])
+        assert moved > 5.0  # the scans really were registered along the drive
+    finally:
+        child.close()
+    assert child.peak_memory_mb > 20  # the child's own high-water mark, reported on close
+    assert child._process.poll() is not None  # and it has ended
+
+
+def test_a_dead_child_is_one_clear_error(outdoor_log):
+    scan = next(iter(open_log(outdoor_log)))
+    child = OdometryProcess(OdometryConfig(), False)
+    try:
+        child._process.kill()
+        child.submit(scan)
+        with pytest.raises(SubmapSlamError, match="odometry process ended unexpectedly"):
+            child.result()
+    finally:
+        child.close()
+
+
+def test_default_stage_is_a_child_for_3d_and_inline_for_2d():
+    for planar, kind in ((True, InlineOdometry), (False, OdometryProcess)):
+        stage = start_odometry(OdometryConfig(), planar)
+        try:
+            assert isinstance(stage, kind)
+        finally:
+            stage.close()
+    stage = start_odometry(OdometryConfig(separate_process=False), False)
+    assert isinstance(stage, InlineOdometry)
+
+
+def test_run_counts_the_child_in_its_peak_and_does_not_rerun_the_callers_script(outdoor_log, tmp_path):
+    # a script without the `if __name__ == "__main__"` guard: a multiprocessing spawn would
+    # import it again in the child; the odometry process must not
+    script = tmp_path / "user_script.py"
+    marker = tmp_path / "started.txt"
+    script.write_text(
+        "import pathlib\n"
+        f"m = pathlib.Path({str(marker)!r}); m.write_text(m.read_text() + 'x' if m.exists() else 'x')\n"
+        "from submapslam.api import run_log\n"
+        f"run_log({str(outdoor_log)!r}, {str(tmp_path / 'out')!r})\n")
+    done = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert marker.read_text() == "x"
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    by_process = summary["peak_memory_mb_by_process"]
+    assert by_process["odometry"] > 20 and by_process["main"] >= by_process["main_when_odometry_ended"] > 20
+    # the child ends before the maps are fused: the peak of both is bounded by the larger of the
+    # main process's peak and its peak when the child ended plus the child's
+    bound = max(by_process["main"], by_process["main_when_odometry_ended"] + by_process["odometry"])
+    assert summary["peak_memory_mb"] == pytest.approx(bound, abs=0.11)
+    # the 2D path keeps registration in the process: nothing to add
+    planar = subprocess.run([*CLI, "run", str(generate("rectangle", tmp_path / "r", laps=1, max_scans=30)),
+                             "--out", str(tmp_path / "out2")], capture_output=True, text=True, timeout=300)
+    assert planar.returncode == 0, planar.stderr
+    assert json.loads((tmp_path / "out2" / "summary.json").read_text())["peak_memory_mb_by_process"]["odometry"] == 0
