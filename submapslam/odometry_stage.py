@@ -13,6 +13,7 @@ returned, :meth:`close` at the end.
 
 from __future__ import annotations
 
+import logging
 import os
 import pickle
 import queue
@@ -30,6 +31,7 @@ from .errors import SubmapSlamError
 from .odometry import Odometry, odometry_voxels
 from .scan import Scan
 
+log = logging.getLogger(__name__)
 Known = tuple[np.ndarray, np.ndarray | None] | None  # a resumed run's (T_odom_base, xyt or None)
 
 
@@ -70,6 +72,7 @@ class InlineOdometry:
 
 
 def _send(stream, message: object) -> None:
+    """One message: its pickled length (8 bytes, little-endian), then the pickle."""
     data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
     stream.write(struct.pack("<Q", len(data)))
     stream.write(data)
@@ -240,9 +243,14 @@ class OdometryProcess:
 
 def start_odometry(config: OdometryConfig, planar: bool) -> InlineOdometry | OdometryProcess:
     """The registration stage ``config.separate_process`` asks for (None: a child process for
-    3D logs, in this process for 2D lasers, whose scans register in about a millisecond)."""
+    3D logs, in this process for 2D lasers, whose scans register in a few milliseconds)."""
     separate = config.separate_process if config.separate_process is not None else not planar
-    return OdometryProcess(config, planar) if separate else InlineOdometry(config, planar)
+    if separate:
+        try:
+            return OdometryProcess(config, planar)
+        except OSError as exc:  # no process could be started (limits, no interpreter): the same poses here
+            log.warning("odometry runs in this process: its child process could not start (%s)", exc)
+    return InlineOdometry(config, planar)
 
 
 if __name__ == "__main__":
