@@ -390,7 +390,8 @@ class SubmapSLAM:
         """End the registration stage (an odometry child process stops; scans in flight are
         dropped). :meth:`finish` calls it; call it yourself when abandoning a run."""
         if self._odometry is not None and not self._odometry_closed:
-            self._peak_while_odometry_mb = peak_memory_mb()
+            if isinstance(self._odometry, OdometryProcess):
+                self._peak_while_odometry_mb = peak_memory_mb()
             self._odometry.close()
             self._odometry_peak_mb = self._odometry.peak_memory_mb
             self._odometry_closed = True
