@@ -480,15 +480,14 @@ def run(
             slam.close()  # the result ends with the scan completed when the stop came: drop those in flight
         while slam.in_flight:  # the scans read are all completed (the end of the log, an input error)
             complete_one()
+        if n == 0 and interrupted:
+            raise SubmapSlamError(f"{source or 'log'}: stopped before the first scan was processed")
+        if resume_from is not None and n < resume_from.n_scans and input_error is None and not interrupted:
+            raise InputError(source or "log",
+                             f"holds {n} scans, fewer than the {resume_from.n_scans} of the checkpoint")
     except BaseException:
-        slam.close()
+        slam.close()  # no result follows: end the odometry process
         raise
-    if n == 0 and interrupted:
-        slam.close()
-        raise SubmapSlamError(f"{source or 'log'}: stopped before the first scan was processed")
-    if resume_from is not None and n < resume_from.n_scans and input_error is None and not interrupted:
-        slam.close()
-        raise InputError(source or "log", f"holds {n} scans, fewer than the {resume_from.n_scans} of the checkpoint")
     if interrupted and on_checkpoint is not None:
         on_checkpoint(slam.checkpoint(source))
     result = slam.finish(input_error=input_error, source=source, interrupted=interrupted)

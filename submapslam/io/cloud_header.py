@@ -12,9 +12,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import InputError
+from .ply import PLY_TYPES
 
-_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
-              "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+_PLY_SIZES = {name: int(code[1]) for name, code in PLY_TYPES.items()}  # bytes of each PLY scalar type
 _HEADER_BYTES = 65536
 _MAX_LZF_RATIO = 100  # LZF, PCD's compression, packs at most ~90:1
 

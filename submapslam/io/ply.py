@@ -47,9 +47,9 @@ def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None = 
         raise SubmapSlamError(f"{path}: could not write the PLY file ({exc})") from exc
 
 
-_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
-              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+             "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+             "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}  # PLY scalar type -> numpy code
 
 
 def vertex_dtype(header: bytes) -> tuple[np.dtype, int, int] | None:
@@ -72,9 +72,9 @@ def vertex_dtype(header: bytes) -> tuple[np.dtype, int, int] | None:
                 return None
             count = int(words[2])
         elif words[:1] == ["property"] and element == "vertex":
-            if len(words) != 3 or words[1] not in _PLY_TYPES:
+            if len(words) != 3 or words[1] not in PLY_TYPES:
                 return None  # a list property or an unknown type
-            fields.append((words[2], order + _PLY_TYPES[words[1]] if order else ""))
+            fields.append((words[2], order + PLY_TYPES[words[1]] if order else ""))
     names = [name for name, _ in fields]
     if order is None or count is None or len(set(names)) != len(names) or not {"x", "y", "z"} <= set(names):
         return None
