@@ -336,12 +336,24 @@ class SessionConfig(_Strict):
     min_links: int = Field(
         3, ge=1, description="session submaps with verified, mutually consistent links to the map needed to "
         "place a session (links of one session submap count once)")
+    min_candidate_links: int = Field(
+        2, ge=1, description="a group of consistent place-recognition links from this many session submaps is a "
+        "candidate placement, tried by the guided search (which must then confirm it from min_links session "
+        "submaps); capped by min_links. Only when place recognition tested every hypothesis it had (not stopped "
+        "by max_recognition_tests), and only when no other candidate is confirmed too")
+    max_candidates: int = Field(
+        4, ge=1, description="groups of consistent place-recognition links tried by the guided search, best first, "
+        "per session and try (weaker groups than min_candidate_links only tell whether a candidate is ambiguous)")
     enough_links: int = Field(
         6, ge=1, description="stop place recognition once consistent links come from this many session submaps")
     min_agreement: float = Field(
         0.3, ge=0, le=1, description="share of the session submaps a placement puts on the map that must be "
         "verified there (a false placement by look-alike places is contradicted by the rest of the session)")
     guided_per_submap: int = Field(2, ge=0, description="nearest map submaps tested per session submap once placed")
+    guided_passes: int = Field(
+        3, ge=1, description="rounds of the guided search per candidate placement; each later round searches "
+        "through the links the one before found (the session's own drift bends its frame along the way); "
+        "stops early when a round links no new session submap")
     densify_passes: int = Field(
         3, ge=0, description="rounds of (search near the optimised estimate, optimise) after a placement; "
         "stops early when a round adds no link")

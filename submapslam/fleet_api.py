@@ -157,16 +157,17 @@ def batch_logs(
     on_done: Callable[[LogOutcome], None] | None = None,
     num_cpus: int | None = None,
 ) -> BatchReport:
-    """Run every log's front end (a Ray task each, or one after another), then merge.
+    """Run every log's front end (a Ray task each, or one after another) and merge them.
 
     Each log's results go to ``out_dir/<name>/`` (``name``: the log's file name without its
     extensions), the merged map to ``out_dir/merged/``. A log that fails is reported (``ok``
     False, ``error``) and left out of the merge; the others are kept. ``use_ray``: None = Ray
     when installed (or when ``address`` is given), False = sequential; ``address``: an existing
     Ray cluster (default: a local instance with ``num_cpus``). ``on_done`` is called as each log
-    finishes.
+    finishes. The merge takes the logs in the order given, each as soon as it and the logs before
+    it are done (beside the logs still running on Ray), so both executors give the same map.
     """
-    from .fleet import merge_sessions, session_names
+    from .fleet import SessionMerger, session_names
     from .io.map_store import load_map
 
     t0 = time.perf_counter()
@@ -178,8 +179,12 @@ def batch_logs(
     if (use_ray or address) and ray is None:
         raise SubmapSlamError("Ray is not installed: pip install 'submapslam[ray]' (or run without --address)")
     args = [(str(p), n, str(out / n), cfg, format, max_scans) for p, n in zip(logs, names)]
+    merger: SessionMerger | None = None
+    finished: set[int] = set()
+    next_log = 0  # the merge takes the logs in the order given, each as soon as it and those before it are done
 
     def record(k: int, value: dict | None, error: BaseException | None) -> None:
+        nonlocal merger, next_log
         o = outcomes[k]
         if error is not None:
             o.ok, o.error = False, _one_line(error)
@@ -190,6 +195,20 @@ def batch_logs(
             o.error = value.get("input_error") or ""
         if on_done is not None:
             on_done(o)
+        finished.add(k)
+        while next_log in finished:
+            o = outcomes[next_log]
+            next_log += 1
+            if not o.ok:
+                continue
+            session = load_map(out / o.name / "map")
+            if merger is None:
+                merger = SessionMerger(session, cfg)
+                continue
+            try:
+                merger.add(session)
+            except SubmapSlamError as exc:  # e.g. a 2D log among 3D ones: its own results stay
+                o.error = f"not merged: {exc}"
 
     if ray is not None:
         executor = "ray"
@@ -204,9 +223,10 @@ def batch_logs(
                 done, _ = ray.wait(list(pending), num_returns=1)
                 k = pending.pop(done[0])
                 try:
-                    record(k, ray.get(done[0]), None)
+                    value, error = ray.get(done[0]), None
                 except Exception as exc:  # a failed log is reported; the others go on
-                    record(k, None, exc)
+                    value, error = None, exc
+                record(k, value, error)
         finally:
             if started_here:
                 ray.shutdown()
@@ -214,20 +234,20 @@ def batch_logs(
         executor = "sequential"
         for k, a in enumerate(args):
             try:
-                record(k, front_end(*a), None)
+                value, error = front_end(*a), None
             except Exception as exc:  # a failed log is reported; the others go on
-                record(k, None, exc)
+                value, error = None, exc
+            record(k, value, error)
     front_end_s = time.perf_counter() - t0
-    good = [o for o in outcomes if o.ok]
     merged = merged_dir = None
-    if good:
-        maps = [load_map(out / o.name / "map") for o in good]
-        merged = merge_sessions(maps[0], maps[1:], cfg) if len(maps) > 1 else maps[0]
+    if merger is not None:
+        merged = merger.finish()
         merged_dir = out / "merged"
         write_session_map(merged, merged_dir)
         by_name = {s.name: s for s in merged.sessions}
-        for o in good:
-            o.placed, o.links = by_name[o.name].placed, by_name[o.name].links
+        for o in outcomes:
+            if o.name in by_name:
+                o.placed, o.links = by_name[o.name].placed, by_name[o.name].links
     return BatchReport(outcomes, merged_dir, time.perf_counter() - t0, executor, merged, front_end_s)
 
 

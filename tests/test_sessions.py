@@ -135,3 +135,74 @@ def test_session_names_are_log_names_without_extensions(tmp_path):
     (tmp_path / "drive").mkdir()
     assert session_names(["x/intel.clf.bz2", "y/intel.clf", str(tmp_path / "drive"), "merged.log"]) == \
         ["intel", "intel_2", "drive", "merged_2"]
+
+
+def test_a_weak_candidate_confirmed_alongside_another_is_ambiguous_and_not_placed(sessions):
+    # the hallway rectangle looks the same turned by 180 degrees: with few recognition hypotheses
+    # (top 2 at descriptor distance <= 0.25) only 2 session submaps agree on a frame, and the rest of
+    # B confirms that frame as well as the turned one; a weak candidate must then not place B
+    cfg = sessions["cfg"].model_copy(deep=True)
+    cfg.sessions.descriptor_top_k, cfg.sessions.descriptor_max_distance = 2, 0.25
+    merged = merge_sessions(sessions["map_a"], [session_map_from_result(sessions["res_b"], "b")], cfg)
+    b = merged.sessions[1]
+    assert not b.placed and "ambiguous" in b.note, b.note
+    assert not any(r.accepted for r in merged.result.loops if r.source == "session")
+    # with more hypotheses, links from 4 session submaps agree: a strong candidate, placed right
+    cfg.sessions.descriptor_max_distance = 0.3
+    merged = merge_sessions(sessions["map_a"], [session_map_from_result(sessions["res_b"], "b")], cfg)
+    b = merged.sessions[1]
+    truth_b = inverse(sessions["truth_a"][0]) @ sessions["truth_b"]
+    err = np.linalg.norm(merged.result.poses[b.scans][:, :3, 3] - truth_b[:, :3, 3], axis=1)
+    assert b.placed and err.mean() < 0.15, (b.note, err.mean())
+
+
+def test_a_wrong_candidate_placement_is_not_confirmed(sessions, tmp_path):
+    # every single verified match of another building is a candidate (min_candidate_links 1):
+    # the guided search around each finds too little of the session on the map
+    log = generate("rectangle", tmp_path / "other", seed=5, laps=1, size=(26.0, 18.0), width=5.0, max_scans=300)
+    res = run(list(open_log(log))[::2], sessions["cfg"], source=str(log))
+    cfg = sessions["cfg"].model_copy(deep=True)
+    cfg.sessions.min_candidate_links = 1
+    merged = merge_sessions(sessions["map_a"], [session_map_from_result(res, "other")], cfg)
+    other = merged.sessions[1]
+    assert not other.placed and "candidate placement(s) tried" in other.note, other.note
+    assert not any(r.accepted for r in merged.result.loops if r.source == "session")
+
+
+def test_consistent_groups_are_ranked_by_distinct_session_submaps():
+    from submapslam.config import SessionConfig
+    from submapslam.geometry import se2_to_matrix
+    from submapslam.topology.session_placement import consistent_groups, largest_consistent_group
+
+    cfg = SessionConfig()
+    F_a, F_b = se2_to_matrix(10.0, 0.0, 0.3), se2_to_matrix(-5.0, 8.0, 2.0)
+    poses = [se2_to_matrix(float(k), 0.0, 0.0) for k in range(6)]
+    # links 0-2 agree on F_a (session submaps 0, 1, 2), 3-4 on F_b (submaps 3, 3: one observation), 5 alone
+    frames = [F_a, F_a, F_a, F_b, F_b, se2_to_matrix(0.0, 40.0, -1.0)]
+    js = [0, 1, 2, 3, 3, 5]
+    groups = consistent_groups(frames, poses, js, cfg)
+    assert groups[0] == [0, 1, 2] and groups[1] == [3, 4] and groups[2] == [5]
+    assert consistent_groups(frames, poses, js, cfg, min_support=2) == [[0, 1, 2]]
+    assert largest_consistent_group(frames, poses, js, cfg) == [0, 1, 2]
+    assert consistent_groups([], [], [], cfg) == []
+
+
+def test_an_unplaced_session_is_not_tried_again_against_the_same_map(sessions, tmp_path, monkeypatch):
+    from submapslam.topology.session_placement import SessionPlacer
+
+    log = generate("rectangle", tmp_path / "other", seed=5, laps=1, size=(26.0, 18.0), width=5.0, max_scans=300)
+    other = session_map_from_result(run(list(open_log(log))[::2], sessions["cfg"], source=str(log)), "other")
+    b = session_map_from_result(sessions["res_b"], "b")
+    tries: list[int] = []
+    real = SessionPlacer.place
+
+    def counted(self, submaps, map_ids, map_poses, map_desc, ids, *rest):
+        tries.append(ids[0])
+        return real(self, submaps, map_ids, map_poses, map_desc, ids, *rest)
+
+    monkeypatch.setattr(SessionPlacer, "place", counted)
+    merged = merge_sessions(sessions["map_a"], [other, b], sessions["cfg"])
+    assert [s.placed for s in merged.sessions] == [True, False, True]
+    first_other = merged.sessions[1].submap_start
+    # "other" tried when added and once more after b was placed; b once; nothing twice against one map
+    assert tries.count(first_other) == 2 and len(tries) == 3

@@ -2,9 +2,10 @@
 
 ``session_map_from_result`` makes a :class:`~submapslam.session_map.SessionMap` of one run;
 ``merge_sessions`` places further sessions against it (:mod:`submapslam.topology.session_placement`)
-and optimises the merged graph (:mod:`submapslam.backend`), one map in one frame.
+and optimises the merged graph (:mod:`submapslam.backend`), one map in one frame;
+``SessionMerger`` does the same one session at a time (``batch`` merges each log as it is done).
 """
 
-from .merge import merge_sessions, session_map_from_result, session_names
+from .merge import SessionMerger, merge_sessions, session_map_from_result, session_names
 
-__all__ = ["merge_sessions", "session_map_from_result", "session_names"]
+__all__ = ["SessionMerger", "merge_sessions", "session_map_from_result", "session_names"]

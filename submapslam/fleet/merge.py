@@ -220,83 +220,129 @@ def _optimise(result: SlamResult, sessions: list[SessionInfo], config: PipelineC
     return rejected
 
 
+class SessionMerger:
+    """Adds sessions to a map one at a time, in the order given, then tries the unplaced ones again.
+
+    ``add`` places each new session against the sessions already in the map frame (then
+    optimises the merged graph and searches again near the optimised estimate), so a caller can
+    merge each log as soon as it and the logs before it are done (``batch`` does, beside the
+    logs still running); ``finish`` retries the sessions not yet placed while any placement
+    succeeds, since sessions in any order may find their place through each other. The same
+    sessions added in the same order give the same map.
+    """
+
+    def __init__(self, base: SessionMap, config: PipelineConfig | None = None) -> None:
+        from ..topology.loop_closure import LoopCloser
+        from ..topology.session_placement import SessionPlacer
+
+        self.config = config or base.result.config
+        self._t0 = time.perf_counter()
+        self._seconds = 0.0
+        result, sessions, descriptors = _concatenate([base])  # copies: ``base`` is not changed
+        result.poses, result.submap_poses = result.poses.copy(), result.submap_poses.copy()
+        self.map = SessionMap(result, sessions, descriptors)
+        self._n_base = base.n_sessions
+        self._tried_at: dict[int, int] = {}  # session index -> sessions placed when it was last tried
+        planar = base.result.planar
+        cfg = self.config
+        voxel = cfg.submaps.voxel_size or _submap_voxel(base.result)
+        self._closer = LoopCloser(cfg.loops, planar=planar, voxel_size=voxel, max_range=cfg.odometry.max_range,
+                                  submap_length=cfg.submaps.max_distance or (5.0 if planar else 12.0))
+        self._placer = SessionPlacer(self._closer, cfg.sessions)
+        self._submaps = _submaps(result)
+
+    def add(self, addition: SessionMap) -> None:
+        """Append ``addition``'s sessions (not changed) and try to place each of them."""
+        t = time.perf_counter()
+        if addition.result.planar != self.map.result.planar:
+            from ..errors import InputError
+
+            raise InputError(addition.result.source or addition.sessions[0].name,
+                             "a 2D laser session cannot join a 3D LiDAR map (or the reverse)")
+        first = self.map.n_sessions
+        result, sessions, descriptors = _concatenate([self.map, addition])
+        result.poses, result.submap_poses = result.poses.copy(), result.submap_poses.copy()
+        for s in sessions[first:]:
+            s.placed, s.links, s.note = False, 0, ""
+        self.map = SessionMap(result, sessions, descriptors)
+        self._submaps += _submaps(result)[len(self._submaps):]  # ids are global and appended
+        for k in range(first, len(sessions)):
+            self._try(k)
+        self._seconds += time.perf_counter() - t
+
+    def finish(self) -> SessionMap:
+        """Retry the unplaced sessions while any placement succeeds; return the merged map."""
+        t = time.perf_counter()
+        result, sessions = self.map.result, self.map.sessions
+        progress = True
+        while progress:
+            progress = False
+            for k in range(self._n_base, len(sessions)):
+                placed_now = sum(s.placed for s in sessions)
+                if not sessions[k].placed and self._tried_at.get(k) != placed_now:  # else: the same map again
+                    progress |= self._try(k)
+        if not any(s.placed for s in sessions[self._n_base:]) and len(sessions) > self._n_base:
+            _mark_rejected(result, _optimise(result, sessions, self.config))  # covariances of the joint graph
+        self._seconds += time.perf_counter() - t
+        result.stage_seconds = {**result.stage_seconds, "merge": self._seconds}
+        result.wall_time_s += self._seconds
+        return self.map
+
+    def _try(self, k: int) -> bool:
+        """Place session ``k`` against the sessions in the map frame; True when it was placed."""
+        result, sessions, descriptors = self.map.result, self.map.sessions, self.map.descriptors
+        s, config, placer, submaps = sessions[k], self.config, self._placer, self._submaps
+        self._tried_at[k] = sum(m.placed for m in sessions)
+        map_ids = [i for m in sessions if m.placed for i in m.submaps]
+        if not map_ids:
+            return False
+        ids = list(s.submaps)
+        placement = placer.place(
+            submaps, map_ids, {i: result.submap_poses[i] for i in map_ids}, {i: descriptors[i] for i in map_ids},
+            ids, {i: result.submap_poses[i] for i in ids}, {i: descriptors[i] for i in ids})
+        s.note = placement.reason
+        tested = {(lp.i, lp.j) for lp in result.loops}
+        result.loops.extend(r for r in placement.records if (r.i, r.j) not in tested)
+        if placement.T_map_session is None:
+            return False
+        _move_session(result, s, placement.T_map_session)
+        s.placed, s.links = True, len(placement.links)
+        for i in s.submaps:  # the session's anchors now lie in the map frame
+            submaps[i].T_odom_anchor = result.submap_poses[i]
+        _mark_rejected(result, _optimise(result, sessions, config))
+        added = 0
+        for _ in range(config.sessions.densify_passes):  # more links where the optimised estimate puts it
+            others = [i for m in sessions if m.placed and m is not s for i in m.submaps]
+            tested = {(lp.i, lp.j) for lp in result.loops}
+            dense = placer.densify(submaps, others, {i: result.submap_poses[i] for i in others}, ids,
+                                   {i: result.submap_poses[i] for i in ids}, tested)
+            result.loops.extend(dense)
+            s.links += sum(r.accepted for r in dense)
+            added += sum(r.accepted for r in dense)
+            if not any(r.accepted for r in dense):
+                break
+            _mark_rejected(result, _optimise(result, sessions, config))
+        if added:
+            s.note += f"; {added} more link(s) near the optimised estimate"
+        for i in range(result.n_submaps):
+            submaps[i].T_odom_anchor = result.submap_poses[i]
+        log.info("session %s: %s", s.name, s.note)
+        return True
+
+
 def merge_sessions(base: SessionMap, additions: list[SessionMap],
                    config: PipelineConfig | None = None) -> SessionMap:
-    """Add the sessions of ``additions`` to the map ``base``: each is placed against the sessions
-    already in the map frame (retried after every success, so sessions in any order find their
-    place through each other), then the merged graph is optimised.
+    """Add the sessions of ``additions`` to the map ``base`` (:class:`SessionMerger`): each is
+    placed against the sessions already in the map frame as it is added, the unplaced ones are
+    tried again after every later success, and the merged graph is optimised.
 
     Returns the merged map (``base`` and ``additions`` are not changed); a session that found no
     consistent overlap is kept with ``placed`` False, in its own frame, with the reason in ``note``.
     """
-    from ..topology.loop_closure import LoopCloser
-    from ..topology.session_placement import SessionPlacer
-
-    t0 = time.perf_counter()
-    config = config or base.result.config
-    maps = [base, *additions]
-    if len({m.result.planar for m in maps}) > 1:
-        from ..errors import InputError
-
-        odd = next(m for m in additions if m.result.planar != base.result.planar)
-        raise InputError(odd.result.source or odd.sessions[0].name,
-                         "a 2D laser session cannot join a 3D LiDAR map (or the reverse)")
-    result, sessions, descriptors = _concatenate(maps)
-    result.poses, result.submap_poses = result.poses.copy(), result.submap_poses.copy()
-    n_base = base.n_sessions
-    for s in sessions[n_base:]:
-        s.placed, s.links, s.note = False, 0, ""
-    planar = result.planar
-    voxel = config.submaps.voxel_size or _submap_voxel(result)
-    closer = LoopCloser(config.loops, planar=planar, voxel_size=voxel, max_range=config.odometry.max_range,
-                        submap_length=config.submaps.max_distance or (5.0 if planar else 12.0))
-    placer = SessionPlacer(closer, config.sessions)
-    submaps = _submaps(result)
-    progress = True
-    while progress:
-        progress = False
-        for s in sessions[n_base:]:
-            if s.placed:
-                continue
-            map_ids = [k for m in sessions if m.placed for k in m.submaps]
-            if not map_ids:
-                continue
-            ids = list(s.submaps)
-            placement = placer.place(
-                submaps, map_ids, {k: result.submap_poses[k] for k in map_ids}, {k: descriptors[k] for k in map_ids},
-                ids, {k: result.submap_poses[k] for k in ids}, {k: descriptors[k] for k in ids})
-            s.note = placement.reason
-            fresh = [r for r in placement.records if (r.i, r.j) not in {(lp.i, lp.j) for lp in result.loops}]
-            result.loops.extend(fresh)
-            if placement.T_map_session is None:
-                continue
-            _move_session(result, s, placement.T_map_session)
-            s.placed, s.links, progress = True, len(placement.links), True
-            for k in s.submaps:  # the session's anchors now lie in the map frame
-                submaps[k].T_odom_anchor = result.submap_poses[k]
-            _mark_rejected(result, _optimise(result, sessions, config))
-            added = 0
-            for _ in range(config.sessions.densify_passes):  # more links where the optimised estimate puts it
-                others = [k for m in sessions if m.placed and m is not s for k in m.submaps]
-                tested = {(lp.i, lp.j) for lp in result.loops}
-                dense = placer.densify(submaps, others, {k: result.submap_poses[k] for k in others}, ids,
-                                       {k: result.submap_poses[k] for k in ids}, tested)
-                result.loops.extend(dense)
-                s.links += sum(r.accepted for r in dense)
-                added += sum(r.accepted for r in dense)
-                if not any(r.accepted for r in dense):
-                    break
-                _mark_rejected(result, _optimise(result, sessions, config))
-            if added:
-                s.note += f"; {added} more link(s) near the optimised estimate"
-            for k in range(result.n_submaps):
-                submaps[k].T_odom_anchor = result.submap_poses[k]
-            log.info("session %s: %s", s.name, s.note)
-    if not any(s.placed for s in sessions[n_base:]) and len(sessions) > n_base:
-        _mark_rejected(result, _optimise(result, sessions, config))  # covariances of the joint graph
-    result.stage_seconds = {**result.stage_seconds, "merge": time.perf_counter() - t0}
-    result.wall_time_s += time.perf_counter() - t0
-    return SessionMap(result, sessions, descriptors)
+    merger = SessionMerger(base, config)
+    for addition in additions:
+        merger.add(addition)
+    return merger.finish()
 
 
 def _mark_rejected(result: SlamResult, rejected: list[tuple[int, int, str]]) -> None:

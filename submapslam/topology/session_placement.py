@@ -47,6 +47,20 @@ class Placement:
         return [r for r in self.records if r.accepted]
 
 
+@dataclass
+class _Confirmation:
+    """The guided search for one candidate placement: the links ``group`` it came from, its frame
+    ``T_map_session`` (4, 4), the records tested, session submaps linked / put on the map."""
+
+    group: list[int]
+    frame: np.ndarray
+    records: list[LoopRecord]
+    linked: int
+    on_map: int
+    agreement: float
+    confirmed: bool
+
+
 class _MapPoses:
     """The map's submap poses, read the way the loop closer reads a graph."""
 
@@ -77,9 +91,10 @@ def consistent(F_a: np.ndarray, F_b: np.ndarray, T_session_a: np.ndarray, T_sess
     return True
 
 
-def largest_consistent_group(frames: list[np.ndarray], session_poses: list[np.ndarray], session_ids: list[int],
-                             config: SessionConfig, scores: list[float] | None = None) -> list[int]:
-    """Indices of the best set of pairwise-consistent links (greedy cliques from every seed).
+def consistent_groups(frames: list[np.ndarray], session_poses: list[np.ndarray], session_ids: list[int],
+                      config: SessionConfig, scores: list[float] | None = None, min_support: int = 1) -> list[list[int]]:
+    """Candidate placements: groups of pairwise-consistent links (a greedy clique from every seed),
+    best first, each at most once, those from at least ``min_support`` distinct session submaps.
 
     Best = most distinct session submaps (links of one session submap to adjacent map submaps
     are one observation, not independent evidence), then most links, then the highest summed
@@ -94,18 +109,25 @@ def largest_consistent_group(frames: list[np.ndarray], session_poses: list[np.nd
         for b in range(a + 1, n):
             ok[a, b] = ok[b, a] = consistent(frames[a], frames[b], session_poses[a], session_poses[b], config)
     degree = ok.sum(axis=1)
-    best: list[int] = []
-    best_key = (0, 0, 0.0)
+    keyed: dict[tuple[int, ...], tuple[int, int, float]] = {}
     for seed in range(n):
         group = [seed]
         for c in sorted(np.flatnonzero(ok[seed]), key=lambda c: (-degree[c], -scores[c], c)):
             c = int(c)
             if c not in group and all(ok[c, g] for g in group):
                 group.append(c)
-        key = (len({session_ids[g] for g in group}), len(group), sum(scores[g] for g in group))
-        if key > best_key:
-            best, best_key = sorted(group), key
-    return best
+        members = tuple(sorted(group))
+        keyed.setdefault(members, (len({session_ids[g] for g in group}), len(group), sum(scores[g] for g in group)))
+    # ties keep the order of the first seed that found them (the greedy search's own order)
+    order = sorted(keyed, key=lambda g: keyed[g], reverse=True)
+    return [list(g) for g in order if keyed[g][0] >= min_support]
+
+
+def largest_consistent_group(frames: list[np.ndarray], session_poses: list[np.ndarray], session_ids: list[int],
+                             config: SessionConfig, scores: list[float] | None = None) -> list[int]:
+    """Indices of the best set of pairwise-consistent links (see :func:`consistent_groups`)."""
+    groups = consistent_groups(frames, session_poses, session_ids, config, scores)
+    return groups[0] if groups else []
 
 
 def distinct(group: list[int], session_ids: list[int]) -> int:
@@ -142,20 +164,101 @@ class SessionPlacer:
         ``submaps``: every submap, indexed by global id (map's and session's); ``map_ids`` /
         ``session_ids``: global ids of each side; ``map_poses``: ``T_map_submap``;
         ``session_poses``: ``T_session_submap`` (the session's own frame); descriptors per id.
+
+        Three steps: place recognition gives verified links; groups of mutually consistent links
+        are candidate placements (best first); the first candidate that the rest of the session
+        confirms by the guided search places the session.
         """
-        cfg, loops = self.config, self.loops
+        cfg = self.config
         graph = _MapPoses(map_poses)
+        links, records, tested = self._recognise(submaps, map_ids, map_descriptors, session_ids, session_poses,
+                                                 session_descriptors, graph)
+        accepted = [r for r in records if r.accepted]
+        frames = [f for f, _, _ in links]
+        link_js = [j for _, j, _ in links]
+        fitness = [r.fitness for _, _, r in links]
+        # weaker candidates only when recognition saw every hypothesis it had (else the others, and
+        # so whether a candidate is ambiguous, are unknown)
+        weakest = cfg.min_links if tested >= cfg.max_recognition_tests else min(cfg.min_candidate_links, cfg.min_links)
+        groups = consistent_groups(frames, [session_poses[j] for j in link_js], link_js, cfg, fitness)
+        support = distinct(groups[0], link_js) if groups else 0
+        if support < weakest:
+            for rec in accepted:
+                rec.accepted, rec.information = False, None
+                rec.reason = f"not confirmed: consistent links from {support} session submap(s) < {weakest} needed"
+            why = (f"not placed: {len(accepted)} verified match(es) with the map, consistent ones from at most "
+                   f"{support} session submap(s) (need {weakest}); {tested} hypotheses tested")
+            return Placement(None, records, why)
+        # the best candidate the guided search confirms places the session; one from fewer than
+        # min_links session submaps only when no other group of links (weaker ones included) is
+        # confirmed too: look-alike places, a symmetric building, confirm a wrong frame as well
+        candidates = groups[: cfg.max_candidates]
+        outcomes: list[_Confirmation] = []
+        for rank, group in enumerate(candidates):
+            outcome = self._confirm(group, links, {(r.i, r.j) for r in records}, submaps, map_ids, map_poses,
+                                    session_ids, session_poses, graph)
+            outcomes.append(outcome)
+            log.info("candidate placement %d (%d links from %d session submaps): confirmed by %d of %d (%.0f%%)",
+                     rank + 1, len(group), distinct(group, link_js), outcome.linked, outcome.on_map,
+                     100 * outcome.agreement)
+            if outcome.confirmed and distinct(group, link_js) >= cfg.min_links:
+                break
+        confirmed = [o for o in outcomes if o.confirmed]
+        placing = [o for o in confirmed if distinct(o.group, link_js) >= weakest]
+        outcome = placing[0] if placing else outcomes[0]  # none confirmed: report the best candidate's search
+        outcome.confirmed = bool(placing)
+        if len(confirmed) > 1 and distinct(outcome.group, link_js) < cfg.min_links:
+            for o in confirmed:
+                o.confirmed = False
+            for rec in accepted:
+                rec.accepted, rec.information = False, None
+                rec.reason = "ambiguous: other cross-session links confirm another placement"
+            for rec in (r for o in outcomes for r in o.records if r.accepted):
+                rec.accepted, rec.information = False, None
+                rec.reason = "ambiguous: the session is confirmed in more than one place"
+            return Placement(None, records + outcome.records, (
+                f"not placed: ambiguous, {len(confirmed)} candidate placements (from fewer than {cfg.min_links} "
+                f"session submaps each by place recognition) are each confirmed by the rest of the session"))
+        members = {id(links[k][2]) for k in outcome.group} if outcome.confirmed else set()
+        for rec in accepted:
+            if id(rec) not in members:
+                rec.accepted, rec.information = False, None
+                rec.reason = ("inconsistent with the other cross-session links" if outcome.confirmed else
+                              "placement not confirmed by the other session submaps")
+        records += outcome.records
+        group_support = distinct(outcome.group, link_js)
+        if not outcome.confirmed:
+            for rec in outcome.records:
+                if rec.accepted:
+                    rec.accepted, rec.information = False, None
+                    rec.reason = "placement not confirmed by the other session submaps"
+            return Placement(None, records, (
+                f"not placed: the best placement ({group_support} session submaps agreeing by place recognition; "
+                f"{len(candidates)} candidate placement(s) tried) is confirmed by only {outcome.linked} of the "
+                f"{outcome.on_map} session submaps it puts on the map ({outcome.agreement:.0%}; "
+                f"{cfg.min_agreement:.0%} and {cfg.min_links} needed)"))
+        n_links = sum(r.accepted for r in records)
+        log.info("session placed by %d links (%d in the recognition group, candidate %d)", n_links,
+                 len(outcome.group), outcomes.index(outcome) + 1)
+        return Placement(outcome.frame, records, (
+            f"placed by {n_links} verified link(s) ({len(outcome.group)} agreeing by place recognition, from "
+            f"{group_support} session submaps; {outcome.linked} of the {outcome.on_map} session submaps on the "
+            f"map confirm it)"))
+
+    def _recognise(self, submaps: list[Submap], map_ids: list[int], map_descriptors: dict[int, np.ndarray],
+                   session_ids: list[int], session_poses: dict[int, np.ndarray],
+                   session_descriptors: dict[int, np.ndarray], graph: _MapPoses
+                   ) -> tuple[list[tuple[np.ndarray, int, LoopRecord]], list[LoopRecord], int]:
+        """Place recognition: descriptor hypotheses, verified; stops once consistent links come from
+        ``enough_links`` session submaps. Returns the links ``(T_map_session implied, session
+        submap j, record)``, every tested record and the number of tests."""
+        cfg = self.config
         index = DescriptorIndex()
         for i in map_ids:
             index.add(i, map_descriptors[i])
         records: list[LoopRecord] = []
-        frames: list[np.ndarray] = []
-        link_poses: list[np.ndarray] = []
-        link_js: list[int] = []
-        fitness: list[float] = []
-        group: list[int] = []
+        links: list[tuple[np.ndarray, int, LoopRecord]] = []
         tested = 0
-        # 1. place recognition: descriptor hypotheses, verified; stop once enough links agree
         for j in session_ids:
             for i, dist, yaw in index.query(session_descriptors[j], cfg.descriptor_top_k):
                 if dist > cfg.descriptor_max_distance or tested >= cfg.max_recognition_tests:
@@ -164,75 +267,67 @@ class SessionPlacer:
                 rec = self._verify(Hypothesis(i, j, "session", None, yaw, None), submaps, graph)
                 records.append(rec)
                 if rec.accepted:
-                    frames.append(implied_frame(map_poses[i], rec.T_i_j, session_poses[j]))
-                    link_poses.append(session_poses[j])
-                    link_js.append(j)
-                    fitness.append(rec.fitness)
-            group = largest_consistent_group(frames, link_poses, link_js, cfg, fitness)
-            if distinct(group, link_js) >= cfg.enough_links:
+                    links.append((implied_frame(graph.pose(i), rec.T_i_j, session_poses[j]), j, rec))
+            frames = [f for f, _, _ in links]
+            js = [j for _, j, _ in links]
+            group = largest_consistent_group(frames, [session_poses[m] for m in js], js, cfg,
+                                             [r.fitness for _, _, r in links])
+            if distinct(group, js) >= cfg.enough_links:
                 break
-        accepted = [r for r in records if r.accepted]
-        support = distinct(group, link_js)
-        if support < cfg.min_links:
-            for rec in accepted:
-                rec.accepted, rec.information = False, None
-                rec.reason = (f"not confirmed: consistent links from {support} session submap(s) "
-                              f"< {cfg.min_links} needed")
-            why = (f"not placed: {len(accepted)} verified match(es) with the map, consistent ones from at most "
-                   f"{support} session submap(s) (need {cfg.min_links}); {tested} hypotheses tested")
-            return Placement(None, records, why)
-        members = {id(accepted[k]) for k in group}
-        for rec in accepted:
-            if id(rec) not in members:
-                rec.accepted, rec.information = False, None
-                rec.reason = "inconsistent with the other cross-session links"
-        best = max(group, key=lambda k: accepted[k].fitness)
-        F = frames[best]
-        # 2. guided search: each session submap against the map submaps near where it now lies;
-        # a right placement is confirmed by most session submaps that land on the map
-        done = {(r.i, r.j) for r in records}
-        linked = {link_js[k] for k in group}
+        return links, records, tested
+
+    def _confirm(self, group: list[int], links: list[tuple[np.ndarray, int, LoopRecord]],
+                 done: set[tuple[int, int]], submaps: list[Submap],
+                 map_ids: list[int], map_poses: dict[int, np.ndarray], session_ids: list[int],
+                 session_poses: dict[int, np.ndarray], graph: _MapPoses) -> _Confirmation:
+        """The guided search for one candidate placement (the links ``group``): each session submap
+        against the map submaps near where the candidate puts it. A right placement is confirmed by
+        most session submaps that land on the map, and by at least ``min_links`` of them. Pairs in
+        ``done`` (tested by place recognition) are not tested again."""
+        cfg, loops = self.config, self.loops
+        best = max(group, key=lambda k: links[k][2].fitness)
+        linked = {links[k][1] for k in group}
         radius = loops.spatial_min_radius or (5.0 if self.closer.planar else 20.0)
         map_xyz = np.array([map_poses[i][:3, 3] for i in map_ids])
-        on_map = 0
+        records: list[LoopRecord] = []
         # the frame each verified link implies, by session submap: a session submap is searched
         # for through the link nearest to it along the session (drift between the two sessions
         # bends the frame along the way; one frame for all would miss the far end)
-        local = {link_js[k]: frames[k] for k in group}
-        for j in session_ids:
-            F_j = local[min(local, key=lambda m: (abs(m - j), m))]
-            Q = F_j @ session_poses[j]
-            d = np.linalg.norm(map_xyz - Q[:3, 3], axis=1)
-            near = [map_ids[k] for k in np.argsort(d, kind="stable")[: cfg.guided_per_submap] if d[k] <= radius]
-            on_map += bool(near) or j in linked
-            for i in near:
-                if (i, j) in done:
-                    continue
-                guess = inverse(map_poses[i]) @ Q
-                rec = self._verify(Hypothesis(i, j, "session", guess, None, loops.min_search_window), submaps, graph)
-                frame = implied_frame(map_poses[i], rec.T_i_j, session_poses[j]) if rec.accepted else None
-                if rec.accepted and not consistent(F_j, frame, session_poses[j], session_poses[j], cfg):
-                    rec.accepted, rec.information = False, None
-                    rec.reason = "inconsistent with the session's placement"
-                records.append(rec)
-                if rec.accepted:
-                    linked.add(j)
-                    local.setdefault(j, frame)
+        local = {links[k][1]: links[k][0] for k in group}
+        tried = set(done)
+        # outward from the candidate's links along the session, so that each link found moves the
+        # frame its neighbours are searched through
+        seeds = sorted(local)
+        order = sorted(session_ids, key=lambda j: (min(abs(j - m) for m in seeds), j))
+        for _ in range(max(1, cfg.guided_passes)):  # later passes: through the links the last one found
+            on_map, found = 0, False
+            for j in order:
+                F_j = local[min(local, key=lambda m: (abs(m - j), m))]
+                Q = F_j @ session_poses[j]
+                d = np.linalg.norm(map_xyz - Q[:3, 3], axis=1)
+                near = [map_ids[k] for k in np.argsort(d, kind="stable")[: cfg.guided_per_submap] if d[k] <= radius]
+                on_map += bool(near) or j in linked
+                for i in near:
+                    if (i, j) in tried:
+                        continue
+                    tried.add((i, j))
+                    guess = inverse(map_poses[i]) @ Q
+                    rec = self._verify(Hypothesis(i, j, "session", guess, None, loops.min_search_window), submaps,
+                                       graph)
+                    frame = implied_frame(map_poses[i], rec.T_i_j, session_poses[j]) if rec.accepted else None
+                    if rec.accepted and not consistent(F_j, frame, session_poses[j], session_poses[j], cfg):
+                        rec.accepted, rec.information = False, None
+                        rec.reason = "inconsistent with the session's placement"
+                    records.append(rec)
+                    if rec.accepted:
+                        found |= j not in local
+                        linked.add(j)
+                        local.setdefault(j, frame)
+            if not found:
+                break
         agreement = len(linked) / max(on_map, 1)
-        if agreement < cfg.min_agreement:
-            for rec in records:
-                if rec.accepted:
-                    rec.accepted, rec.information = False, None
-                    rec.reason = "placement not confirmed by the other session submaps"
-            return Placement(None, records, (
-                f"not placed: the best placement ({support} session submaps agreeing by place recognition) is "
-                f"confirmed by only {len(linked)} of the {on_map} session submaps it puts on the map "
-                f"({agreement:.0%} < {cfg.min_agreement:.0%})"))
-        n_links = sum(r.accepted for r in records)
-        log.info("session placed by %d links (%d in the recognition group)", n_links, len(group))
-        return Placement(F, records, (
-            f"placed by {n_links} verified link(s) ({len(group)} agreeing by place recognition, from {support} "
-            f"session submaps; {len(linked)} of the {on_map} session submaps on the map confirm it)"))
+        confirmed = agreement >= cfg.min_agreement and len(linked) >= cfg.min_links
+        return _Confirmation(group, links[best][0], records, len(linked), on_map, agreement, confirmed)
 
     def densify(self, submaps: list[Submap], map_ids: list[int], map_poses: dict[int, np.ndarray],
                 session_ids: list[int], session_poses: dict[int, np.ndarray],
