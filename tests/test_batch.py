@@ -89,10 +89,13 @@ def test_batch_reports_a_failed_log_and_merges_the_others(sequential):
 
 def test_batch_on_ray_gives_the_same_trajectories(logs, sequential, tmp_path):
     pytest.importorskip("ray")
-    _, a, b, _ = logs
+    _, a, b, bad = logs
     seq_out, seq, _ = sequential
-    par = batch_logs([a, b], tmp_path / "ray", use_ray=True, num_cpus=2, max_scans=BATCH_SCANS)
-    assert par.executor == "ray" and all(o.ok for o in par.logs)
+    # the same logs, the broken one among them: each log's task, then the merge in the order given
+    # (each log as soon as it and those before it are done), whatever order the tasks end in
+    par = batch_logs([a, bad, b], tmp_path / "ray", use_ray=True, num_cpus=2, max_scans=BATCH_SCANS)
+    assert par.executor == "ray" and [o.ok for o in par.logs] == [True, False, True]
+    assert "broken.clf" in par.logs[1].error
     for name in ("hall.a", "hall.b"):
         assert (tmp_path / "ray" / name / "poses_tum.txt").read_bytes() == (seq_out / name / "poses_tum.txt").read_bytes()
     assert (tmp_path / "ray" / "merged" / "poses_tum.txt").read_bytes() == \
