@@ -206,3 +206,18 @@ def test_an_unplaced_session_is_not_tried_again_against_the_same_map(sessions, t
     first_other = merged.sessions[1].submap_start
     # "other" tried when added and once more after b was placed; b once; nothing twice against one map
     assert tries.count(first_other) == 2 and len(tries) == 3
+
+
+def test_a_3d_session_does_not_join_a_2d_map_in_one_clear_line(sessions):
+    from dataclasses import replace
+
+    from submapslam.fleet import SessionMerger
+
+    lidar = session_map_from_result(replace(sessions["res_b"], planar=False), "lidar")
+    with pytest.raises(InputError, match="cannot join") as exc:
+        merge_sessions(sessions["map_a"], [session_map_from_result(sessions["res_b"], "b"), lidar], sessions["cfg"])
+    assert "\n" not in str(exc.value)
+    merger = SessionMerger(sessions["map_a"], sessions["cfg"])
+    with pytest.raises(InputError, match="cannot join"):
+        merger.add(lidar)
+    assert merger.finish().n_sessions == 1  # the map is as it was

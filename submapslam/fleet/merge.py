@@ -236,7 +236,6 @@ class SessionMerger:
         from ..topology.session_placement import SessionPlacer
 
         self.config = config or base.result.config
-        self._t0 = time.perf_counter()
         self._seconds = 0.0
         result, sessions, descriptors = _concatenate([base])  # copies: ``base`` is not changed
         result.poses, result.submap_poses = result.poses.copy(), result.submap_poses.copy()
@@ -254,11 +253,7 @@ class SessionMerger:
     def add(self, addition: SessionMap) -> None:
         """Append ``addition``'s sessions (not changed) and try to place each of them."""
         t = time.perf_counter()
-        if addition.result.planar != self.map.result.planar:
-            from ..errors import InputError
-
-            raise InputError(addition.result.source or addition.sessions[0].name,
-                             "a 2D laser session cannot join a 3D LiDAR map (or the reverse)")
+        _check_kind(self.map, addition)
         first = self.map.n_sessions
         result, sessions, descriptors = _concatenate([self.map, addition])
         result.poses, result.submap_poses = result.poses.copy(), result.submap_poses.copy()
@@ -339,10 +334,21 @@ def merge_sessions(base: SessionMap, additions: list[SessionMap],
     Returns the merged map (``base`` and ``additions`` are not changed); a session that found no
     consistent overlap is kept with ``placed`` False, in its own frame, with the reason in ``note``.
     """
+    for addition in additions:  # before any work
+        _check_kind(base, addition)
     merger = SessionMerger(base, config)
     for addition in additions:
         merger.add(addition)
     return merger.finish()
+
+
+def _check_kind(base: SessionMap, addition: SessionMap) -> None:
+    """A 2D laser session and a 3D LiDAR map (or the reverse) do not merge: one clear line."""
+    if addition.result.planar != base.result.planar:
+        from ..errors import InputError
+
+        raise InputError(addition.result.source or addition.sessions[0].name,
+                         "a 2D laser session cannot join a 3D LiDAR map (or the reverse)")
 
 
 def _mark_rejected(result: SlamResult, rejected: list[tuple[int, int, str]]) -> None:
