@@ -47,7 +47,7 @@ class Placement:
         return [r for r in self.records if r.accepted]
 
 
-@dataclass
+@dataclass(eq=False)  # compared by identity (holds arrays)
 class _Confirmation:
     """The guided search for one candidate placement: the links ``group`` it came from, its frame
     ``T_map_session`` (4, 4), the records tested, session submaps linked / put on the map."""
