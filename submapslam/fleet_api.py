@@ -13,10 +13,16 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
 
 from .config import PipelineConfig, load_config
 from .errors import SubmapSlamError
 from .session_map import SessionMap
+
+if TYPE_CHECKING:
+    from .topology.session_placement import VerifyMany
 
 log = logging.getLogger(__name__)
 
@@ -180,6 +186,7 @@ def batch_logs(
         raise SubmapSlamError("Ray is not installed: pip install 'submapslam[ray]' (or run without --address)")
     args = [(str(p), n, str(out / n), cfg, format, max_scans) for p, n in zip(logs, names)]
     merger: SessionMerger | None = None
+    verify_elsewhere = None  # on Ray: the merge's independent placement tests on the workers too
     finished: set[int] = set()
     next_log = 0  # the merge takes the logs in the order given, each as soon as it and those before it are done
 
@@ -203,7 +210,7 @@ def batch_logs(
                 continue
             session = load_map(out / o.name / "map")
             if merger is None:
-                merger = SessionMerger(session, cfg)
+                merger = SessionMerger(session, cfg, verify_elsewhere)
                 continue
             try:
                 merger.add(session)
@@ -217,6 +224,7 @@ def batch_logs(
             ray.init(address=address, num_cpus=None if address else num_cpus, include_dashboard=False,
                      log_to_driver=False, configure_logging=False)
         try:
+            verify_elsewhere = _ray_verifier(ray, int(ray.cluster_resources().get("CPU", 1)))
             task = ray.remote(num_cpus=1, max_retries=0)(front_end)
             pending = {task.remote(*a): k for k, a in enumerate(args)}
             while pending:
@@ -249,6 +257,34 @@ def batch_logs(
             if o.name in by_name:
                 o.placed, o.links = by_name[o.name].placed, by_name[o.name].links
     return BatchReport(outcomes, merged_dir, time.perf_counter() - t0, executor, merged, front_end_s)
+
+
+def _ray_verifier(ray, workers: int) -> Callable[[dict], VerifyMany]:
+    """For :class:`~submapslam.fleet.SessionMerger`: runs a batch of placement tests as ``workers``
+    Ray tasks (the submaps put once per batch), results in order. The tasks take no CPU slot of
+    their own: while logs still run they share the cores with them, afterwards they use them all."""
+    task = ray.remote(num_cpus=0, max_retries=0)(_verify_on_worker)
+
+    def bind(closer_args: dict) -> VerifyMany:
+        def verify_many(items, submaps, map_poses):
+            box = [ray.put(submaps)]  # in a list: passed as a reference, not resolved per argument
+            bounds = np.linspace(0, len(items), min(workers, len(items)) + 1).astype(int)
+            futures = [task.remote(closer_args, box, map_poses, items[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
+            return [rec for f in futures for rec in ray.get(f)]
+
+        return verify_many
+
+    return bind
+
+
+def _verify_on_worker(closer_args: dict, box: list, map_poses: dict, items: list) -> list:
+    """A Ray task: one batch of placement tests with a loop closer made from ``closer_args``."""
+    import ray
+
+    from .topology.loop_closure import LoopCloser
+    from .topology.session_placement import verify_items
+
+    return verify_items(LoopCloser(**closer_args), items, ray.get(box[0]), map_poses)
 
 
 def _one_line(exc: BaseException) -> str:

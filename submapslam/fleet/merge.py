@@ -12,8 +12,10 @@ from __future__ import annotations
 import logging
 import re
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -23,6 +25,9 @@ from ..graph_builder import PRIOR_INFORMATION
 from ..result import SlamResult
 from ..session_map import SessionInfo, SessionMap
 from ..submaps import Submap
+
+if TYPE_CHECKING:
+    from ..topology.session_placement import VerifyMany
 
 log = logging.getLogger(__name__)
 
@@ -231,7 +236,10 @@ class SessionMerger:
     sessions added in the same order give the same map.
     """
 
-    def __init__(self, base: SessionMap, config: PipelineConfig | None = None) -> None:
+    def __init__(self, base: SessionMap, config: PipelineConfig | None = None,
+                 verify_elsewhere: Callable[[dict], VerifyMany] | None = None) -> None:
+        """``verify_elsewhere``: given the loop closer's constructor arguments, a function that runs
+        batches of independent placement tests elsewhere (``batch`` on Ray: on its workers)."""
         from ..topology.loop_closure import LoopCloser
         from ..topology.session_placement import SessionPlacer
 
@@ -245,9 +253,11 @@ class SessionMerger:
         planar = base.result.planar
         cfg = self.config
         voxel = cfg.submaps.voxel_size or _submap_voxel(base.result)
-        self._closer = LoopCloser(cfg.loops, planar=planar, voxel_size=voxel, max_range=cfg.odometry.max_range,
-                                  submap_length=cfg.submaps.max_distance or (5.0 if planar else 12.0))
-        self._placer = SessionPlacer(self._closer, cfg.sessions)
+        closer_args = {"config": cfg.loops, "planar": planar, "voxel_size": voxel, "max_range": cfg.odometry.max_range,
+                       "submap_length": cfg.submaps.max_distance or (5.0 if planar else 12.0)}
+        self._closer = LoopCloser(**closer_args)
+        self._placer = SessionPlacer(self._closer, cfg.sessions,
+                                     verify_elsewhere(closer_args) if verify_elsewhere is not None else None)
         self._submaps = _submaps(result)
 
     def add(self, addition: SessionMap) -> None:

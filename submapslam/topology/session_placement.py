@@ -15,6 +15,7 @@ the accepted links are returned as :class:`~submapslam.result.LoopRecord` for th
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -65,11 +66,25 @@ class _MapPoses:
     """The map's submap poses, read the way the loop closer reads a graph."""
 
     def __init__(self, poses: dict[int, np.ndarray]) -> None:
-        self._poses = poses
+        self.poses = poses
         self.keys = poses.keys()
 
     def pose(self, key: int) -> np.ndarray:
-        return self._poses[key]
+        return self.poses[key]
+
+
+VerifyItems = list[tuple[Hypothesis, tuple[int, ...]]]
+# verifies ``(hypothesis, adjacent map submaps)`` items against ``submaps`` (global ids) and the
+# map's poses ``{id: T_map_submap}``, in order; e.g. on worker processes (batch on Ray)
+VerifyMany = Callable[[VerifyItems, list[Submap], dict[int, np.ndarray]], list[LoopRecord]]
+
+
+def verify_items(closer: LoopCloser, items: VerifyItems, submaps: list[Submap],
+                 map_poses: dict[int, np.ndarray]) -> list[LoopRecord]:
+    """The loop closer's gates without the odometry-chain plausibility (there is no chain between
+    sessions): correspondence, distance, structure (3D), the given adjacent map submaps."""
+    graph = _MapPoses(map_poses)
+    return [closer.verify(hyp, submaps, graph, plausibility=False, neighbours=adjacent) for hyp, adjacent in items]
 
 
 def implied_frame(T_map_i: np.ndarray, T_i_j: np.ndarray, T_session_j: np.ndarray) -> np.ndarray:
@@ -142,19 +157,30 @@ class SessionPlacer:
     voxel and prepared clouds); ``config``: the placement's own settings.
     """
 
-    def __init__(self, closer: LoopCloser, config: SessionConfig) -> None:
+    def __init__(self, closer: LoopCloser, config: SessionConfig, verify_many: VerifyMany | None = None,
+                 window: int = 4) -> None:
+        """``verify_many``: runs batches of independent tests elsewhere (place recognition ``window``
+        session submaps at a time, each densify pass at once); the decisions are those of the tests
+        one at a time (tests past an early stop are dropped)."""
         self.closer = closer
         self.config = config
+        self.verify_many = verify_many
+        self.window = window
 
     @property
     def loops(self) -> LoopConfig:
         return self.closer.config
 
     def _verify(self, hyp: Hypothesis, submaps: list[Submap], map_poses: _MapPoses) -> LoopRecord:
-        """The loop closer's gates without the odometry-chain plausibility (there is no chain
-        between sessions): correspondence, distance, structure (3D), adjacent map submaps."""
-        adjacent = tuple(n for n in (hyp.i - 1, hyp.i + 1) if n in map_poses.keys)  # the map's own only
-        return self.closer.verify(hyp, submaps, map_poses, plausibility=False, neighbours=adjacent)
+        """One test (:func:`verify_items`), the map's own adjacent submaps confirming."""
+        return self._verify_all([hyp], submaps, map_poses)[0]
+
+    def _verify_all(self, hyps: list[Hypothesis], submaps: list[Submap], map_poses: _MapPoses) -> list[LoopRecord]:
+        """Independent tests, in order: here, or through ``verify_many`` when there are several."""
+        items = [(h, tuple(n for n in (h.i - 1, h.i + 1) if n in map_poses.keys)) for h in hyps]
+        if self.verify_many is None or len(items) < 2:
+            return verify_items(self.closer, items, submaps, map_poses.poses)
+        return self.verify_many(items, submaps, map_poses.poses)
 
     def place(self, submaps: list[Submap], map_ids: list[int], map_poses: dict[int, np.ndarray],
               map_descriptors: dict[int, np.ndarray], session_ids: list[int],
@@ -258,22 +284,33 @@ class SessionPlacer:
             index.add(i, map_descriptors[i])
         records: list[LoopRecord] = []
         links: list[tuple[np.ndarray, int, LoopRecord]] = []
-        tested = 0
+        plan: list[tuple[int, list[Hypothesis]]] = []  # per session submap, its hypotheses, capped in order
+        planned = 0
         for j in session_ids:
+            hyps = []
             for i, dist, yaw in index.query(session_descriptors[j], cfg.descriptor_top_k):
-                if dist > cfg.descriptor_max_distance or tested >= cfg.max_recognition_tests:
-                    continue
-                tested += 1
-                rec = self._verify(Hypothesis(i, j, "session", None, yaw, None), submaps, graph)
-                records.append(rec)
-                if rec.accepted:
-                    links.append((implied_frame(graph.pose(i), rec.T_i_j, session_poses[j]), j, rec))
-            frames = [f for f, _, _ in links]
-            js = [j for _, j, _ in links]
-            group = largest_consistent_group(frames, [session_poses[m] for m in js], js, cfg,
-                                             [r.fitness for _, _, r in links])
-            if distinct(group, js) >= cfg.enough_links:
-                break
+                if dist <= cfg.descriptor_max_distance and planned < cfg.max_recognition_tests:
+                    planned += 1
+                    hyps.append(Hypothesis(i, j, "session", None, yaw, None))
+            plan.append((j, hyps))
+        tested = 0
+        step = self.window if self.verify_many is not None else 1
+        for start in range(0, len(plan), step):
+            block = plan[start:start + step]
+            results = iter(self._verify_all([h for _, hyps in block for h in hyps], submaps, graph))
+            for j, hyps in block:
+                for _ in hyps:
+                    rec = next(results)
+                    tested += 1
+                    records.append(rec)
+                    if rec.accepted:
+                        links.append((implied_frame(graph.pose(rec.i), rec.T_i_j, session_poses[j]), j, rec))
+                frames = [f for f, _, _ in links]
+                js = [m for _, m, _ in links]
+                group = largest_consistent_group(frames, [session_poses[m] for m in js], js, cfg,
+                                                 [r.fitness for _, _, r in links])
+                if distinct(group, js) >= cfg.enough_links:
+                    return links, records, tested
         return links, records, tested
 
     def _confirm(self, group: list[int], links: list[tuple[np.ndarray, int, LoopRecord]],
@@ -340,18 +377,17 @@ class SessionPlacer:
         graph = _MapPoses(map_poses)
         radius = loops.spatial_min_radius or (5.0 if self.closer.planar else 20.0)
         map_xyz = np.array([map_poses[i][:3, 3] for i in map_ids])
-        records = []
+        hyps = []
         for j in session_ids:
             Q = session_poses[j]
             d = np.linalg.norm(map_xyz - Q[:3, 3], axis=1)
             near = [map_ids[k] for k in np.argsort(d, kind="stable")[: cfg.densify_per_submap] if d[k] <= radius]
-            for i in near:
-                if (i, j) in tested:
-                    continue
-                rec = self._verify(Hypothesis(i, j, "session", inverse(map_poses[i]) @ Q, None,
-                                              loops.min_search_window), submaps, graph)
-                if rec.accepted and not consistent(np.eye(4), implied_frame(map_poses[i], rec.T_i_j, Q), Q, Q, cfg):
-                    rec.accepted, rec.information = False, None
-                    rec.reason = "inconsistent with the merged estimate"
-                records.append(rec)
+            hyps += [Hypothesis(i, j, "session", inverse(map_poses[i]) @ Q, None, loops.min_search_window)
+                     for i in near if (i, j) not in tested]
+        records = self._verify_all(hyps, submaps, graph)
+        for rec in records:
+            Q = session_poses[rec.j]
+            if rec.accepted and not consistent(np.eye(4), implied_frame(map_poses[rec.i], rec.T_i_j, Q), Q, Q, cfg):
+                rec.accepted, rec.information = False, None
+                rec.reason = "inconsistent with the merged estimate"
         return records
