@@ -143,7 +143,9 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-TURNOVER_SETTINGS = ((1.0, 0.3, 1), (1.0, 0.5, 5), (1.0, 1.0, 5), (1.0, 1.0, 10), (1.0, 2.0, 10))  # a, b, min_observations
+# a, b, min_observations, memory (1: the seed's counts)
+TURNOVER_SETTINGS = ((1.0, 0.3, 1, 1.0), (1.0, 0.5, 5, 1.0), (1.0, 1.0, 5, 1.0), (1.0, 0.5, 5, 0.9),
+                     (1.0, 1.0, 5, 0.9), (1.0, 1.0, 5, 0.95))
 
 
 def turnover(seeds: int, p_miss: float, clutter: float, laps: int) -> int:
@@ -161,15 +163,15 @@ def turnover(seeds: int, p_miss: float, clutter: float, laps: int) -> int:
     n_steps = len(logs[0].steps)
     print(f"## Changing landmark world: 30 landmarks, 10 vanish and 10 new appear at step {n_steps // 2} of {n_steps} "
           f"({laps} laps, 0.5 m steps, range 8 m, p_miss {p_miss}, clutter {clutter}/step), seeds 0-{seeds - 1}\n")
-    print("| association | a | b | min obs. | vanished removed | steps to removal, median / max | metres driven, "
+    print("| association | a | b | min obs. | memory | vanished removed | steps to removal, median / max | metres driven, "
           "median / max | misses counted, median / max | static removed | new added | steps to founding after "
           "first sighting, max | ATE [m], mean / max |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for known in (True, False):
-        for a, b, mo in TURNOVER_SETTINGS:
+        for a, b, mo, mem in TURNOVER_SETTINGS:
             rows = []
             for log in logs:
-                run = run_ekf(log, CredibilityParams(a=a, b=b, remove_below=0.05, min_observations=mo),
+                run = run_ekf(log, CredibilityParams(a=a, b=b, remove_below=0.05, min_observations=mo, memory=mem),
                               known_association=known, max_range=8.0)
                 rows.append((landmark_turnover(log, run),
                              trajectory_rmse(run.times, run.poses, log.truth_times, log.truth_poses)))
@@ -181,7 +183,7 @@ def turnover(seeds: int, p_miss: float, clutter: float, laps: int) -> int:
                 return f"{fmt.format(np.median(v))} / {fmt.format(max(v))}" if v else "–"
 
             ate = [e for _, e in rows]
-            print(f"| {'ids' if known else 'gating'} | {a:g} | {b:g} | {mo} | "
+            print(f"| {'ids' if known else 'gating'} | {a:g} | {b:g} | {mo} | {mem:g} | "
                   f"{sum(t['vanished_removed'] for t, _ in rows)} / {sum(t['vanished'] for t, _ in rows)} | "
                   f"{med_max(cat('removal_delay_steps'))} | {med_max(cat('removal_delay_m'), '{:.1f}')} | "
                   f"{med_max(cat('removal_misses'))} | {sum(len(t['static_removed']) for t, _ in rows)} | "
