@@ -231,6 +231,9 @@ class CredibilityParams(_Strict):
                 check_credibility_rates(a, b)
             if isinstance(rb, int | float) and not 0.0 <= rb <= 1.0:
                 raise ConfigError(f"credibility remove_below must be in [0, 1], got {rb!r}")
+            memory = data.get("memory", 1.0)
+            if isinstance(memory, int | float) and not 0.0 < memory <= 1.0:
+                raise ConfigError(f"credibility memory must be in (0, 1], got {memory!r}")
         return data
 
 

@@ -77,6 +77,29 @@ def test_features_that_disappear_are_removed_and_marginalised():
     assert P_before[a_slot, a_slot] >= ekf.P[3, 3]  # A only became more certain
 
 
+def _misses_to_remove(memory: float, sightings: int) -> int:
+    """Consecutive misses until a feature seen ``sightings`` times is removed (a = 1, b = 1)."""
+    ekf = StochasticMap(np.zeros(3), np.eye(3) * 1e-6,
+                        CredibilityParams(a=1.0, b=1.0, remove_below=0.05, min_observations=5, memory=memory),
+                        max_range=10.0)
+    A, B = np.array([3.0, 0.0]), np.array([0.0, 4.0])
+    for _ in range(sightings):
+        ekf.observe(np.array([rb(ekf.pose, A), rb(ekf.pose, B)]), R)
+    for k in range(1, 1000):
+        if ekf.observe(np.array([rb(ekf.pose, A)]), R).removed:
+            return k
+    return 1000
+
+
+def test_credibility_memory_bounds_the_misses_removal_takes():
+    # the seed's counts: misses needed grow with the sightings (b/a per sighting)
+    assert _misses_to_remove(1.0, 10) == 10 and _misses_to_remove(1.0, 100) == 100
+    # memory 0.9: about the last ten chances count, however long the feature was seen
+    assert _misses_to_remove(0.9, 10) <= _misses_to_remove(0.9, 100) == _misses_to_remove(0.9, 1000) <= 8
+    with pytest.raises(ConfigError, match=r"credibility memory must be in \(0, 1\], got 0.0"):
+        CredibilityParams(memory=0.0)
+
+
 def _circle_run(fej: bool) -> float:
     """Smallest heading variance a filter reports while circling two unknown features with noisy
     measurements; the prior heading variance is 1e-2 rad^2."""
@@ -155,11 +178,11 @@ def test_changing_world_vanished_removed_static_kept_new_ones_added(tmp_path):
             assert first <= step.t < end
     assert sum(end == half for _, end in log.truth_lifetimes.values()) == 5
     assert sum(first == half for first, _ in log.truth_lifetimes.values()) == 5
-    run = run_ekf(log, CredibilityParams(a=1.0, b=0.3, remove_below=0.05, min_observations=3),
+    run = run_ekf(log, CredibilityParams(a=1.0, b=1.0, remove_below=0.05, min_observations=5, memory=0.9),
                   known_association=False)
     t = landmark_turnover(log, run)
     assert t["vanished"] == 5 and t["vanished_removed"] == 5       # credibility fell, the features went
-    assert max(t["removal_misses"]) <= 20                           # ~ b/a times the sightings before
+    assert max(t["removal_misses"]) <= 8                            # after a few misses
     assert t["static"] == 10 and t["static_removed"] == []         # none of the others
     assert t["appeared"] == 5 and t["appeared_added"] == 5          # new features for the new ones,
     assert max(t["add_delay_after_first_sighting"]) == 0            # at their first sighting,
@@ -183,7 +206,8 @@ def test_synth_landmarks_cli_and_the_ekf_turnover_summary(tmp_path):
     truth = (tmp_path / "w" / "landmarks_truth.csv").read_text().splitlines()
     assert truth[0] == "id,x,y,vanishes,appears,first_step,end_step" and len(truth) == 16
     r = CliRunner().invoke(app, ["ekf", str(tmp_path / "w" / "landmarks.txt"), "--out", str(tmp_path / "o"),
-                                 "--b", "0.3", "--remove-below", "0.05", "--min-observations", "3", "--ignore-ids"])
+                                 "--b", "1", "--remove-below", "0.05", "--min-observations", "5", "--memory", "0.9",
+                                 "--ignore-ids"])
     assert r.exit_code == 0, r.output
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
     t = summary["turnover"]

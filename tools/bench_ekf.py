@@ -176,7 +176,7 @@ def turnover(seeds: int, p_miss: float, clutter: float, laps: int) -> int:
                 rows.append((landmark_turnover(log, run),
                              trajectory_rmse(run.times, run.poses, log.truth_times, log.truth_poses)))
 
-            def cat(key: str) -> list:
+            def cat(key: str, rows: list = rows) -> list:
                 return [v for t, _ in rows for v in t[key]]
 
             def med_max(v: list, fmt: str = "{:.0f}") -> str:
