@@ -33,9 +33,9 @@ def register(app: typer.Typer) -> None:
         remove_below: Annotated[float | None, typer.Option(
             help="Remove features whose credibility falls below this [default: 0, or the config's "
             "ekf.credibility.remove_below].")] = None,
-        min_observations: Annotated[int | None, typer.Option(
-            min=1, help="Consider removing a feature only once it was seen this often [default: 1, or the "
-            "config's ekf.credibility.min_observations].")] = None,
+        min_chances: Annotated[int | None, typer.Option(
+            min=1, help="Consider removing a feature only once it had this many chances to be seen, sightings + "
+            "misses [default: 1, or the config's ekf.credibility.min_chances].")] = None,
         memory: Annotated[float | None, typer.Option(
             help="Credibility memory in (0, 1]: both counts decay by this at each chance to see a feature, so a "
             "vanished one goes after a bounded number of misses [default: 1, the seed's counts, or the config's "
@@ -58,7 +58,7 @@ def register(app: typer.Typer) -> None:
 
         try:
             cred = with_overrides(load_config(config).ekf.credibility, "ekf options",
-                                  a=a, b=b, remove_below=remove_below, min_observations=min_observations,
+                                  a=a, b=b, remove_below=remove_below, min_chances=min_chances,
                                   memory=memory)
             summary = run_ekf_log(log, out, format=format, robot=robot, credibility=cred,
                                   max_range=max_range, first_estimate_jacobians=fej,

@@ -144,7 +144,9 @@ def landmark_turnover(log: LandmarkLog, run: EkfRun) -> dict:
     meanwhile), ``static`` and ``static_removed`` (landmarks present from start to end whose
     feature was ever removed, and vanished ones removed before they left: must be 0),
     ``appeared``, ``appeared_added`` (landmarks that entered the world and were founded as a
-    feature of their own after they entered) and ``add_delay_steps`` (from entering to founding).
+    feature of their own after they entered) and ``add_delay_steps`` (from entering to founding),
+    ``spurious_left``: features alive at the end that no true landmark's observation ever matched
+    (clutter the map kept).
     """
     if not log.truth_lifetimes:
         raise ValueError("the log has no landmark lifetimes (truth_lifetimes)")
@@ -166,7 +168,8 @@ def landmark_turnover(log: LandmarkLog, run: EkfRun) -> dict:
         seg = np.linalg.norm(np.diff(log.truth_poses[:, :2], axis=0), axis=1)
         cum = np.concatenate([[0.0], np.cumsum(seg)])
         travelled = lambda t0, t1: float(np.interp(t1, log.truth_times, cum) - np.interp(t0, log.truth_times, cum))  # noqa: E731
-    out = {"vanished": 0, "vanished_removed": 0, "removal_delay_steps": [], "removal_delay_m": [],
+    real = {fid for tid, pairs in seen_as.items() if tid in log.truth_lifetimes for _, fid in pairs}
+    out = {"spurious_left": len([f for f in run.filter.ids if f not in real]), "vanished": 0, "vanished_removed": 0, "removal_delay_steps": [], "removal_delay_m": [],
            "removal_misses": [], "vanished_kept": [], "static": 0, "static_removed": [], "appeared": 0,
            "appeared_added": 0, "add_delay_steps": [], "add_delay_after_first_sighting": [],
            "appeared_missing": []}
@@ -221,4 +224,4 @@ def turnover_summary(t: dict) -> dict:
             "static_removed": t["static_removed"], "appeared": t["appeared"], "appeared_added": t["appeared_added"],
             "add_delay_steps": med_max(t["add_delay_steps"]),
             "add_delay_after_first_sighting": med_max(t["add_delay_after_first_sighting"]),
-            "appeared_not_added": t["appeared_missing"]}
+            "appeared_not_added": t["appeared_missing"], "spurious_left": t["spurious_left"]}

@@ -83,6 +83,7 @@ class StochasticMap:
         self.n_s: list[float] = []
         self.n_u: list[float] = []
         self.n_seen: list[int] = []       # times matched (never forgotten; for min_observations)
+        self.n_chances: list[int] = []    # times matched or missed (never forgotten; for min_chances)
         self.cred = credibility_params or CredibilityParams()
         self.max_range = max_range
         self.fov = fov
@@ -188,6 +189,7 @@ class StochasticMap:
         self.n_s.append(1.0)
         self.n_u.append(0.0)
         self.n_seen.append(1)
+        self.n_chances.append(1)
         return fid
 
     def remove(self, fid: int) -> None:
@@ -197,7 +199,7 @@ class StochasticMap:
         keep = np.r_[0:k, k + 2:len(self.x)]
         self.x = self.x[keep]
         self.P = self.P[np.ix_(keep, keep)]
-        del self.ids[i], self.n_s[i], self.n_u[i], self.n_seen[i]
+        del self.ids[i], self.n_s[i], self.n_u[i], self.n_seen[i], self.n_chances[i]
         self._first_xy.pop(fid, None)
 
     def _predicted_in_view(self) -> set[int]:
@@ -244,6 +246,7 @@ class StochasticMap:
             self.n_s[i] = lam * self.n_s[i] + 1
             self.n_u[i] *= lam
             self.n_seen[i] += 1
+            self.n_chances[i] += 1
             seen.add(target)
             report.matched.append((m, target))
         for fid in sorted(predicted - seen):
@@ -251,10 +254,11 @@ class StochasticMap:
                 i = self.ids.index(fid)
                 self.n_u[i] = self.cred.memory * self.n_u[i] + 1
                 self.n_s[i] *= self.cred.memory
+                self.n_chances[i] += 1
                 report.unobserved.append(fid)
         for fid in list(self.ids):
             i = self.ids.index(fid)
-            if self.n_seen[i] >= self.cred.min_observations and \
+            if self.n_seen[i] >= self.cred.min_observations and self.n_chances[i] >= self.cred.min_chances and \
                     credibility(self.n_s[i], self.n_u[i], self.cred.a, self.cred.b) < self.cred.remove_below:
                 self.remove(fid)
                 report.removed.append(fid)
