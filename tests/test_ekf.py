@@ -178,7 +178,7 @@ def test_changing_world_vanished_removed_static_kept_new_ones_added(tmp_path):
             assert first <= step.t < end
     assert sum(end == half for _, end in log.truth_lifetimes.values()) == 5
     assert sum(first == half for first, _ in log.truth_lifetimes.values()) == 5
-    run = run_ekf(log, CredibilityParams(a=1.0, b=1.0, remove_below=0.05, min_chances=5, memory=0.9),
+    run = run_ekf(log, CredibilityParams(a=1.0, b=1.0, remove_below=0.05, min_chances=10, memory=0.9),
                   known_association=False)
     t = landmark_turnover(log, run)
     assert t["vanished"] == 5 and t["vanished_removed"] == 5       # credibility fell, the features went
@@ -206,7 +206,7 @@ def test_synth_landmarks_cli_and_the_ekf_turnover_summary(tmp_path):
     truth = (tmp_path / "w" / "landmarks_truth.csv").read_text().splitlines()
     assert truth[0] == "id,x,y,vanishes,appears,first_step,end_step" and len(truth) == 16
     r = CliRunner().invoke(app, ["ekf", str(tmp_path / "w" / "landmarks.txt"), "--out", str(tmp_path / "o"),
-                                 "--b", "1", "--remove-below", "0.05", "--min-chances", "5", "--memory", "0.9",
+                                 "--b", "1", "--remove-below", "0.05", "--min-chances", "10", "--memory", "0.9",
                                  "--ignore-ids"])
     assert r.exit_code == 0, r.output
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())

@@ -144,8 +144,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 # a, b, min_chances, memory (1: the seed's counts)
-TURNOVER_SETTINGS = ((1.0, 0.3, 1, 1.0), (1.0, 1.0, 1, 1.0), (1.0, 1.0, 5, 1.0), (1.0, 0.5, 5, 0.9),
-                     (1.0, 1.0, 1, 0.9), (1.0, 1.0, 5, 0.9), (1.0, 1.0, 5, 0.95))
+TURNOVER_SETTINGS = ((1.0, 0.3, 1, 1.0), (1.0, 1.0, 1, 1.0), (1.0, 1.0, 10, 1.0), (1.0, 1.0, 1, 0.9),
+                     (1.0, 1.0, 10, 0.9), (1.0, 1.0, 10, 0.95))
 
 
 def turnover(seeds: int, p_miss: float, clutter: float, laps: int) -> int:
