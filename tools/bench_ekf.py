@@ -164,7 +164,7 @@ def turnover(seeds: int, p_miss: float, clutter: float, laps: int) -> int:
     print(f"## Changing landmark world: 30 landmarks, 10 vanish and 10 new appear at step {n_steps // 2} of {n_steps} "
           f"({laps} laps, 0.5 m steps, range 8 m, p_miss {p_miss}, clutter {clutter}/step), seeds 0-{seeds - 1}\n")
     print("| association | a | b | min chances | memory | vanished removed | steps to removal, median / max | metres driven, "
-          "median / max | misses counted, median / max | static removed | new added | steps to founding after "
+          "median / max | misses counted, median / max | static removed (duplicates removed) | new added | steps to founding after "
           "first sighting, max | clutter features left | ATE [m], mean / max |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for known in (True, False):
@@ -186,7 +186,8 @@ def turnover(seeds: int, p_miss: float, clutter: float, laps: int) -> int:
             print(f"| {'ids' if known else 'gating'} | {a:g} | {b:g} | {mo} | {mem:g} | "
                   f"{sum(t['vanished_removed'] for t, _ in rows)} / {sum(t['vanished'] for t, _ in rows)} | "
                   f"{med_max(cat('removal_delay_steps'))} | {med_max(cat('removal_delay_m'), '{:.1f}')} | "
-                  f"{med_max(cat('removal_misses'))} | {sum(len(t['static_removed']) for t, _ in rows)} | "
+                  f"{med_max(cat('removal_misses'))} | {sum(len(t['static_removed']) for t, _ in rows)} "
+                  f"({sum(t['duplicates_removed'] for t, _ in rows)}) | "
                   f"{sum(t['appeared_added'] for t, _ in rows)} / {sum(t['appeared'] for t, _ in rows)} | "
                   f"{max(cat('add_delay_after_first_sighting'), default=0)} | "
                   f"{sum(t['spurious_left'] for t, _ in rows)} | {np.mean(ate):.3f} / {max(ate):.3f} |")

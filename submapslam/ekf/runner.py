@@ -134,15 +134,17 @@ def landmark_turnover(log: LandmarkLog, run: EkfRun) -> dict:
     """How the map followed a changing world: the log's ``truth_lifetimes`` (landmark id ->
     ``(first, end)`` step times, present for ``first <= t < end``) against the filter's
     removals and new features. The log's observation ids are the truth (the filter may have run
-    without them, ``known_association=False``); each true landmark is the feature most of its
-    observations were associated with.
+    without them, ``known_association=False``); a vanished landmark is the feature its last
+    observation was associated with, a new one the feature its first observation was.
 
     Returns ``vanished`` (landmarks that left before the end), ``vanished_removed``,
     ``removal_delay_steps`` / ``removal_delay_m`` / ``removal_misses`` (per removed vanished
     landmark: steps from its disappearance to its removal, counting the step that removed it;
     metres the robot drove meanwhile, from the truth; how often the filter counted it unobserved
-    meanwhile), ``static`` and ``static_removed`` (landmarks present from start to end whose
-    feature was ever removed, and vanished ones removed before they left: must be 0),
+    meanwhile), ``static`` and ``static_removed`` (landmarks present from start to end that a
+    removal left without a feature, and vanished ones so removed before they left: must be
+    empty; ``duplicates_removed`` counts removals of a second feature of a landmark that kept
+    another),
     ``appeared``, ``appeared_added`` (landmarks that entered the world and were founded as a
     feature of their own after they entered) and ``add_delay_steps`` (from entering to founding),
     ``spurious_left``: features alive at the end that no true landmark's observation ever matched
@@ -169,14 +171,33 @@ def landmark_turnover(log: LandmarkLog, run: EkfRun) -> dict:
         cum = np.concatenate([[0.0], np.cumsum(seg)])
         travelled = lambda t0, t1: float(np.interp(t1, log.truth_times, cum) - np.interp(t0, log.truth_times, cum))  # noqa: E731
     real = {fid for tid, pairs in seen_as.items() if tid in log.truth_lifetimes for _, fid in pairs}
-    out = {"spurious_left": len([f for f in run.filter.ids if f not in real]), "vanished": 0, "vanished_removed": 0, "removal_delay_steps": [], "removal_delay_m": [],
+    lives: dict[int, list[list[float]]] = {}  # feature id -> [added, removed) step intervals
+    for k, fid in sorted([(k, f) for k, f in run.added_at or []]):
+        lives.setdefault(fid, []).append([k, np.inf])
+    for k, fid in sorted(run.removed_at or []):
+        open_ = [iv for iv in lives.get(fid, []) if iv[0] <= k and iv[1] == np.inf]
+        if open_:
+            open_[-1][1] = k
+
+    def alive(fid: int, k: int) -> bool:
+        """Whether feature ``fid`` is in the map after step ``k``."""
+        return any(a <= k < r for a, r in lives.get(fid, []))
+
+    def seen_by(tid: int, fid: int, k: int) -> bool:
+        """Whether an observation of true landmark ``tid`` was associated with ``fid`` by step ``k``."""
+        return any(j <= k and f == fid for j, f in seen_as.get(tid, []))
+    out = {"spurious_left": len([f for f in run.filter.ids if f not in real]), "duplicates_removed": 0, "vanished": 0, "vanished_removed": 0, "removal_delay_steps": [], "removal_delay_m": [],
            "removal_misses": [], "vanished_kept": [], "static": 0, "static_removed": [], "appeared": 0,
            "appeared_added": 0, "add_delay_steps": [], "add_delay_after_first_sighting": [],
            "appeared_missing": []}
     for tid, (first, end) in sorted(log.truth_lifetimes.items()):
         fids = {fid for _, fid in seen_as.get(tid, [])}
         fid = seen_as[tid][-1][1] if tid in seen_as else None  # the feature it was last seen as
-        gone = sorted(k for f in fids for k in removed.get(f, []))  # any feature it was seen as, removed
+        # removals that left it without a feature: of the feature it was seen as, with no other
+        # feature it had been seen as still alive (removing a duplicate is no loss)
+        gone = sorted(k for f in fids for k in removed.get(f, [])
+                      if not any(g != f and alive(g, k) for g in fids if seen_by(tid, g, k)))
+        out["duplicates_removed"] += sum(1 for f in fids for k in removed.get(f, [])) - len(gone)
         if end < t_end_log:  # left the world during the log
             out["vanished"] += 1
             early = [k for k in gone if times[k] < end]
@@ -224,4 +245,5 @@ def turnover_summary(t: dict) -> dict:
             "static_removed": t["static_removed"], "appeared": t["appeared"], "appeared_added": t["appeared_added"],
             "add_delay_steps": med_max(t["add_delay_steps"]),
             "add_delay_after_first_sighting": med_max(t["add_delay_after_first_sighting"]),
-            "appeared_not_added": t["appeared_missing"], "spurious_left": t["spurious_left"]}
+            "appeared_not_added": t["appeared_missing"], "spurious_left": t["spurious_left"],
+            "duplicates_removed": t["duplicates_removed"]}
