@@ -36,7 +36,8 @@ def register(app: typer.Typer) -> None:
         vanish: Annotated[float, typer.Option(min=0.0, max=1.0, help="landmarks: fraction of the landmarks that "
                                                                     "vanish halfway.")] = 0.0,
         appear: Annotated[int, typer.Option(min=0, help="landmarks: new landmarks that appear halfway.")] = 0,
-        landmarks: Annotated[int, typer.Option(min=1, help="landmarks: landmarks at the start.")] = 30,
+        landmarks: Annotated[int | None, typer.Option(min=1, help="landmarks: landmarks at the start "
+                                                                 "[default: 30].")] = None,
         p_miss: Annotated[float, typer.Option(min=0.0, max=1.0, help="landmarks: chance a landmark in range is "
                                                                     "not detected.")] = 0.0,
         clutter: Annotated[float, typer.Option(min=0.0, help="landmarks: false detections per step (Poisson "
@@ -57,7 +58,7 @@ def register(app: typer.Typer) -> None:
 
         try:
             landmark_opts = (("--vanish", vanish or None), ("--appear", appear or None),
-                             ("--p-miss", p_miss or None), ("--clutter", clutter or None))
+                             ("--p-miss", p_miss or None), ("--clutter", clutter or None), ("--landmarks", landmarks))
             if world != "landmarks":
                 unused = [name for name, value in landmark_opts if value is not None]
                 if unused:
@@ -65,9 +66,10 @@ def register(app: typer.Typer) -> None:
             if doors and world != "rooms":
                 raise SubmapSlamError(f"--doors is for the rooms world, not {world!r}")
             if world == "landmarks":
-                _check_landmark_options(path=path, sensor=sensor, poles=poles, movers=movers, max_scans=max_scans)
+                _check_landmark_options(path=path, sensor=sensor, poles=poles, movers=movers, max_scans=max_scans,
+                                        odometry_noise=odometry_noise != 1.0)
                 with staged_folder(out, "synth", overwrite=overwrite) as staging:
-                    meta = _landmarks(staging, seed, laps or 2, landmarks, vanish, appear, p_miss, clutter)
+                    meta = _landmarks(staging, seed, laps or 2, landmarks or 30, vanish, appear, p_miss, clutter)
                 console.print(f"{meta} -> {out}/landmarks.txt")
                 return
             if world == "kitti":
@@ -134,10 +136,8 @@ def _world(world, out, seed, laps, sensor, max_scans, odometry_noise, poles, mov
     from datasets_synth import generate
 
     extra = {"poles": poles} if poles else {}
-    if doors:
-        extra["doors"] = doors
     path = generate(world, out, seed=seed, laps=laps, sensor=sensor, max_scans=max_scans,
-                    odometry_noise=odometry_noise, movers=movers, **extra)
+                    odometry_noise=odometry_noise, movers=movers, doors=doors, **extra)
     meta = yaml.safe_load((path / "meta.yaml").read_text())
     return (f"{meta['n_scans']} scans of {world} ({meta['sensor']['type']}), loop {meta['loop_length_m']:.0f} m "
             f"x {meta['laps']} laps, wheel odometry end drift {meta['odometry_end_drift_m']:.2f} m{_movers_text(meta)}")
