@@ -341,3 +341,21 @@ def test_pole_log_with_a_garbled_landmark_file_fails_in_one_line(tmp_path):
     assert r.exit_code == 1
     lines = [ln for ln in r.output.splitlines() if ln.strip()]
     assert len(lines) == 1 and "landmarks_groundtruth.csv:3:" in lines[0] and "expected id,x,y" in lines[0]
+
+
+def test_bench_tool_turnover_table(capsys):
+    """tools/bench_ekf.py --turnover on one short log: one row per setting and association."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("bench_ekf", Path(__file__).resolve().parents[1] / "tools" / "bench_ekf.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.main(["--turnover", "--seeds", "1", "--laps", "1", "--p-miss", "0", "--clutter", "0"]) == 0
+    rows = [ln.split("|")[1:-1] for ln in capsys.readouterr().out.splitlines() if ln.startswith("| ids") or
+            ln.startswith("| gating")]
+    assert len(rows) == 2 * len(mod.TURNOVER_SETTINGS)
+    for cells in rows:
+        removed, total = map(int, cells[5].split("/"))
+        assert total == 10 and 0 <= removed <= total
+        assert cells[9].strip().startswith("0 (")  # no static landmark lost on a clean log
