@@ -11,6 +11,13 @@ for the whole log is dynamic in every scan it is seen in, also while it stands s
 car that leaves, a pedestrian waiting at a corner, a box moved between laps) — none of it is in
 the world at the log's end where it was seen before. SemanticKITTI itself labels an object that
 stands still in a scan with its static class (10 car, 30 person).
+
+Doors (:func:`door_tracks`) follow the same rule. SemanticKITTI has no door class: a closed door
+is a piece of wall (50 building) when it stays closed for the whole log; a door that opens and
+closes during the log does not hold one state, so its leaf is 259 (moving other) in every scan
+it is seen in, like a moved box — a map for planning should leave the doorway free, and the
+scorer counts its cells among those to free. An open door is out of the way (a sliding door in
+its wall pocket): no leaf in the doorway, nothing to hit.
 """
 
 from __future__ import annotations
@@ -19,12 +26,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .worlds import _oriented_box_arrays, densify
+from submapslam.errors import SubmapSlamError
+
+from .worlds import STATIC_CLASSES, _oriented_box_arrays, densify
 
 MOVING_CAR = 252
 MOVING_PERSON = 254
 MOVING_OTHER = 259
 DYNAMIC_CLASSES = range(252, 260)
+STATIC_BUILDING = STATIC_CLASSES["building"]
 
 CAR_SIZE = (4.2, 1.8, 0.3, 1.5)  # length, width, zmin, zmax [m]: the body above the wheels
 PERSON_SIZE = (0.5, 0.5, 0.05, 1.75)
@@ -72,6 +82,41 @@ class MoverTracks:
     def concat(parts: list[MoverTracks]) -> MoverTracks:
         return MoverTracks(*(np.concatenate([getattr(p, f) for p in parts])
                              for f in ("poses", "present", "sizes", "classes", "kinds")))
+
+
+DOOR_THICKNESS = 0.04  # [m] door leaf
+DOOR_HEIGHT = 2.0
+DOOR_PERIOD = (10.0, 40.0)  # [s] how long a door stays open or closed
+
+
+def door_tracks(doorways: np.ndarray, n_scans: int, rate: float, n: int, rng: np.random.Generator) -> MoverTracks:
+    """Doors in ``n`` of the ``doorways`` ``(D, 4)`` ``(x0, y0, x1, y1)`` (chosen by ``rng``): a leaf
+    the width of the doorway, :data:`DOOR_THICKNESS` thick, on the wall line, present while the
+    door is closed. Each door starts open or closed at random and changes state after periods of
+    :data:`DOOR_PERIOD` seconds (uniform), over ``n_scans`` scans at ``rate`` Hz. Class 259 for a
+    door that changes state during the log, 50 (a piece of wall) for one that stays closed.
+    """
+    doorways = np.asarray(doorways, dtype=np.float64).reshape(-1, 4)
+    if n > len(doorways):
+        raise SubmapSlamError(f"{n} doors asked for, but the world has {len(doorways)} doorways")
+    chosen = np.sort(rng.choice(len(doorways), size=n, replace=False))
+    parts = []
+    t = np.arange(n_scans) / rate
+    for i in chosen:
+        x0, y0, x1, y1 = doorways[i]
+        closed = np.zeros(n_scans, dtype=bool)
+        state, t0 = bool(rng.random() < 0.5), 0.0
+        while t0 < (t[-1] if n_scans else 0.0) + 1e-9:
+            t1 = t0 + rng.uniform(*DOOR_PERIOD)
+            closed[(t >= t0) & (t < t1)] = state
+            state, t0 = not state, t1
+        pose = np.broadcast_to([(x0 + x1) / 2, (y0 + y1) / 2, np.arctan2(y1 - y0, x1 - x0)], (n_scans, 3))
+        changes = closed.any() and not closed.all()
+        size = (float(np.hypot(x1 - x0, y1 - y0)), DOOR_THICKNESS, 0.0, DOOR_HEIGHT)
+        parts.append(MoverTracks(np.array(pose)[None], closed[None], np.array(size)[None],
+                                 np.array([MOVING_OTHER if changes else STATIC_BUILDING], dtype=np.uint32),
+                                 np.array(["door"])))
+    return MoverTracks.concat(parts) if parts else MoverTracks.empty(n_scans)
 
 
 class MoverCaster:

@@ -33,6 +33,8 @@ class World:
             to the first) or, with ``closed=False``, an open path driven once from first to last.
         corner_radius: [m] how far before and after a waypoint the path starts rounding it.
         extent: ``(xmin, ymin, xmax, ymax)``.
+        doorways: ``(D, 4)`` ``(x0, y0, x1, y1)``: openings in the walls where a door can hang
+            (the room doors of ``rooms``), on the wall line.
     """
 
     name: str
@@ -50,6 +52,7 @@ class World:
     closed: bool = True
     corner_radius: float = 1.2
     terrain_radius: float | None = None
+    doorways: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
 
     def loop_length(self) -> float:
         """Length [m] of the waypoint polygon (closed: with the edge back to the start)."""
@@ -206,7 +209,8 @@ def _polyline(points) -> list[tuple[float, float, float, float]]:
 
 def _wall_with_features(a, b, inward, rng, *, recess_prob=0.35, pillar_prob=0.25, spacing=3.0,
                         fixed: list[tuple[float, str]] | None = None):
-    """Segments of the straight wall a->b with door recesses and pillars, pseudo-random.
+    """Segments of the straight wall a->b with door recesses and pillars, pseudo-random, the
+    pillars' squares and the doorways ``(x0, y0, x1, y1)`` of its rooms.
 
     ``inward`` is the unit normal pointing into the hallway. ``fixed`` replaces the random
     layout by ``(position along the wall [m], kind)`` features (used to build repeated rooms).
@@ -214,7 +218,7 @@ def _wall_with_features(a, b, inward, rng, *, recess_prob=0.35, pillar_prob=0.25
     a, b, n = (np.asarray(v, dtype=np.float64) for v in (a, b, inward))
     length = float(np.linalg.norm(b - a))
     d = (b - a) / length
-    segs, pillars = [], []
+    segs, pillars, doorways = [], [], []
     cursor = 0.0
     features = fixed
     if features is None:
@@ -245,12 +249,13 @@ def _wall_with_features(a, b, inward, rng, *, recess_prob=0.35, pillar_prob=0.25
             door0, door1 = a + d * (pos + 1.0), a + d * (pos + 2.0)
             segs += _polyline([a + d * cursor, door0])
             segs += _polyline([door0, p0, p0 - n * depth, p1 - n * depth, p1, door1])
+            doorways.append((*door0, *door1))
             cursor = pos + 2.0
         elif kind == "pillar":
             c = a + d * pos + n * 0.25
             pillars.append((c[0] - 0.2, c[1] - 0.2, c[0] + 0.2, c[1] + 0.2))
     segs += _polyline([a + d * cursor, b])
-    return segs, pillars
+    return segs, pillars, doorways
 
 
 def _box_segments(x0, y0, x1, y1):
@@ -268,20 +273,23 @@ def _hall_world(name, size, width, rng, blocks, waypoints, fixed_outer=None, fix
     """Hallways between an outer rectangle ``size`` and inner ``blocks``, with wall features."""
     W, H = size
     outer = [((0, 0), (W, 0), (0, 1)), ((W, 0), (W, H), (-1, 0)), ((W, H), (0, H), (0, -1)), ((0, H), (0, 0), (1, 0))]
-    segs, pillars = [], []
+    segs, pillars, doorways = [], [], []
     for k, (a, b, n) in enumerate(outer):
-        s, p = _wall_with_features(a, b, n, rng, recess_prob=0.35 * density, pillar_prob=0.25 * density,
-                                   fixed=None if fixed_outer is None else fixed_outer(k, a, b))
+        s, p, d = _wall_with_features(a, b, n, rng, recess_prob=0.35 * density, pillar_prob=0.25 * density,
+                                      fixed=None if fixed_outer is None else fixed_outer(k, a, b))
         segs += s
         pillars += p
+        doorways += d
     for blk in blocks:
         for k, (a, b, n) in enumerate(_block_walls(*blk)):
-            s, _ = _wall_with_features(a, b, n, rng, recess_prob=0.3 * density, pillar_prob=0.0,
-                                       fixed=None if fixed_inner is None else fixed_inner(k, a, b))
+            s, _, d = _wall_with_features(a, b, n, rng, recess_prob=0.3 * density, pillar_prob=0.0,
+                                          fixed=None if fixed_inner is None else fixed_inner(k, a, b))
             segs += s
+            doorways += d
     boxes = [(x0, y0, 0.0, x1, y1, 2.5) for x0, y0, x1, y1 in pillars]
     return World(name, True, np.asarray(waypoints, dtype=np.float64), (0.0, 0.0, W, H),
-                 boxes=np.array(boxes).reshape(-1, 6), segments=np.array(segs), description=description)
+                 boxes=np.array(boxes).reshape(-1, 6), segments=np.array(segs), description=description,
+                 doorways=np.array(doorways, dtype=np.float64).reshape(-1, 4))
 
 
 def _ring_world(name, size, width, rng, fixed_outer=None, fixed_inner=None, description="", density=1.0):

@@ -30,7 +30,7 @@ from submapslam.geometry import matrix_to_se2, se2_array_to_matrices
 from submapslam.io.trajectory import Trajectory, write_kitti, write_tum
 
 from .motion import OdometryNoise, loop_path, open_path, wheel_odometry
-from .movers import MoverCaster, MoverTracks, indoor_movers
+from .movers import MoverCaster, MoverTracks, door_tracks, indoor_movers
 from .sensors import Laser2D, Lidar3D, RayCaster, measure
 from .worlds import WORLDS, World
 
@@ -156,7 +156,7 @@ def write_landmarks(out: Path, cylinders: np.ndarray | None) -> None:
 def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, sensor: str | None = None,
              speed: float | None = None, rate: float = 10.0, odometry_noise: float = 1.0,
              max_scans: int | None = None, sensor_options: dict | None = None, movers: int = 0,
-             **world_options) -> Path:
+             doors: int = 0, **world_options) -> Path:
     """Write a synthetic log of ``world`` into ``out_dir``; returns ``out_dir``.
 
     Args:
@@ -172,6 +172,10 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
             boxes moved halfway through the log (:func:`datasets_synth.movers.indoor_movers`).
             Every scan's per-point SemanticKITTI classes go to ``labels/NNNNNN.label`` (254 person,
             259 moved box, 50 walls and pillars); the CARMEN copy gets ``log.clf.labels``.
+        doors: worlds with doorways (``rooms``): doors in that many of them that open and
+            close during the log (:func:`datasets_synth.movers.door_tracks`; their leaves are
+            labelled 259 when they change state), drawn from their own random stream, so the
+            rest of the log is the same with and without doors.
         world_options: passed to the world builder (e.g. size, feature_density).
     """
     if world not in WORLDS:
@@ -210,6 +214,11 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
         if not w.planar:
             raise SubmapSlamError("movers are built for the planar worlds (rectangle, rooms, figure8) and synth kitti")
         tracks = indoor_movers(truth_xyt, rate, movers, np.random.default_rng([seed, 3131]))
+    if doors:
+        if not len(w.doorways):
+            raise SubmapSlamError(f"world {world!r} has no doorways for doors (rooms has)")
+        door = door_tracks(w.doorways, len(truth_xyt), rate, doors, np.random.default_rng([seed, 6007]))
+        tracks = door if tracks is None else MoverTracks.concat([tracks, door])
     mesh, triangle_labels = w.labelled_mesh()
     cast = cast_scans(out, RayCaster(mesh), dev, T_cast, rng, keep_ranges=sensor == "laser2d",
                       triangle_labels=triangle_labels, movers=tracks)
@@ -230,7 +239,7 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
         (out / "log.clf").write_text("\n".join(_carmen_lines(stamps, carmen_ranges, odom, dev.max_range)) + "\n")
         (out / "log.clf.labels").write_text(
             "# one line per FLASER line of log.clf: num_readings, then the SemanticKITTI class of each beam "
-            "(0: no return; 254 person, 259 moved object)\n"
+            "(0: no return; 254 person, 259 moved object or a door that opens and closes; 50 wall)\n"
             + "".join(f"{len(c)} {' '.join(map(str, c.tolist()))}\n" for _, c in cast))
     log.info("wrote %d scans of %s to %s", len(truth), world, out)
     return out

@@ -225,9 +225,14 @@ def run_ekf_log(
     compare: bool = False,
     incremental: bool = False,
     overwrite: bool = False,
+    known_association: bool | None = None,
 ) -> dict:
     """Read a landmark log, run the stochastic map (EKF) on it, write ``poses_tum.txt``,
     ``landmarks.csv``, ``summary.json`` and ``landmarks.png`` into ``out_dir``; return the summary.
+
+    ``known_association=False`` associates by gating even where the log has landmark ids (None:
+    the log's own setting). A synthetic log whose truth says when landmarks vanish and appear
+    gets a ``turnover`` section (:func:`~submapslam.ekf.runner.turnover_summary`).
 
     ``compare`` also solves the landmark factor graph (``incremental``: iSAM2 step by step).
     ``out_dir`` is checked first and written through a staging folder (``overwrite``: replace an
@@ -241,6 +246,10 @@ def run_ekf_log(
 
     check_out_folder(out_dir, inputs=[log_path], overwrite=overwrite)
     data = read_landmark_log(log_path, format, robot)
+    if known_association is not None:
+        from dataclasses import replace
+
+        data = replace(data, known_association=known_association)
     run = run_ekf(data, credibility, max_range=max_range, first_estimate_jacobians=first_estimate_jacobians)
     summary = ekf_summary(data, run, compare=compare, incremental=incremental)
     with staged_folder(out_dir, "ekf", overwrite=overwrite, inputs=[log_path]) as staging:

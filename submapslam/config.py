@@ -218,6 +218,12 @@ class CredibilityParams(_Strict):
     b: float = Field(2.0, description="forgetting rate (> 0): larger = slower to forget")
     remove_below: float = Field(0.05, description="remove a feature whose credibility falls below this, in [0, 1]")
     min_observations: int = Field(1, description="a feature must be seen this often before removal is considered")
+    min_chances: int = Field(1, ge=1, description="removal is considered only once the feature had this many chances to "
+                             "be seen (sightings + misses): a newborn feature missed once is not removed at once, "
+                             "clutter seen once still goes")
+    memory: float = Field(1.0, gt=0.0, le=1.0, description="n_s and n_u are multiplied by this each time the feature "
+                          "is matched or missed (1: the seed's counts, never forgotten; 0.95: about the last 20 chances "
+                          "count, so removal takes a bounded number of misses)")
 
     @model_validator(mode="before")
     @classmethod
@@ -228,6 +234,9 @@ class CredibilityParams(_Strict):
                 check_credibility_rates(a, b)
             if isinstance(rb, int | float) and not 0.0 <= rb <= 1.0:
                 raise ConfigError(f"credibility remove_below must be in [0, 1], got {rb!r}")
+            memory = data.get("memory", 1.0)
+            if isinstance(memory, int | float) and not 0.0 < memory <= 1.0:
+                raise ConfigError(f"credibility memory must be in (0, 1], got {memory!r}")
         return data
 
 

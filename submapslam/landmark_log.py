@@ -36,3 +36,6 @@ class LandmarkLog:
     known_association: bool = True            # observations carry landmark ids
     max_range: float = np.inf                 # sensor model for unobserved predictions [m]
     fov: float = 2 * np.pi                    # [rad], centred on the robot's heading
+    # ground truth of a changing world: landmark id -> (first, end) step times, the landmark
+    # exists for first <= step.t < end (synthetic logs with landmarks that vanish or appear)
+    truth_lifetimes: dict[int, tuple[float, float]] = field(default_factory=dict)

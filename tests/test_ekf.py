@@ -77,6 +77,29 @@ def test_features_that_disappear_are_removed_and_marginalised():
     assert P_before[a_slot, a_slot] >= ekf.P[3, 3]  # A only became more certain
 
 
+def _misses_to_remove(memory: float, sightings: int) -> int:
+    """Consecutive misses until a feature seen ``sightings`` times is removed (a = 1, b = 1)."""
+    ekf = StochasticMap(np.zeros(3), np.eye(3) * 1e-6,
+                        CredibilityParams(a=1.0, b=1.0, remove_below=0.05, min_chances=5, memory=memory),
+                        max_range=10.0)
+    A, B = np.array([3.0, 0.0]), np.array([0.0, 4.0])
+    for _ in range(sightings):
+        ekf.observe(np.array([rb(ekf.pose, A), rb(ekf.pose, B)]), R)
+    for k in range(1, 1000):
+        if ekf.observe(np.array([rb(ekf.pose, A)]), R).removed:
+            return k
+    return 1000
+
+
+def test_credibility_memory_bounds_the_misses_removal_takes():
+    # the seed's counts: misses needed grow with the sightings (b/a per sighting)
+    assert _misses_to_remove(1.0, 10) == 10 and _misses_to_remove(1.0, 100) == 100
+    # memory 0.9: about the last ten chances count, however long the feature was seen
+    assert _misses_to_remove(0.9, 10) <= _misses_to_remove(0.9, 100) == _misses_to_remove(0.9, 1000) <= 8
+    with pytest.raises(ConfigError, match=r"credibility memory must be in \(0, 1\], got 0.0"):
+        CredibilityParams(memory=0.0)
+
+
 def _circle_run(fej: bool) -> float:
     """Smallest heading variance a filter reports while circling two unknown features with noisy
     measurements; the prior heading variance is 1e-2 rad^2."""
@@ -137,6 +160,62 @@ def test_unknown_association_clutter_and_vanishing_landmarks(tmp_path):
     known = run_ekf(clean, CredibilityParams(b=1e9, remove_below=0.0))
     assert blind.filter.n == known.filter.n
     assert np.linalg.norm(blind.poses[-1][:2] - known.poses[-1][:2]) < 0.05
+
+
+def test_changing_world_vanished_removed_static_kept_new_ones_added(tmp_path):
+    """A third of the landmarks vanish halfway and new ones appear; association by gating."""
+    from submapslam.ekf.runner import landmark_turnover
+    from submapslam.io.landmark_logs import read_landmark_log
+
+    path = generate_landmark_log(tmp_path / "syn.txt", seed=3, laps=2, n_landmarks=15, vanish_fraction=1 / 3,
+                                 appear=5, sigma_range=0.03, odo_sigma=(0.01, 0.01, 0.003))
+    log = read_landmark_log(path)  # the truth beside the file: lifetimes, range, poses in the log's frame
+    assert log.max_range == 8.0 and len(log.truth_lifetimes) == 20
+    half = len(log.truth_poses) // 2
+    for step in log.steps:  # the log obeys its own truth: nothing is seen outside its lifetime
+        for tid in step.ids:
+            first, end = log.truth_lifetimes[tid]
+            assert first <= step.t < end
+    assert sum(end == half for _, end in log.truth_lifetimes.values()) == 5
+    assert sum(first == half for first, _ in log.truth_lifetimes.values()) == 5
+    run = run_ekf(log, CredibilityParams(a=1.0, b=1.0, remove_below=0.05, min_chances=10, memory=0.9),
+                  known_association=False)
+    t = landmark_turnover(log, run)
+    assert t["vanished"] == 5 and t["vanished_removed"] == 5       # credibility fell, the features went
+    assert max(t["removal_misses"]) <= 8                            # after a few misses
+    assert t["static"] == 10 and t["static_removed"] == []         # none of the others
+    assert t["appeared"] == 5 and t["appeared_added"] == 5          # new features for the new ones,
+    assert max(t["add_delay_after_first_sighting"]) == 0            # at their first sighting,
+    est = {lm["id"]: np.array([lm["x"], lm["y"]]) for lm in run.filter.landmarks()}
+    new = [tid for tid, (first, _) in log.truth_lifetimes.items() if first > 0]
+    for tid in new:                                                 # placed right and tracked since
+        fid = next(f for s, ids in zip(log.steps, run.associations) for i, f in zip(s.ids, ids) if i == tid)
+        assert np.linalg.norm(est[fid] - log.truth_landmarks[tid]) < 0.15
+        assert run.filter.n_s[run.filter.ids.index(fid)] >= 5
+    # without forgetting nothing is removed: the vanished ones stay in the map
+    keep = landmark_turnover(log, run_ekf(log, CredibilityParams(b=1e9, remove_below=0.0), known_association=False))
+    assert keep["vanished_removed"] == 0 and len(keep["vanished_kept"]) == 5
+
+
+def test_synth_landmarks_cli_and_the_ekf_turnover_summary(tmp_path):
+    import json
+
+    r = CliRunner().invoke(app, ["synth", "landmarks", "--out", str(tmp_path / "w"), "--landmarks", "12",
+                                 "--vanish", "0.25", "--appear", "3", "--seed", "2"])
+    assert r.exit_code == 0, r.output
+    truth = (tmp_path / "w" / "landmarks_truth.csv").read_text().splitlines()
+    assert truth[0] == "id,x,y,vanishes,appears,first_step,end_step" and len(truth) == 16
+    r = CliRunner().invoke(app, ["ekf", str(tmp_path / "w" / "landmarks.txt"), "--out", str(tmp_path / "o"),
+                                 "--b", "1", "--remove-below", "0.05", "--min-chances", "10", "--memory", "0.9",
+                                 "--ignore-ids"])
+    assert r.exit_code == 0, r.output
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    t = summary["turnover"]
+    assert (t["vanished"], t["vanished_removed"], t["static_removed"]) == (3, 3, [])
+    assert (t["appeared"], t["appeared_added"]) == (3, 3)
+    assert summary["ekf_trajectory_rmse_m"] < 0.3 and "spurious_features" in summary  # scored without ids
+    r = CliRunner().invoke(app, ["synth", "rooms", "--out", str(tmp_path / "x"), "--vanish", "0.3"])
+    assert_one_error_line(r, "--vanish only for synth landmarks")
 
 
 def test_mrclam_robot1():
@@ -262,3 +341,21 @@ def test_pole_log_with_a_garbled_landmark_file_fails_in_one_line(tmp_path):
     assert r.exit_code == 1
     lines = [ln for ln in r.output.splitlines() if ln.strip()]
     assert len(lines) == 1 and "landmarks_groundtruth.csv:3:" in lines[0] and "expected id,x,y" in lines[0]
+
+
+def test_bench_tool_turnover_table(capsys):
+    """tools/bench_ekf.py --turnover on one short log: one row per setting and association."""
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location("bench_ekf", Path(__file__).resolve().parents[1] / "tools" / "bench_ekf.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.main(["--turnover", "--seeds", "1", "--laps", "1", "--p-miss", "0", "--clutter", "0"]) == 0
+    rows = [ln.split("|")[1:-1] for ln in capsys.readouterr().out.splitlines() if ln.startswith("| ids") or
+            ln.startswith("| gating")]
+    assert len(rows) == 2 * len(mod.TURNOVER_SETTINGS)
+    for cells in rows:
+        removed, total = map(int, cells[5].split("/"))
+        assert total == 10 and 0 <= removed <= total
+        assert cells[9].strip().startswith("0 (")  # no static landmark lost on a clean log

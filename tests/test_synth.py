@@ -127,3 +127,58 @@ def test_unknown_world_and_sensor():
         generate("mars", "/tmp/never")
     with pytest.raises(SubmapSlamError, match="unknown sensor"):
         generate("rectangle", "/tmp/never", sensor="sonar")
+
+
+def test_doors_are_deterministic_occlude_when_closed_and_are_labelled(tmp_path):
+    from datasets_synth.movers import MOVING_OTHER, MoverCaster, door_tracks
+
+    w = rooms()
+    assert len(w.doorways) == 20  # one per room, on the hallway wall line
+    a = door_tracks(w.doorways, 600, 10.0, 6, np.random.default_rng([4, 6007]))
+    b = door_tracks(w.doorways, 600, 10.0, 6, np.random.default_rng([4, 6007]))
+    c = door_tracks(w.doorways, 600, 10.0, 6, np.random.default_rng([5, 6007]))
+    np.testing.assert_array_equal(a.present, b.present)
+    np.testing.assert_array_equal(a.poses, b.poses)
+    assert not np.array_equal(a.present, c.present) or not np.array_equal(a.poses, c.poses)
+    assert set(a.kinds) == {"door"} and set(a.classes) == {MOVING_OTHER}  # 60 s: every door opens and closes
+    # a door seen straight on from the hallway: closed, the ray stops in the doorway; open, it
+    # goes on into the room behind (3 m deep)
+    d = 0
+    mid = a.poses[d, 0, :2]
+    u = np.array([np.cos(a.poses[d, 0, 2]), np.sin(a.poses[d, 0, 2])])
+    inward = np.array([-u[1], u[0]])  # into the hallway: towards the world's centre
+    inward *= np.sign(inward @ (np.array([w.extent[2], w.extent[3]]) / 2 - mid))
+    T = se2_to_matrix(*(mid + 1.5 * inward), np.arctan2(-inward[1], -inward[0]))
+    T[2, 3] = 0.3
+    forward = np.array([[1.0, 0.0, 0.0]])
+    walls = RayCaster(w.mesh()).ranges(T, forward)[0]
+    caster = MoverCaster(a, 30.0)
+    k_closed, k_open = int(np.argmax(a.present[d])), int(np.argmin(a.present[d]))
+    t_closed, cls_closed = caster.cast(k_closed, T, forward)
+    t_open, cls_open = caster.cast(k_open, T, forward)
+    assert t_closed[0] == pytest.approx(1.5 - 0.02, abs=1e-3) and cls_closed[0] == MOVING_OTHER
+    assert np.isinf(t_open[0]) and cls_open[0] == 0 and walls == pytest.approx(4.5, abs=1e-3)
+    # the written log: labels 259 only on the doorways' lines, and only while that door is closed
+    log = generate("rooms", tmp_path / "doors", seed=4, laps=1, max_scans=150, doors=20)
+    assert yaml.safe_load((log / "meta.yaml").read_text())["movers"] == {"door": 20}
+    gt = read_tum(log / "groundtruth_tum.txt").poses
+    doors = door_tracks(w.doorways, 150, 10.0, 20, np.random.default_rng([4, 6007]))
+    on_doors = 0
+    from submapslam.io.labels import labelled_scans
+
+    for k, pts, labels, _ in labelled_scans(log):
+        xy = pts[:, :2] @ gt[k][:2, :2].T + gt[k][:2, 3]
+        door_hits = xy[(labels & 0xFFFF) == MOVING_OTHER]
+        on_doors += len(door_hits)
+        closed = doors.present[:, k]
+        for p in door_hits:
+            dist = np.linalg.norm(doors.poses[closed, k, :2] - p, axis=1)
+            assert dist.size and dist.min() < 0.58  # on a closed door's leaf (0.5 m half width, range noise)
+        assert not np.any((labels & 0xFFFF) == 254)
+    assert on_doors > 100
+    plain = generate("rooms", tmp_path / "plain", seed=4, laps=1, max_scans=150)
+    assert (plain / "odometry_tum.txt").read_bytes() == (log / "odometry_tum.txt").read_bytes()  # same drive
+    with pytest.raises(SubmapSlamError, match="no doorways"):
+        generate("rectangle", tmp_path / "r", max_scans=5, doors=2)
+    with pytest.raises(SubmapSlamError, match="21 doors asked for"):
+        generate("rooms", tmp_path / "r2", max_scans=5, doors=21)

@@ -1,10 +1,16 @@
 """Stochastic map (EKF) vs GTSAM landmark graph: agreement, NEES consistency, real-data figures.
 
 Usage: python tools/bench_ekf.py [--runs 50] [--data ../shared/data]
+       python tools/bench_ekf.py --turnover [--seeds 5] [--p-miss 0.05] [--clutter 0.05]
 
 Prints markdown tables: (1) agreement on a small synthetic map, (2) NEES of the robot pose
 averaged over Monte Carlo runs against the 95 % chi-square band, for the EKF (filtering) and
 the factor graph (smoothing, all-pose marginals), (3) MR.CLAM robot 1 and Victoria Park.
+
+``--turnover`` instead: a changing landmark world (30 landmarks, a third vanish halfway, 10
+new ones appear halfway, 2 laps) over several seeds, for several credibility settings, with
+and without the log's landmark ids: how soon vanished landmarks are removed, whether any
+static landmark is, whether the new ones become features, and the robot's ATE.
 """
 
 from __future__ import annotations
@@ -23,7 +29,14 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--runs", type=int, default=50)
     ap.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "shared" / "data")
+    ap.add_argument("--turnover", action="store_true", help="the changing-world study only")
+    ap.add_argument("--seeds", type=int, default=5)
+    ap.add_argument("--p-miss", type=float, default=0.05)
+    ap.add_argument("--clutter", type=float, default=0.05)
+    ap.add_argument("--laps", type=int, default=2)
     args = ap.parse_args(argv)
+    if args.turnover:
+        return turnover(args.seeds, args.p_miss, args.clutter, args.laps)
     from datasets_synth.landmarks import generate_landmark_log
     from submapslam.backend.landmark_graph import solve_landmark_graph
     from submapslam.cli.ekf import synthetic_nees_trials
@@ -127,6 +140,57 @@ def main(argv: list[str] | None = None) -> int:
             d = [np.linalg.norm(est[k] - sol.landmarks[k]) for k in sol.landmarks]
             print(f"| {name} | {sol.seconds:.2f} | {sol.initial_error:.0f} -> {sol.error:.0f} | "
                   f"{np.sqrt(np.mean(np.square(d))):.2f} | {np.hypot(*(run.poses[-1][:2] - sol.poses[-1][:2])):.2f} |")
+    return 0
+
+
+# a, b, min_chances, memory (1: the seed's counts)
+TURNOVER_SETTINGS = ((1.0, 0.3, 1, 1.0), (1.0, 1.0, 1, 1.0), (1.0, 1.0, 10, 1.0), (1.0, 1.0, 1, 0.9),
+                     (1.0, 1.0, 10, 0.9), (1.0, 1.0, 10, 0.95))
+
+
+def turnover(seeds: int, p_miss: float, clutter: float, laps: int) -> int:
+    """The changing-world study (``--turnover``): one markdown table row per setting."""
+    from datasets_synth.landmarks import generate_landmark_log
+    from submapslam.ekf import CredibilityParams
+    from submapslam.ekf.runner import landmark_turnover, run_ekf, trajectory_rmse
+    from submapslam.io.landmark_logs import read_landmark_log
+
+    tmp = Path(tempfile.mkdtemp())
+    logs = [read_landmark_log(generate_landmark_log(tmp / f"s{s}" / "syn.txt", seed=s, laps=laps, n_landmarks=30,
+                                                    vanish_fraction=1 / 3, appear=10, p_miss=p_miss,
+                                                    clutter_rate=clutter))
+            for s in range(seeds)]
+    n_steps = len(logs[0].steps)
+    print(f"## Changing landmark world: 30 landmarks, 10 vanish and 10 new appear at step {n_steps // 2} of {n_steps} "
+          f"({laps} laps, 0.5 m steps, range 8 m, p_miss {p_miss}, clutter {clutter}/step), seeds 0-{seeds - 1}\n")
+    print("| association | a | b | min chances | memory | vanished removed | steps to removal, median / max | metres driven, "
+          "median / max | misses counted, median / max | static removed (duplicates removed) | new added | steps to founding after "
+          "first sighting, max | clutter features left | ATE [m], mean / max |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for known in (True, False):
+        for a, b, mo, mem in TURNOVER_SETTINGS:
+            rows = []
+            for log in logs:
+                run = run_ekf(log, CredibilityParams(a=a, b=b, remove_below=0.05, min_chances=mo, memory=mem),
+                              known_association=known, max_range=8.0)
+                rows.append((landmark_turnover(log, run),
+                             trajectory_rmse(run.times, run.poses, log.truth_times, log.truth_poses)))
+
+            def cat(key: str, rows: list = rows) -> list:
+                return [v for t, _ in rows for v in t[key]]
+
+            def med_max(v: list, fmt: str = "{:.0f}") -> str:
+                return f"{fmt.format(np.median(v))} / {fmt.format(max(v))}" if v else "–"
+
+            ate = [e for _, e in rows]
+            print(f"| {'ids' if known else 'gating'} | {a:g} | {b:g} | {mo} | {mem:g} | "
+                  f"{sum(t['vanished_removed'] for t, _ in rows)} / {sum(t['vanished'] for t, _ in rows)} | "
+                  f"{med_max(cat('removal_delay_steps'))} | {med_max(cat('removal_delay_m'), '{:.1f}')} | "
+                  f"{med_max(cat('removal_misses'))} | {sum(len(t['static_removed']) for t, _ in rows)} "
+                  f"({sum(t['duplicates_removed'] for t, _ in rows)}) | "
+                  f"{sum(t['appeared_added'] for t, _ in rows)} / {sum(t['appeared'] for t, _ in rows)} | "
+                  f"{max(cat('add_delay_after_first_sighting'), default=0)} | "
+                  f"{sum(t['spurious_left'] for t, _ in rows)} | {np.mean(ate):.3f} / {max(ate):.3f} |")
     return 0
 
 

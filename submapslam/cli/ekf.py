@@ -33,6 +33,15 @@ def register(app: typer.Typer) -> None:
         remove_below: Annotated[float | None, typer.Option(
             help="Remove features whose credibility falls below this [default: 0, or the config's "
             "ekf.credibility.remove_below].")] = None,
+        min_chances: Annotated[int | None, typer.Option(
+            min=1, help="Consider removing a feature only once it had this many chances to be seen, sightings + "
+            "misses [default: 1, or the config's ekf.credibility.min_chances].")] = None,
+        memory: Annotated[float | None, typer.Option(
+            help="Credibility memory in (0, 1]: both counts decay by this at each chance to see a feature, so a "
+            "vanished one goes after a bounded number of misses [default: 1, the seed's counts, or the config's "
+            "ekf.credibility.memory].")] = None,
+        ignore_ids: Annotated[bool, typer.Option(help="Associate by Mahalanobis gating even where the log gives "
+                                                 "landmark ids (the ids then only score the result).")] = False,
         max_range: Annotated[float | None, typer.Option(help="Sensor range for unobserved predictions [m] "
                                                         "(default: the log's; unlimited for landmark logs).")] = None,
         config: Annotated[Path | None, typer.Option(
@@ -49,9 +58,11 @@ def register(app: typer.Typer) -> None:
 
         try:
             cred = with_overrides(load_config(config).ekf.credibility, "ekf options",
-                                  a=a, b=b, remove_below=remove_below)
+                                  a=a, b=b, remove_below=remove_below, min_chances=min_chances,
+                                  memory=memory)
             summary = run_ekf_log(log, out, format=format, robot=robot, credibility=cred,
                                   max_range=max_range, first_estimate_jacobians=fej,
+                                  known_association=False if ignore_ids else None,
                                   compare=compare, incremental=incremental, overwrite=overwrite)
         except SubmapSlamError as exc:
             raise fail(exc) from None

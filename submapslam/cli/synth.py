@@ -16,8 +16,9 @@ def register(app: typer.Typer) -> None:
 
     @app.command("synth")
     def synth_cmd(
-        world: Annotated[str, typer.Argument(help="rectangle, rooms, figure8, outdoor, aliased, or kitti (a city "
-                                                  "along a KITTI ground-truth path: --path, --rings).")],
+        world: Annotated[str, typer.Argument(help="rectangle, rooms, figure8, outdoor, aliased, kitti (a city "
+                                                  "along a KITTI ground-truth path: --path, --rings), or landmarks "
+                                                  "(a point-landmark log for `ekf`: --vanish, --appear).")],
         out: Annotated[Path, typer.Option("--out", "-o", help="Output log folder.")],
         seed: Annotated[int, typer.Option(help="Random seed (same seed, same files).")] = 0,
         laps: Annotated[int | None, typer.Option(help="Laps around the loop [default: 2].")] = None,
@@ -30,9 +31,24 @@ def register(app: typer.Typer) -> None:
         movers: Annotated[int, typer.Option(min=0, help="Things that move: kitti: cars both ways, pedestrians, parked "
                                                         "cars that leave; 2D worlds: people and boxes. Labelled in "
                                                         "labels/NNNNNN.label (SemanticKITTI).")] = 0,
+        doors: Annotated[int, typer.Option(min=0, help="rooms: doors in the room doorways that open and close "
+                                                      "(labelled 259 when they change state).")] = 0,
+        vanish: Annotated[float, typer.Option(min=0.0, max=1.0, help="landmarks: fraction of the landmarks that "
+                                                                    "vanish halfway.")] = 0.0,
+        appear: Annotated[int, typer.Option(min=0, help="landmarks: new landmarks that appear halfway.")] = 0,
+        landmarks: Annotated[int | None, typer.Option(min=1, help="landmarks: landmarks at the start "
+                                                                 "[default: 30].")] = None,
+        p_miss: Annotated[float, typer.Option(min=0.0, max=1.0, help="landmarks: chance a landmark in range is "
+                                                                    "not detected.")] = 0.0,
+        clutter: Annotated[float, typer.Option(min=0.0, help="landmarks: false detections per step (Poisson "
+                                                            "mean).")] = 0.0,
         overwrite: Overwrite = False,
     ) -> None:
         """Generate a synthetic world and write it as a log folder (and CARMEN for 2D).
+
+        ``synth landmarks --vanish 0.33 --appear 10 --out DIR`` writes ``DIR/landmarks.txt`` (the
+        Victoria Park format that ``ekf`` reads) with ``landmarks_truth.csv`` (which landmark
+        exists at which steps), ``poses_truth.txt`` and ``landmarks_meta.yaml`` beside it.
 
         ``synth kitti --path 00.txt.xz --rings 16 --out DIR`` drives the KITTI path through a
         generated city and ray-casts a Velodyne-like LiDAR at every pose (10 Hz). The log is
@@ -41,6 +57,21 @@ def register(app: typer.Typer) -> None:
         from ..io.output_folder import staged_folder
 
         try:
+            landmark_opts = (("--vanish", vanish or None), ("--appear", appear or None),
+                             ("--p-miss", p_miss or None), ("--clutter", clutter or None), ("--landmarks", landmarks))
+            if world != "landmarks":
+                unused = [name for name, value in landmark_opts if value is not None]
+                if unused:
+                    raise SubmapSlamError(f"{', '.join(unused)} only for synth landmarks, not {world!r}")
+            if doors and world != "rooms":
+                raise SubmapSlamError(f"--doors is for the rooms world, not {world!r}")
+            if world == "landmarks":
+                _check_landmark_options(path=path, sensor=sensor, poles=poles, movers=movers, max_scans=max_scans,
+                                        odometry_noise=odometry_noise != 1.0)
+                with staged_folder(out, "synth", overwrite=overwrite) as staging:
+                    meta = _landmarks(staging, seed, laps or 2, landmarks or 30, vanish, appear, p_miss, clutter)
+                console.print(f"{meta} -> {out}/landmarks.txt")
+                return
             if world == "kitti":
                 _check_kitti_options(path, rings, laps=laps, sensor=sensor, poles=poles)
             elif path is not None:
@@ -51,7 +82,8 @@ def register(app: typer.Typer) -> None:
                 if world == "kitti":
                     meta = _kitti(staging, path, rings, seed, max_scans, odometry_noise, movers)
                 else:
-                    meta = _world(world, staging, seed, laps or 2, sensor, max_scans, odometry_noise, poles, movers)
+                    meta = _world(world, staging, seed, laps or 2, sensor, max_scans, odometry_noise, poles, movers,
+                                  doors)
         except SubmapSlamError as exc:
             raise fail(exc) from None
         console.print(f"{meta} -> {out}")
@@ -62,7 +94,7 @@ def _check_world(world: str) -> None:
     from datasets_synth import WORLDS
 
     if world not in WORLDS:
-        raise SubmapSlamError(f"unknown world {world!r}; choose from {', '.join([*sorted(WORLDS), 'kitti'])}")
+        raise SubmapSlamError(f"unknown world {world!r}; choose from {', '.join([*sorted(WORLDS), 'kitti', 'landmarks'])}")
 
 
 def _check_kitti_options(path, rings, *, laps, sensor, poles) -> None:
@@ -79,14 +111,33 @@ def _check_kitti_options(path, rings, *, laps, sensor, poles) -> None:
         raise SubmapSlamError(f"--path {path}: no such KITTI pose file")
 
 
-def _world(world, out, seed, laps, sensor, max_scans, odometry_noise, poles, movers=0) -> str:
+def _check_landmark_options(**given) -> None:
+    unused = [f"--{name.replace('_', '-')}" for name, value in given.items() if value]
+    if unused:
+        raise SubmapSlamError(f"{', '.join(unused)} not used by synth landmarks (a landmark log, no scans)")
+
+
+def _landmarks(out, seed, laps, n, vanish, appear, p_miss, clutter) -> str:
+    import numpy as np
+
+    from datasets_synth.landmarks import generate_landmark_log
+
+    path = generate_landmark_log(Path(out) / "landmarks.txt", seed=seed, laps=laps, n_landmarks=n,
+                                 vanish_fraction=vanish, appear=appear, p_miss=p_miss, clutter_rate=clutter)
+    steps = len(np.loadtxt(path.parent / "poses_truth.txt", ndmin=2))
+    gone = int(round(vanish * n))
+    return (f"{steps} steps, {laps} laps, {n} landmarks"
+            + (f", {gone} vanish and {appear} appear at step {steps // 2}" if gone or appear else ""))
+
+
+def _world(world, out, seed, laps, sensor, max_scans, odometry_noise, poles, movers=0, doors=0) -> str:
     import yaml
 
     from datasets_synth import generate
 
     extra = {"poles": poles} if poles else {}
     path = generate(world, out, seed=seed, laps=laps, sensor=sensor, max_scans=max_scans,
-                    odometry_noise=odometry_noise, movers=movers, **extra)
+                    odometry_noise=odometry_noise, movers=movers, doors=doors, **extra)
     meta = yaml.safe_load((path / "meta.yaml").read_text())
     return (f"{meta['n_scans']} scans of {world} ({meta['sensor']['type']}), loop {meta['loop_length_m']:.0f} m "
             f"x {meta['laps']} laps, wheel odometry end drift {meta['odometry_end_drift_m']:.2f} m{_movers_text(meta)}")

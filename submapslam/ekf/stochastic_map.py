@@ -13,7 +13,11 @@ frame. Matching has the seed's three outcomes:
 
 Each feature's credibility is ``c = 1 - exp(-(n_s/a - n_u/b))`` clamped to [0, 1] (eq. 5.70);
 a feature whose credibility falls below a threshold is removed (its rows and columns dropped,
-which is the exact marginalisation of a Gaussian).
+which is the exact marginalisation of a Gaussian). The seed's counts never forget: a feature
+seen ``n_s`` times needs ``(b/a) n_s`` misses before it goes. ``memory < 1`` (config
+``ekf.credibility.memory``) multiplies both counts by ``memory`` each time the feature is
+matched or missed, so credibility weighs about the last ``1 / (1 - memory)`` chances to see
+it and a vanished feature goes after a bounded number of misses however long it was seen.
 
 ``first_estimate_jacobians=True`` is the FEJ-EKF of Huang, Mourikis & Roumeliotis (2008): the
 same filter, but the Jacobians are evaluated at the robot's predicted positions and each
@@ -78,6 +82,8 @@ class StochasticMap:
         self.ids: list[int] = []          # feature id per state slot
         self.n_s: list[float] = []
         self.n_u: list[float] = []
+        self.n_seen: list[int] = []       # times matched (never forgotten; for min_observations)
+        self.n_chances: list[int] = []    # times matched or missed (never forgotten; for min_chances)
         self.cred = credibility_params or CredibilityParams()
         self.max_range = max_range
         self.fov = fov
@@ -182,6 +188,8 @@ class StochasticMap:
         self._first_xy[fid] = m.copy()
         self.n_s.append(1.0)
         self.n_u.append(0.0)
+        self.n_seen.append(1)
+        self.n_chances.append(1)
         return fid
 
     def remove(self, fid: int) -> None:
@@ -191,7 +199,7 @@ class StochasticMap:
         keep = np.r_[0:k, k + 2:len(self.x)]
         self.x = self.x[keep]
         self.P = self.P[np.ix_(keep, keep)]
-        del self.ids[i], self.n_s[i], self.n_u[i]
+        del self.ids[i], self.n_s[i], self.n_u[i], self.n_seen[i], self.n_chances[i]
         self._first_xy.pop(fid, None)
 
     def _predicted_in_view(self) -> set[int]:
@@ -234,16 +242,23 @@ class StochasticMap:
                 continue
             self._update(self._slot(target), z, R)
             i = self.ids.index(target)
-            self.n_s[i] += 1
+            lam = self.cred.memory
+            self.n_s[i] = lam * self.n_s[i] + 1
+            self.n_u[i] *= lam
+            self.n_seen[i] += 1
+            self.n_chances[i] += 1
             seen.add(target)
             report.matched.append((m, target))
         for fid in sorted(predicted - seen):
             if fid in self.ids:
-                self.n_u[self.ids.index(fid)] += 1
+                i = self.ids.index(fid)
+                self.n_u[i] = self.cred.memory * self.n_u[i] + 1
+                self.n_s[i] *= self.cred.memory
+                self.n_chances[i] += 1
                 report.unobserved.append(fid)
         for fid in list(self.ids):
             i = self.ids.index(fid)
-            if self.n_s[i] >= self.cred.min_observations and \
+            if self.n_seen[i] >= self.cred.min_observations and self.n_chances[i] >= self.cred.min_chances and \
                     credibility(self.n_s[i], self.n_u[i], self.cred.a, self.cred.b) < self.cred.remove_below:
                 self.remove(fid)
                 report.removed.append(fid)

@@ -77,6 +77,10 @@ def ekf_summary(log: LandmarkLog, run: EkfRun, compare: bool = False, incrementa
         summary["landmarks_total"], summary["spurious_features"] = near["total"], near["spurious"]
     if log.truth_poses is not None:
         summary["ekf_trajectory_rmse_m"] = trajectory_rmse(run.times, run.poses, log.truth_times, log.truth_poses)
+    if log.truth_lifetimes:
+        from ..ekf.runner import landmark_turnover, turnover_summary
+
+        summary["turnover"] = turnover_summary(landmark_turnover(log, run))
     if compare:
         from ..backend.landmark_graph import solve_landmark_graph
         from ..ekf.runner import with_ekf_association

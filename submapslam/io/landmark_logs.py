@@ -241,7 +241,61 @@ def read_landmark_log(path: str | Path, format: str | None = None, robot: int = 
     if format == "mrclam":
         return read_mrclam(path, robot)
     if format in ("victoria", "synth"):
-        return read_victoria_park(path)
+        return with_synthetic_truth(read_victoria_park(path), path)
     if format == "cloud":
         return read_cloud_pole_log(path)
     raise InputError(path, f"unknown landmark log format {format!r}; use mrclam, victoria, synth or cloud")
+
+
+def with_synthetic_truth(log: LandmarkLog, path: str | Path) -> LandmarkLog:
+    """``log`` with the ground truth that ``datasets_synth.landmarks`` writes beside ``path``
+    (``poses_truth.txt``: ``k x y theta``; ``landmarks_truth.csv``: ``id,x,y[,vanishes,appears,
+    first_step,end_step]``), moved into the log's frame (the log starts at the origin, the truth at
+    its first pose), and the sensor range of ``landmarks_meta.yaml`` (``max_range_m``) as the
+    log's ``max_range``; ``log`` unchanged when either truth file is missing."""
+    from dataclasses import replace
+
+    folder = Path(path).parent
+    poses_file, lm_file = folder / "poses_truth.txt", folder / "landmarks_truth.csv"
+    if not (poses_file.is_file() and lm_file.is_file()):
+        return log
+    try:
+        raw = np.loadtxt(poses_file, ndmin=2)
+        if raw.shape[1] != 4 or not np.isfinite(raw).all():
+            raise ValueError("expected 4 finite numbers per line: k x y theta")
+    except ValueError as exc:
+        raise InputError(poses_file, str(exc)) from None
+    lines = lm_file.read_text().splitlines()
+    header = lines[0].split(",") if lines else []
+    if header[:3] != ["id", "x", "y"]:
+        raise InputError(lm_file, f"expected a header starting id,x,y, got {lines[0][:60] if lines else ''!r}", 1)
+    lifetime_cols = ("first_step" in header and "end_step" in header)
+    c, s = np.cos(raw[0, 3]), np.sin(raw[0, 3])
+    Rt = np.array([[c, s], [-s, c]])  # world -> log frame rotation
+
+    def to_log(xy: np.ndarray) -> np.ndarray:
+        return Rt @ (np.asarray(xy, dtype=np.float64) - raw[0, 1:3])
+
+    landmarks, lifetimes = {}, {}
+    for lineno, line in enumerate(lines[1:], start=2):
+        tok = line.split(",")
+        try:
+            lid = int(tok[0])
+            landmarks[lid] = to_log([float(tok[1]), float(tok[2])])
+            if lifetime_cols:
+                lifetimes[lid] = (float(tok[header.index("first_step")]), float(tok[header.index("end_step")]))
+        except (ValueError, IndexError):
+            raise InputError(lm_file, f"expected {','.join(header)}, got {line[:60]!r}", lineno) from None
+    poses = np.column_stack([(raw[:, 1:3] - raw[0, 1:3]) @ Rt.T, np.unwrap(raw[:, 3]) - raw[0, 3]])
+    max_range = log.max_range
+    meta_file = folder / "landmarks_meta.yaml"
+    if meta_file.is_file():
+        import yaml
+
+        try:
+            meta = yaml.safe_load(meta_file.read_text()) or {}
+            max_range = float(meta.get("max_range_m", max_range))
+        except (yaml.YAMLError, AttributeError, TypeError, ValueError) as exc:
+            raise InputError(meta_file, f"expected a mapping with max_range_m ({str(exc)[:80]})") from None
+    return replace(log, name=f"synthetic landmarks {Path(path).name}", truth_times=raw[:, 0], truth_poses=poses,
+                   truth_landmarks=landmarks, truth_lifetimes=lifetimes, max_range=max_range)
