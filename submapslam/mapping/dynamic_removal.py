@@ -99,6 +99,7 @@ class RemovalParams:
     window: int = 50  # scans after a voxel's last sighting (and before its first) that test it
     tolerance: float = 0.5  # a beam passes a voxel within this fraction of the voxel of its centre
     grow_slack: int = 2  # scans: neighbours seen within this of each other's sightings are one cluster
+    similar: float = -1.0  # DEV: <0 off
     cluster_fraction: float = 0.3  # a cluster with this fraction of free-voted voxels moved
     cluster_sample: int = 300  # voxels tested of a larger cluster (a sample, by key hash)
     protect: bool = True  # a vote beside a voxel seen long before or after the voted one does not count ...
@@ -127,6 +128,10 @@ class RemovalResult:
     dynamic: np.ndarray
     params: RemovalParams
     seconds: dict[str, float] = field(default_factory=dict)
+    first: np.ndarray | None = None  # (V,) first scan with a point in the voxel
+    last: np.ndarray | None = None  # (V,) last such scan
+    cluster: np.ndarray | None = None  # (V,) cluster id (-1: ground, never removed)
+    ground: np.ndarray | None = None  # (V,) bool: ground voxels
 
     @property
     def points_kept(self) -> int:
@@ -274,7 +279,8 @@ def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_bas
     if per_voxel:  # a 2D wall is one long cluster: decide voxel by voxel
         cluster = np.where(ground, -1, np.arange(len(keys)))
     else:
-        cluster = co_observed_clusters(keys, first, last, ~ground, params.grow_slack)
+        cluster = co_observed_clusters(keys, first, last, ~ground, params.grow_slack,
+                                       None if params.similar < 0 else params.similar)
     tested = _sample_clusters(cluster, keys, params.cluster_sample)
     t_cluster = time.perf_counter() - t1
     by_last = tested[np.argsort(last[tested], kind="stable")]
@@ -317,7 +323,8 @@ def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_bas
     t3 = time.perf_counter()
     return RemovalResult(keys, centroids, counts, votes, dynamic, params,
                          {"voxels": round(t1 - t0, 3), "clusters": round(t_cluster, 3),
-                          "evidence": round(t2 - t1 - t_cluster, 3), "decision": round(t3 - t2, 3)})
+                          "evidence": round(t2 - t1 - t_cluster, 3), "decision": round(t3 - t2, 3)},
+                         first, last, cluster, ground)
 
 
 _NEIGHBOURS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)])
@@ -336,7 +343,7 @@ def ground_voxels(centroids: np.ndarray, cell: float, band: float) -> np.ndarray
 
 
 def co_observed_clusters(keys: np.ndarray, first: np.ndarray, last: np.ndarray, members: np.ndarray,
-                         slack: int) -> np.ndarray:
+                         slack: int, similar: float | None = None) -> np.ndarray:
     """Cluster id ``(V,)`` of every voxel (-1 for non-members): ``members`` joined with each
     26-neighbour member seen at overlapping times (sightings ``[first, last]`` +- ``slack`` scans).
     One object seen at one time is one cluster; so is the smear a car leaves along its lane."""
@@ -349,6 +356,9 @@ def co_observed_clusters(keys: np.ndarray, first: np.ndarray, last: np.ndarray, 
         return labels
     src, nb = _neighbour_pairs(keys, idx, half=True)
     ok = members[nb] & (first[nb] <= last[src] + slack) & (first[src] <= last[nb] + slack)
+    if similar is not None:
+        tol = slack + similar * np.minimum(last[src] - first[src], last[nb] - first[nb])
+        ok &= (np.abs(first[src] - first[nb]) <= tol) & (np.abs(last[src] - last[nb]) <= tol)
     src, nb = src[ok], nb[ok]
     n = len(keys)
     graph = coo_matrix((np.ones(len(src), dtype=np.int8), (src, nb)), shape=(n, n))
