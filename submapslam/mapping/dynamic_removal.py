@@ -41,24 +41,36 @@ def voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
 
 
 class VoxelAccumulator:
-    """Occupied voxels of a scan sequence: sorted keys, centroid sums, point counts and the first and
-    last scan that had a point in each voxel (merged in batches)."""
+    """Occupied voxels of a scan sequence: sorted keys, centroid sums, point counts, the first and
+    last scan that had a point in each voxel and how many scans did (merged in batches)."""
 
     def __init__(self, voxel: float, merge_points: int = 4_000_000) -> None:
         self.voxel = voxel
         self.merge_points = merge_points
         self._parts: list[tuple[np.ndarray, ...]] = []
         self._pending = 0
+        self.seen = np.zeros(0, dtype=np.int32)  # (V,) after result(): scans with a point in each voxel
+        self.flagged = np.zeros(0, dtype=np.int32)  # (V,) after result(): flagged points in each voxel
 
-    def add(self, points_world: np.ndarray, scan: int) -> None:
-        """Add the ``(N, 3)`` world points of scan number ``scan``."""
+    def add(self, points_world: np.ndarray, scan: int, flagged: np.ndarray | None = None) -> None:
+        """Add the ``(N, 3)`` world points of scan number ``scan``; ``flagged`` ``(N,)`` bool: points
+        counted in :attr:`flagged` per voxel (e.g. that scan's ground points)."""
         p = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
         if not len(p):
             return
-        n = len(p)
-        scans = np.full(n, scan, dtype=np.int32)
-        self._parts.append(_reduce(voxel_keys(p, self.voxel), p, np.ones(n, dtype=np.int64), scans, scans))
-        self._pending += n
+        keys = voxel_keys(p, self.voxel)
+        order = np.argsort(keys)
+        keys = keys[order]
+        idx, start = _groups(keys)
+        m = len(start)
+        sums = np.empty((m, 3))
+        for j in range(3):
+            sums[:, j] = np.bincount(idx, p[order, j], m)
+        one = np.ones(m, dtype=np.int32)
+        flags = np.zeros(m, dtype=np.int32) if flagged is None else \
+            np.bincount(idx, np.asarray(flagged)[order], m).astype(np.int32)
+        self._parts.append((keys[start], sums, np.bincount(idx, minlength=m), one * scan, one * scan, one, flags))
+        self._pending += len(p)
         if self._pending >= self.merge_points:
             self._merge()
 
@@ -68,22 +80,48 @@ class VoxelAccumulator:
         self._pending = 0
 
     def result(self) -> tuple[np.ndarray, ...]:
-        """Sorted keys ``(V,)``, centroids ``(V, 3)``, point counts ``(V,)``, first and last scan ``(V,)``."""
+        """Sorted keys ``(V,)``, centroids ``(V, 3)``, point counts ``(V,)``, first and last scan ``(V,)``
+        (and :attr:`seen`)."""
         self._merge()
         if not self._parts:
             z = np.zeros(0, dtype=np.int64)
             return z, np.zeros((0, 3)), z, z.astype(np.int32), z.astype(np.int32)
-        keys, sums, counts, first, last = self._parts[0]
+        keys, sums, counts, first, last, self.seen, self.flagged = self._parts[0]
         return keys, sums / counts[:, None], counts, first, last
 
 
-def _reduce(keys, sums, counts, first, last):
-    """Group rows by key: sum ``sums`` ``(N, 3)`` and ``counts``, min of ``first``, max of ``last``."""
-    order = np.argsort(keys, kind="stable")
+def _groups(sorted_keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Group index ``(N,)`` of each sorted key and the first row ``(G,)`` of each group."""
+    flag = np.empty(len(sorted_keys), dtype=bool)
+    flag[:1] = True
+    np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=flag[1:])
+    return np.cumsum(flag) - 1, np.flatnonzero(flag)
+
+
+def _reduce(keys, sums, counts, first, last, seen, flags):
+    """Group rows by key: sum ``sums`` ``(N, 3)``, ``counts``, ``seen`` and ``flags``, min of ``first``, max
+    of ``last``."""
+    order = np.argsort(keys, kind="stable")  # parts are sorted runs: a merge
     keys = keys[order]
-    start = np.flatnonzero(np.concatenate([[True], keys[1:] != keys[:-1]]))
-    return (keys[start], np.add.reduceat(sums[order], start, axis=0), np.add.reduceat(counts[order], start),
-            np.minimum.reduceat(first[order], start), np.maximum.reduceat(last[order], start))
+    idx, start = _groups(keys)
+    m = len(start)
+    out = np.empty((m, 3))
+    for j in range(3):
+        out[:, j] = np.bincount(idx, sums[order, j], m)
+    return (keys[start], out, np.bincount(idx, counts[order], m).astype(np.int64),
+            np.minimum.reduceat(first[order], start), np.maximum.reduceat(last[order], start),
+            np.bincount(idx, seen[order], m).astype(np.int32), np.bincount(idx, flags[order], m).astype(np.int32))
+
+
+def transform(points: np.ndarray, T: np.ndarray, dtype=np.float64) -> np.ndarray:
+    """``points (N, 3) @ R.T + t`` of the ``(4, 4)`` ``T``, elementwise (no BLAS threads: on a shared
+    machine a threaded 3x3 product costs more than it saves)."""
+    p = np.asarray(points)
+    R, t = np.asarray(T[:3, :3], dtype=dtype), np.asarray(T[:3, 3], dtype=dtype)
+    out = np.empty((len(p), 3), dtype=dtype)
+    for i in range(3):
+        out[:, i] = p[:, 0] * R[i, 0] + p[:, 1] * R[i, 1] + p[:, 2] * R[i, 2] + t[i]
+    return out
 
 
 @dataclass(frozen=True)
@@ -108,6 +146,11 @@ class RemovalParams:
     planar_clusters: bool = False  # 2D logs: clusters too (else each voxel is decided by its own votes)
     ground_cell: float = 1.0  # [m] columns whose lowest voxel is the ground ...
     ground_band: float = 0.15  # [m] ... and the voxels this far above it, never removed
+    scan_ground: bool = True  # also the voxels whose points were mostly ground in their own scans (below)
+    scan_ground_cell: float = 1.0  # [m] per scan (base frame): cells whose lowest point is the ground ...
+    scan_ground_band: float = 0.15  # [m] ... and the points this far above it ...
+    scan_ground_rise: float = 0.12  # [m] ... when the lowest point is no higher than the scan's ground plane
+    scan_ground_slope: float = 0.004  # ... by this much plus this fraction of its range (not a car's side)
     el_bin_deg: float = 0.25  # range-image pixel: elevation ...
     az_bin_deg: float = 0.2  # ... and azimuth
 
@@ -255,14 +298,17 @@ def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_bas
         planar: 2D laser scans (z = 0): there is no ground to keep.
     """
     T_bs = np.eye(4) if T_base_sensor is None else np.asarray(T_base_sensor, dtype=np.float64)
+    T_sb = np.linalg.inv(T_bs)
     t0 = time.perf_counter()
     acc = VoxelAccumulator(params.voxel)
     n = 0
     for k, pts in enumerate(scans()):
         if k >= len(T_world_base):
             break
-        T = T_world_base[k]
-        acc.add(np.asarray(pts, dtype=np.float64) @ T[:3, :3].T + T[:3, 3], k)
+        pts = np.asarray(pts)
+        acc.add(transform(pts, T_world_base[k]), k, None if planar or not params.scan_ground else
+                scan_ground_points(pts, params.scan_ground_cell, params.scan_ground_band, params.scan_ground_rise,
+                                   params.scan_ground_slope))
         n += 1
         if progress is not None:
             progress("voxels", k + 1)
@@ -275,6 +321,8 @@ def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_bas
     # of voted voxels: of a large cluster a sample of about `cluster_sample` voxels is tested.
     ground = np.zeros(len(keys), dtype=bool) if planar else ground_voxels(centroids, params.ground_cell,
                                                                            params.ground_band)
+    if not planar and params.scan_ground:
+        ground |= 2 * acc.flagged >= counts
     per_voxel = planar and not params.planar_clusters
     if per_voxel:  # a 2D wall is one long cluster: decide voxel by voxel
         cluster = np.where(ground, -1, np.arange(len(keys)))
@@ -303,11 +351,10 @@ def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_bas
         cand = np.concatenate([after, before])
         if not len(cand):
             continue
-        T_ws = T_world_base[k] @ T_bs
-        local = (centroids32[cand] - T_ws[:3, 3].astype(np.float32)) @ T_ws[:3, :3].astype(np.float32)
+        local = transform(centroids32[cand], np.linalg.inv(T_world_base[k] @ T_bs), np.float32)
         near = np.einsum("ij,ij->i", local, local) < params.max_range ** 2
         cand, local = cand[near], local[near]
-        pts_sensor = (np.asarray(pts, dtype=np.float64) - T_bs[:3, 3]) @ T_bs[:3, :3]
+        pts_sensor = transform(pts, T_sb)
         image = RangeImage(pts_sensor, params.el_bin_deg, params.az_bin_deg)
         _, free, _ = image.passes(local, tolerance, margin)
         votes[cand[free]] += 1
@@ -340,6 +387,47 @@ def ground_voxels(centroids: np.ndarray, cell: float, band: float) -> np.ndarray
     lowest = np.full(len(uniq), np.inf)
     np.minimum.at(lowest, idx, centroids[:, 2])
     return centroids[:, 2] <= lowest[idx] + band
+
+
+def scan_ground_points(points: np.ndarray, cell: float, band: float, rise: float, slope: float) -> np.ndarray:
+    """``(N,)`` bool: the ground points of one scan ``(N, 3)`` (base frame, z up): within ``band`` [m] of
+    the lowest point of their ``cell`` x ``cell`` column, where that lowest point is no more than
+    ``rise + slope * range`` above the scan's ground level (the median lowest point of the columns
+    within 20 m). Decided in the scan's own frame, so pose errors between scans cannot thicken it.
+    """
+    p = np.asarray(points)
+    if not len(p):
+        return np.zeros(0, dtype=bool)
+    ij = np.floor(p[:, :2] / cell).astype(np.int64)
+    col = (ij[:, 0] << 32) + (ij[:, 1] & 0xFFFFFFFF)
+    order = np.argsort(col)
+    idx, start = _groups(col[order])
+    z = p[order, 2]
+    lowest = np.minimum.reduceat(z, start)
+    centre = (np.stack([np.minimum.reduceat(ij[order, 0], start), np.minimum.reduceat(ij[order, 1], start)], 1)
+              + 0.5) * cell
+    r = np.hypot(centre[:, 0], centre[:, 1])
+    plausible = lowest - _ground_plane(centre, lowest, r) <= rise + slope * r
+    out = np.empty(len(p), dtype=bool)
+    out[order] = plausible[idx] & (z <= lowest[idx] + band)
+    return out
+
+
+def _ground_plane(xy: np.ndarray, z: np.ndarray, r: np.ndarray, rounds: int = 3) -> np.ndarray:
+    """Height ``(C,)`` at ``xy`` ``(C, 2)`` of a plane fitted to the columns' lowest points ``z`` ``(C,)``:
+    least squares over the columns within 30 m, then again over those within 0.2 m of it (cars,
+    walls and kerbs drop out)."""
+    A = np.column_stack([xy, np.ones(len(z))])
+    use = r < 30.0
+    if use.sum() < 3:
+        use = np.ones(len(z), dtype=bool)
+    coef = np.array([0.0, 0.0, float(np.median(z[use]))])
+    for _ in range(rounds):
+        use &= np.abs(z - A @ coef) < (1.0 if _ == 0 else 0.2)
+        if use.sum() < 3:
+            break
+        coef = np.linalg.lstsq(A[use], z[use], rcond=None)[0]
+    return A @ coef
 
 
 def co_observed_clusters(keys: np.ndarray, first: np.ndarray, last: np.ndarray, members: np.ndarray,
