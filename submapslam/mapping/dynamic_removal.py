@@ -132,12 +132,11 @@ class RemovalParams:
     max_range: float = 50.0  # [m] voxels farther from the sensor get no evidence from that scan
     margin: float = 0.3  # [m] a beam must end this far beyond a voxel to free it ...
     margin_per_m: float = 0.05  # ... or this fraction of the voxel's range, whichever is larger
-    min_free: int = 2  # voxels with a free vote a cluster needs at least
+    min_free: int = 1  # voxels with a free vote a cluster needs at least (1: a lone voxel seen once, far away, can go)
     stride: int = 1  # evidence from every stride-th scan
-    window: int = 50  # scans after a voxel's last sighting (and before its first) that test it
+    window: int = 100  # scans after a voxel's last sighting (and before its first) that test it
     tolerance: float = 0.5  # a beam passes a voxel within this fraction of the voxel of its centre
     grow_slack: int = 2  # scans: neighbours seen within this of each other's sightings are one cluster
-    similar: float = -1.0  # DEV: <0 off
     cluster_fraction: float = 0.3  # a cluster with this fraction of free-voted voxels moved
     cluster_sample: int = 300  # voxels tested of a larger cluster (a sample, by key hash)
     protect: bool = True  # a vote beside a voxel seen long before or after the voted one does not count ...
@@ -148,8 +147,9 @@ class RemovalParams:
     ground_band: float = 0.15  # [m] ... and the voxels this far above it, never removed
     scan_ground: bool = True  # also the voxels whose points were mostly ground in their own scans (below)
     scan_ground_cell: float = 1.0  # [m] per scan (base frame): cells whose lowest point is the ground ...
-    scan_ground_band: float = 0.15  # [m] ... and the points this far above it ...
-    scan_ground_rise: float = 0.12  # [m] ... when the lowest point is no higher than the scan's ground plane
+    scan_ground_band: float = 0.1  # [m] ... and the points this far above it ...
+    scan_ground_rise: float = 0.08  # [m] ... when the lowest point is no higher than the scan's ground plane
+    scan_ground_seen: int = 2  # ... in voxels seen by this many scans at least (not a mover that passed once)
     scan_ground_slope: float = 0.004  # ... by this much plus this fraction of its range (not a car's side)
     el_bin_deg: float = 0.25  # range-image pixel: elevation ...
     az_bin_deg: float = 0.2  # ... and azimuth
@@ -322,13 +322,12 @@ def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_bas
     ground = np.zeros(len(keys), dtype=bool) if planar else ground_voxels(centroids, params.ground_cell,
                                                                            params.ground_band)
     if not planar and params.scan_ground:
-        ground |= 2 * acc.flagged >= counts
+        ground |= (2 * acc.flagged >= counts) & (acc.seen >= params.scan_ground_seen)
     per_voxel = planar and not params.planar_clusters
     if per_voxel:  # a 2D wall is one long cluster: decide voxel by voxel
         cluster = np.where(ground, -1, np.arange(len(keys)))
     else:
-        cluster = co_observed_clusters(keys, first, last, ~ground, params.grow_slack,
-                                       None if params.similar < 0 else params.similar)
+        cluster = co_observed_clusters(keys, first, last, ~ground, params.grow_slack)
     tested = _sample_clusters(cluster, keys, params.cluster_sample)
     t_cluster = time.perf_counter() - t1
     by_last = tested[np.argsort(last[tested], kind="stable")]
@@ -431,7 +430,7 @@ def _ground_plane(xy: np.ndarray, z: np.ndarray, r: np.ndarray, rounds: int = 3)
 
 
 def co_observed_clusters(keys: np.ndarray, first: np.ndarray, last: np.ndarray, members: np.ndarray,
-                         slack: int, similar: float | None = None) -> np.ndarray:
+                         slack: int) -> np.ndarray:
     """Cluster id ``(V,)`` of every voxel (-1 for non-members): ``members`` joined with each
     26-neighbour member seen at overlapping times (sightings ``[first, last]`` +- ``slack`` scans).
     One object seen at one time is one cluster; so is the smear a car leaves along its lane."""
@@ -444,9 +443,6 @@ def co_observed_clusters(keys: np.ndarray, first: np.ndarray, last: np.ndarray, 
         return labels
     src, nb = _neighbour_pairs(keys, idx, half=True)
     ok = members[nb] & (first[nb] <= last[src] + slack) & (first[src] <= last[nb] + slack)
-    if similar is not None:
-        tol = slack + similar * np.minimum(last[src] - first[src], last[nb] - first[nb])
-        ok &= (np.abs(first[src] - first[nb]) <= tol) & (np.abs(last[src] - last[nb]) <= tol)
     src, nb = src[ok], nb[ok]
     n = len(keys)
     graph = coo_matrix((np.ones(len(src), dtype=np.int8), (src, nb)), shape=(n, n))
