@@ -3,7 +3,8 @@
 Two passes over the scans (the DynamicMap benchmark's setting: scans plus one pose each):
 
 1. **Voxel map.** Every scan point, moved into the world frame, falls into a ``voxel`` cell;
-   each occupied voxel keeps its centroid and point count (:class:`VoxelAccumulator`).
+   each occupied voxel keeps its centroid, point count, first and last sighting, the scans that
+   saw it and its per-scan ground points (:class:`VoxelAccumulator`).
 2. **Free-space evidence by ray casting, through the range image.** Each scan (every
    ``stride``-th) becomes a fine range image in the sensor frame (``el_bin_deg`` x
    ``az_bin_deg`` pixels, each the nearest return in its direction). Every voxel centroid within
@@ -13,11 +14,19 @@ Two passes over the scans (the DynamicMap benchmark's setting: scans plus one po
    ray traversal run backwards: the same test, but one lookup per voxel instead of one step per
    voxel along every ray, so a 600-scan 16-ring drive takes seconds of numpy.
 
-A voxel with ``min_free`` votes or more is dynamic: something was there in one scan and
-another scan saw through it (a car that drove on, a pedestrian who walked away, a parked car
-that left). The margin that grows with range keeps grazing beams over rough ground and along
-walls from voting (a beam through a ground voxel at range r ends within about
-``r * roughness / sensor height`` of it).
+A voxel with a free vote was seen through: something was there in one scan and another scan saw
+through it (a car that drove on, a pedestrian who walked away, a parked car that left). The
+decision is per cluster of neighbours seen at overlapping times (``cluster_fraction`` of its
+tested voxels voted, and at least ``min_free``: 1 lets a lone voxel, a far car hit by one ring,
+go). The margin that grows with range keeps grazing beams over rough ground and along walls from
+voting (a beam through a ground voxel at range r ends within about ``r * roughness / sensor
+height`` of it).
+
+The ground is never tested nor removed: the voxels within ``ground_band`` of the lowest voxel of
+their ``ground_cell`` column, and (``scan_ground``) the voxels seen by ``scan_ground_seen`` scans
+or more whose points were mostly ground in their own scan (:func:`scan_ground_points`: decided in
+the scan's frame, so pose errors that smear the road over several voxels in the world do not
+make its upper layer look like something a later beam passed through).
 
 Frames: points ``(N, 3)`` in the base frame, ``T_world_base`` ``(4, 4)``, ``T_base_sensor``
 ``(4, 4)`` (the ray origin). Units: metres, degrees where named.
