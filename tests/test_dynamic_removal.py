@@ -191,15 +191,16 @@ def test_scan_ground_is_decided_in_each_scans_own_frame():
     side = np.array([[6.05, y, z] for y in np.arange(-0.9, 0.9, 0.1) for z in np.arange(-1.4, -0.2, 0.1)])
     ground_near_car = np.abs(ground[:, 0] - 6.5) < 1.5
     pts = np.vstack([ground[~ground_near_car], side])
-    flags = scan_ground_points(pts, 1.0, 0.15, 0.12, 0.004)
+    d = RemovalParams()
+    flags = scan_ground_points(pts, d.scan_ground_cell, d.scan_ground_band, d.scan_ground_rise, d.scan_ground_slope)
     n = int((~ground_near_car).sum())
     assert flags[:n].all()          # the road, out to 28 m, is ground
     assert not flags[n:].any()      # the car's lowest points are not: they are 0.3 m above the road plane
-    # two scans of the same flat road whose poses disagree by 1.5 deg of pitch: in the world the road
-    # is half a metre thick at 20 m, so a band over the lowest voxel keeps only part of it; the
-    # per-scan ground keeps all of it, and the evidence frees none of it
-    T = np.stack([np.eye(4), _pitch(1.5, (0.5, 0.0, 0.0))])
-    scans = [ground, ground]
+    # the same flat road seen twice from each of two poses that disagree by 1.5 deg of pitch: in the
+    # world the road is half a metre thick at 20 m, so a band over the lowest voxel keeps only part
+    # of it; the per-scan ground keeps all of it, and the evidence frees none of it
+    T = np.stack([np.eye(4), np.eye(4), _pitch(1.5, (0.5, 0.0, 0.0)), _pitch(1.5, (0.5, 0.0, 0.0))])
+    scans = [ground] * 4
     band_only = remove_dynamic_points(lambda: iter(scans), T, params=RemovalParams(scan_ground=False))
     both = remove_dynamic_points(lambda: iter(scans), T)
     assert not band_only.ground.all() and both.ground.all() and not both.dynamic.any()
