@@ -51,12 +51,18 @@ def voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
 
 class VoxelAccumulator:
     """Occupied voxels of a scan sequence: sorted keys, centroid sums, point counts, the first and
-    last scan that had a point in each voxel and how many scans did (merged in batches)."""
+    last scan that had a point in each voxel and how many scans did.
 
-    def __init__(self, voxel: float, merge_points: int = 4_000_000) -> None:
+    Scans are reduced one by one, gathered into batches of about ``merge_points`` points, and each
+    batch is merged into the sorted table in place (new voxels inserted), so memory stays near the
+    table's size.
+    """
+
+    def __init__(self, voxel: float, merge_points: int = 2_000_000) -> None:
         self.voxel = voxel
         self.merge_points = merge_points
         self._parts: list[tuple[np.ndarray, ...]] = []
+        self._table: list[np.ndarray] | None = None
         self._pending = 0
         self.seen = np.zeros(0, dtype=np.int32)  # (V,) after result(): scans with a point in each voxel
         self.flagged = np.zeros(0, dtype=np.int32)  # (V,) after result(): flagged points in each voxel
@@ -78,24 +84,42 @@ class VoxelAccumulator:
         one = np.ones(m, dtype=np.int32)
         flags = np.zeros(m, dtype=np.int32) if flagged is None else \
             np.bincount(idx, np.asarray(flagged)[order], m).astype(np.int32)
-        self._parts.append((keys[start], sums, np.bincount(idx, minlength=m), one * scan, one * scan, one, flags))
+        self._parts.append((keys[start], sums, np.bincount(idx, minlength=m).astype(np.int64), one * scan,
+                            one * scan, one, flags))
         self._pending += len(p)
         if self._pending >= self.merge_points:
             self._merge()
 
     def _merge(self) -> None:
-        if len(self._parts) > 1:
-            self._parts = [_reduce(*(np.concatenate(a) for a in zip(*self._parts)))]
         self._pending = 0
+        if not self._parts:
+            return
+        batch = _reduce(*(np.concatenate(a) for a in zip(*self._parts))) if len(self._parts) > 1 else self._parts[0]
+        self._parts = []
+        if self._table is None:
+            self._table = list(batch)
+            return
+        table = self._table
+        pos = np.searchsorted(table[0], batch[0])
+        found = table[0][np.minimum(pos, len(table[0]) - 1)] == batch[0]
+        at = pos[found]
+        for i in (1, 2, 5, 6):  # sums, counts, scans seen, flagged
+            table[i][at] += batch[i][found]
+        table[3][at] = np.minimum(table[3][at], batch[3][found])
+        table[4][at] = np.maximum(table[4][at], batch[4][found])
+        new = ~found
+        if new.any():
+            for i in range(len(table)):
+                table[i] = np.insert(table[i], pos[new], batch[i][new], axis=0)
 
     def result(self) -> tuple[np.ndarray, ...]:
         """Sorted keys ``(V,)``, centroids ``(V, 3)``, point counts ``(V,)``, first and last scan ``(V,)``
-        (and :attr:`seen`)."""
+        (and :attr:`seen`, :attr:`flagged`)."""
         self._merge()
-        if not self._parts:
+        if self._table is None:
             z = np.zeros(0, dtype=np.int64)
             return z, np.zeros((0, 3)), z, z.astype(np.int32), z.astype(np.int32)
-        keys, sums, counts, first, last, self.seen, self.flagged = self._parts[0]
+        keys, sums, counts, first, last, self.seen, self.flagged = self._table
         return keys, sums / counts[:, None], counts, first, last
 
 
