@@ -474,9 +474,8 @@ def co_observed_clusters(keys: np.ndarray, first: np.ndarray, last: np.ndarray, 
     labels = np.full(len(keys), -1, dtype=np.int64)
     if not len(idx):
         return labels
-    src, nb = _neighbour_pairs(keys, idx, half=True)
-    ok = members[nb] & (first[nb] <= last[src] + slack) & (first[src] <= last[nb] + slack)
-    src, nb = src[ok], nb[ok]
+    src, nb = _neighbour_pairs(keys, idx, half=True, keep=lambda src, nb: members[nb] & (
+        first[nb] <= last[src] + slack) & (first[src] <= last[nb] + slack))
     n = len(keys)
     graph = coo_matrix((np.ones(len(src), dtype=np.int8), (src, nb)), shape=(n, n))
     _, comp = connected_components(graph, directed=False)
@@ -525,20 +524,29 @@ def dynamic_clusters(cluster: np.ndarray, voted: np.ndarray, fraction: float, mi
 _HALF = _NEIGHBOURS[:13]  # one of each +-offset pair: enough for an undirected graph
 
 
-def _neighbour_pairs(keys: np.ndarray, of: np.ndarray, half: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def _neighbour_pairs(keys: np.ndarray, of: np.ndarray, half: bool = False,
+                     keep: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(src, nb)``: every occupied 26-neighbour ``nb`` of each voxel index in ``of`` (``of``
-    ascending; ``half``: 13 of the 26 directions, each pair once)."""
+    ascending; ``half``: 13 of the 26 directions, each pair once); ``keep(src, nb)``: only the
+    pairs it accepts (filtered direction by direction, so memory holds the kept pairs only). Indices
+    are int32 when the voxels fit."""
     nbs = _HALF if half else _NEIGHBOURS
     offsets = (nbs[:, 0] << (2 * _BITS)) + (nbs[:, 1] << _BITS) + nbs[:, 2]
     srcs, found = [], []
+    index = np.int32 if len(keys) < 2**31 else np.int64
     if len(of) and len(keys):
         base = keys[of]
         for off in offsets:
             q = base + off  # ascending like keys[of]: a cache-friendly search
             pos = np.minimum(np.searchsorted(keys, q), len(keys) - 1)
-            hit = keys[pos] == q
-            srcs.append(of[hit])
-            found.append(pos[hit])
+            hit = np.flatnonzero(keys[pos] == q)
+            src, nb = of[hit], pos[hit]
+            del q, pos, hit
+            if keep is not None:
+                ok = keep(src, nb)
+                src, nb = src[ok], nb[ok]
+            srcs.append(src.astype(index))
+            found.append(nb.astype(index))
     if not srcs:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     return np.concatenate(srcs), np.concatenate(found)
