@@ -175,7 +175,8 @@ class RemovalParams:
     protect: bool = True  # a vote beside a voxel seen long before or after the voted one does not count ...
     protect_slack: int = 20  # ... longer than this many scans
     protect_min_seen: int = 5  # scans between the first and last sighting of a protecting voxel
-    planar_clusters: bool = False  # 2D logs: clusters too (else each voxel is decided by its own votes)
+    planar_clusters: bool = False  # 2D logs: clusters too (else each voxel is decided by its own votes ...
+    planar_min_free: int = 2  # ... and needs this many free votes)
     ground_cell: float = 1.0  # [m] columns whose lowest voxel is the ground ...
     ground_band: float = 0.15  # [m] ... and the voxels this far above it, never removed
     scan_ground: bool = True  # also the voxels whose points were mostly ground in their own scans (below)
@@ -393,7 +394,7 @@ def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_bas
         if progress is not None:
             progress("evidence", k + 1)
     t2 = time.perf_counter()
-    hit = votes >= (params.min_free if per_voxel else 1)
+    hit = votes >= (params.planar_min_free if per_voxel else 1)
     if params.protect:
         hit &= ~protected_by_static(keys, first, last, hit, params.protect_slack, params.protect_min_seen)
     voted = np.zeros(len(keys), dtype=np.int8) - 1  # -1: not tested
