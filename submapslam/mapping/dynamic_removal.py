@@ -3,7 +3,8 @@
 Two passes over the scans (the DynamicMap benchmark's setting: scans plus one pose each):
 
 1. **Voxel map.** Every scan point, moved into the world frame, falls into a ``voxel`` cell;
-   each occupied voxel keeps its centroid and point count (:class:`VoxelAccumulator`).
+   each occupied voxel keeps its centroid, point count, first and last sighting, the scans that
+   saw it and its per-scan ground points (:class:`VoxelAccumulator`).
 2. **Free-space evidence by ray casting, through the range image.** Each scan (every
    ``stride``-th) becomes a fine range image in the sensor frame (``el_bin_deg`` x
    ``az_bin_deg`` pixels, each the nearest return in its direction). Every voxel centroid within
@@ -13,11 +14,19 @@ Two passes over the scans (the DynamicMap benchmark's setting: scans plus one po
    ray traversal run backwards: the same test, but one lookup per voxel instead of one step per
    voxel along every ray, so a 600-scan 16-ring drive takes seconds of numpy.
 
-A voxel with ``min_free`` votes or more is dynamic: something was there in one scan and
-another scan saw through it (a car that drove on, a pedestrian who walked away, a parked car
-that left). The margin that grows with range keeps grazing beams over rough ground and along
-walls from voting (a beam through a ground voxel at range r ends within about
-``r * roughness / sensor height`` of it).
+A voxel with a free vote was seen through: something was there in one scan and another scan saw
+through it (a car that drove on, a pedestrian who walked away, a parked car that left). The
+decision is per cluster of neighbours seen at overlapping times (``cluster_fraction`` of its
+tested voxels voted, and at least ``min_free``: 1 lets a lone voxel, a far car hit by one ring,
+go). The margin that grows with range keeps grazing beams over rough ground and along walls from
+voting (a beam through a ground voxel at range r ends within about ``r * roughness / sensor
+height`` of it).
+
+The ground is never tested nor removed: the voxels within ``ground_band`` of the lowest voxel of
+their ``ground_cell`` column, and (``scan_ground``) the voxels seen by ``scan_ground_seen`` scans
+or more whose points were mostly ground in their own scan (:func:`scan_ground_points`: decided in
+the scan's frame, so pose errors that smear the road over several voxels in the world do not
+make its upper layer look like something a later beam passed through).
 
 Frames: points ``(N, 3)`` in the base frame, ``T_world_base`` ``(4, 4)``, ``T_base_sensor``
 ``(4, 4)`` (the ray origin). Units: metres, degrees where named.
@@ -41,49 +50,111 @@ def voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
 
 
 class VoxelAccumulator:
-    """Occupied voxels of a scan sequence: sorted keys, centroid sums, point counts and the first and
-    last scan that had a point in each voxel (merged in batches)."""
+    """Occupied voxels of a scan sequence: sorted keys, centroid sums, point counts, the first and
+    last scan that had a point in each voxel and how many scans did.
 
-    def __init__(self, voxel: float, merge_points: int = 4_000_000) -> None:
+    Scans are reduced one by one, gathered into batches of about ``merge_points`` points, and each
+    batch is merged into the sorted table in place (new voxels inserted), so memory stays near the
+    table's size.
+    """
+
+    def __init__(self, voxel: float, merge_points: int = 2_000_000) -> None:
         self.voxel = voxel
         self.merge_points = merge_points
         self._parts: list[tuple[np.ndarray, ...]] = []
+        self._table: list[np.ndarray] | None = None
         self._pending = 0
+        self.seen = np.zeros(0, dtype=np.int32)  # (V,) after result(): scans with a point in each voxel
+        self.flagged = np.zeros(0, dtype=np.int32)  # (V,) after result(): flagged points in each voxel
 
-    def add(self, points_world: np.ndarray, scan: int) -> None:
-        """Add the ``(N, 3)`` world points of scan number ``scan``."""
+    def add(self, points_world: np.ndarray, scan: int, flagged: np.ndarray | None = None) -> None:
+        """Add the ``(N, 3)`` world points of scan number ``scan``; ``flagged`` ``(N,)`` bool: points
+        counted in :attr:`flagged` per voxel (e.g. that scan's ground points)."""
         p = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
         if not len(p):
             return
-        n = len(p)
-        scans = np.full(n, scan, dtype=np.int32)
-        self._parts.append(_reduce(voxel_keys(p, self.voxel), p, np.ones(n, dtype=np.int64), scans, scans))
-        self._pending += n
+        keys = voxel_keys(p, self.voxel)
+        order = np.argsort(keys)
+        keys = keys[order]
+        idx, start = _groups(keys)
+        m = len(start)
+        sums = np.empty((m, 3))
+        for j in range(3):
+            sums[:, j] = np.bincount(idx, p[order, j], m)
+        one = np.ones(m, dtype=np.int32)
+        flags = np.zeros(m, dtype=np.int32) if flagged is None else \
+            np.bincount(idx, np.asarray(flagged)[order], m).astype(np.int32)
+        self._parts.append((keys[start], sums, np.bincount(idx, minlength=m).astype(np.int64), one * scan,
+                            one * scan, one, flags))
+        self._pending += len(p)
         if self._pending >= self.merge_points:
             self._merge()
 
     def _merge(self) -> None:
-        if len(self._parts) > 1:
-            self._parts = [_reduce(*(np.concatenate(a) for a in zip(*self._parts)))]
         self._pending = 0
+        if not self._parts:
+            return
+        batch = _reduce(*(np.concatenate(a) for a in zip(*self._parts))) if len(self._parts) > 1 else self._parts[0]
+        self._parts = []
+        if self._table is None:
+            self._table = list(batch)
+            return
+        table = self._table
+        pos = np.searchsorted(table[0], batch[0])
+        found = table[0][np.minimum(pos, len(table[0]) - 1)] == batch[0]
+        at = pos[found]
+        for i in (1, 2, 5, 6):  # sums, counts, scans seen, flagged
+            table[i][at] += batch[i][found]
+        table[3][at] = np.minimum(table[3][at], batch[3][found])
+        table[4][at] = np.maximum(table[4][at], batch[4][found])
+        new = ~found
+        if new.any():
+            for i in range(len(table)):
+                table[i] = np.insert(table[i], pos[new], batch[i][new], axis=0)
 
     def result(self) -> tuple[np.ndarray, ...]:
-        """Sorted keys ``(V,)``, centroids ``(V, 3)``, point counts ``(V,)``, first and last scan ``(V,)``."""
+        """Sorted keys ``(V,)``, centroids ``(V, 3)``, point counts ``(V,)``, first and last scan ``(V,)``
+        (and :attr:`seen`, :attr:`flagged`)."""
         self._merge()
-        if not self._parts:
+        if self._table is None:
             z = np.zeros(0, dtype=np.int64)
             return z, np.zeros((0, 3)), z, z.astype(np.int32), z.astype(np.int32)
-        keys, sums, counts, first, last = self._parts[0]
+        keys, sums, counts, first, last, self.seen, self.flagged = self._table
         return keys, sums / counts[:, None], counts, first, last
 
 
-def _reduce(keys, sums, counts, first, last):
-    """Group rows by key: sum ``sums`` ``(N, 3)`` and ``counts``, min of ``first``, max of ``last``."""
-    order = np.argsort(keys, kind="stable")
+def _groups(sorted_keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Group index ``(N,)`` of each sorted key and the first row ``(G,)`` of each group."""
+    flag = np.empty(len(sorted_keys), dtype=bool)
+    flag[:1] = True
+    np.not_equal(sorted_keys[1:], sorted_keys[:-1], out=flag[1:])
+    return np.cumsum(flag) - 1, np.flatnonzero(flag)
+
+
+def _reduce(keys, sums, counts, first, last, seen, flags):
+    """Group rows by key: sum ``sums`` ``(N, 3)``, ``counts``, ``seen`` and ``flags``, min of ``first``, max
+    of ``last``."""
+    order = np.argsort(keys, kind="stable")  # parts are sorted runs: a merge
     keys = keys[order]
-    start = np.flatnonzero(np.concatenate([[True], keys[1:] != keys[:-1]]))
-    return (keys[start], np.add.reduceat(sums[order], start, axis=0), np.add.reduceat(counts[order], start),
-            np.minimum.reduceat(first[order], start), np.maximum.reduceat(last[order], start))
+    idx, start = _groups(keys)
+    m = len(start)
+    out = np.empty((m, 3))
+    for j in range(3):
+        out[:, j] = np.bincount(idx, sums[order, j], m)
+    return (keys[start], out, np.bincount(idx, counts[order], m).astype(np.int64),
+            np.minimum.reduceat(first[order], start), np.maximum.reduceat(last[order], start),
+            np.bincount(idx, seen[order], m).astype(np.int32), np.bincount(idx, flags[order], m).astype(np.int32))
+
+
+def transform(points: np.ndarray, T: np.ndarray, dtype=np.float64) -> np.ndarray:
+    """``points (N, 3) @ R.T + t`` of the ``(4, 4)`` ``T``, elementwise (no BLAS threads: on a shared
+    machine a threaded 3x3 product costs more than it saves)."""
+    p = np.asarray(points)
+    R, t = np.asarray(T[:3, :3], dtype=dtype), np.asarray(T[:3, 3], dtype=dtype)
+    out = np.empty((len(p), 3), dtype=dtype)
+    for i in range(3):
+        out[:, i] = p[:, 0] * R[i, 0] + p[:, 1] * R[i, 1] + p[:, 2] * R[i, 2] + t[i]
+    return out
 
 
 @dataclass(frozen=True)
@@ -94,9 +165,9 @@ class RemovalParams:
     max_range: float = 50.0  # [m] voxels farther from the sensor get no evidence from that scan
     margin: float = 0.3  # [m] a beam must end this far beyond a voxel to free it ...
     margin_per_m: float = 0.05  # ... or this fraction of the voxel's range, whichever is larger
-    min_free: int = 2  # voxels with a free vote a cluster needs at least
+    min_free: int = 1  # voxels with a free vote a cluster needs at least (1: a lone voxel seen once, far away, can go)
     stride: int = 1  # evidence from every stride-th scan
-    window: int = 50  # scans after a voxel's last sighting (and before its first) that test it
+    window: int = 100  # scans after a voxel's last sighting (and before its first) that test it
     tolerance: float = 0.5  # a beam passes a voxel within this fraction of the voxel of its centre
     grow_slack: int = 2  # scans: neighbours seen within this of each other's sightings are one cluster
     cluster_fraction: float = 0.3  # a cluster with this fraction of free-voted voxels moved
@@ -104,9 +175,16 @@ class RemovalParams:
     protect: bool = True  # a vote beside a voxel seen long before or after the voted one does not count ...
     protect_slack: int = 20  # ... longer than this many scans
     protect_min_seen: int = 5  # scans between the first and last sighting of a protecting voxel
-    planar_clusters: bool = False  # 2D logs: clusters too (else each voxel is decided by its own votes)
+    planar_clusters: bool = False  # 2D logs: clusters too (else each voxel is decided by its own votes ...
+    planar_min_free: int = 2  # ... and needs this many free votes)
     ground_cell: float = 1.0  # [m] columns whose lowest voxel is the ground ...
     ground_band: float = 0.15  # [m] ... and the voxels this far above it, never removed
+    scan_ground: bool = True  # also the voxels whose points were mostly ground in their own scans (below)
+    scan_ground_cell: float = 1.0  # [m] per scan (base frame): cells whose lowest point is the ground ...
+    scan_ground_band: float = 0.1  # [m] ... and the points this far above it ...
+    scan_ground_rise: float = 0.08  # [m] ... when the lowest point is no higher than the scan's ground plane
+    scan_ground_seen: int = 2  # ... in voxels seen by this many scans at least (not a mover that passed once)
+    scan_ground_slope: float = 0.004  # ... by this much plus this fraction of its range (not a car's side)
     el_bin_deg: float = 0.25  # range-image pixel: elevation ...
     az_bin_deg: float = 0.2  # ... and azimuth
 
@@ -127,6 +205,10 @@ class RemovalResult:
     dynamic: np.ndarray
     params: RemovalParams
     seconds: dict[str, float] = field(default_factory=dict)
+    first: np.ndarray | None = None  # (V,) first scan with a point in the voxel
+    last: np.ndarray | None = None  # (V,) last such scan
+    cluster: np.ndarray | None = None  # (V,) cluster id (-1: ground, never removed)
+    ground: np.ndarray | None = None  # (V,) bool: ground voxels
 
     @property
     def points_kept(self) -> int:
@@ -250,14 +332,17 @@ def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_bas
         planar: 2D laser scans (z = 0): there is no ground to keep.
     """
     T_bs = np.eye(4) if T_base_sensor is None else np.asarray(T_base_sensor, dtype=np.float64)
+    T_sb = np.linalg.inv(T_bs)
     t0 = time.perf_counter()
     acc = VoxelAccumulator(params.voxel)
     n = 0
     for k, pts in enumerate(scans()):
         if k >= len(T_world_base):
             break
-        T = T_world_base[k]
-        acc.add(np.asarray(pts, dtype=np.float64) @ T[:3, :3].T + T[:3, 3], k)
+        pts = np.asarray(pts)
+        acc.add(transform(pts, T_world_base[k]), k, None if planar or not params.scan_ground else
+                scan_ground_points(pts, params.scan_ground_cell, params.scan_ground_band, params.scan_ground_rise,
+                                   params.scan_ground_slope))
         n += 1
         if progress is not None:
             progress("voxels", k + 1)
@@ -270,6 +355,8 @@ def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_bas
     # of voted voxels: of a large cluster a sample of about `cluster_sample` voxels is tested.
     ground = np.zeros(len(keys), dtype=bool) if planar else ground_voxels(centroids, params.ground_cell,
                                                                            params.ground_band)
+    if not planar and params.scan_ground:
+        ground |= (2 * acc.flagged >= counts) & (acc.seen >= params.scan_ground_seen)
     per_voxel = planar and not params.planar_clusters
     if per_voxel:  # a 2D wall is one long cluster: decide voxel by voxel
         cluster = np.where(ground, -1, np.arange(len(keys)))
@@ -297,18 +384,17 @@ def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_bas
         cand = np.concatenate([after, before])
         if not len(cand):
             continue
-        T_ws = T_world_base[k] @ T_bs
-        local = (centroids32[cand] - T_ws[:3, 3].astype(np.float32)) @ T_ws[:3, :3].astype(np.float32)
+        local = transform(centroids32[cand], np.linalg.inv(T_world_base[k] @ T_bs), np.float32)
         near = np.einsum("ij,ij->i", local, local) < params.max_range ** 2
         cand, local = cand[near], local[near]
-        pts_sensor = (np.asarray(pts, dtype=np.float64) - T_bs[:3, 3]) @ T_bs[:3, :3]
+        pts_sensor = transform(pts, T_sb)
         image = RangeImage(pts_sensor, params.el_bin_deg, params.az_bin_deg)
         _, free, _ = image.passes(local, tolerance, margin)
         votes[cand[free]] += 1
         if progress is not None:
             progress("evidence", k + 1)
     t2 = time.perf_counter()
-    hit = votes >= (params.min_free if per_voxel else 1)
+    hit = votes >= (params.planar_min_free if per_voxel else 1)
     if params.protect:
         hit &= ~protected_by_static(keys, first, last, hit, params.protect_slack, params.protect_min_seen)
     voted = np.zeros(len(keys), dtype=np.int8) - 1  # -1: not tested
@@ -317,7 +403,8 @@ def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_bas
     t3 = time.perf_counter()
     return RemovalResult(keys, centroids, counts, votes, dynamic, params,
                          {"voxels": round(t1 - t0, 3), "clusters": round(t_cluster, 3),
-                          "evidence": round(t2 - t1 - t_cluster, 3), "decision": round(t3 - t2, 3)})
+                          "evidence": round(t2 - t1 - t_cluster, 3), "decision": round(t3 - t2, 3)},
+                         first, last, cluster, ground)
 
 
 _NEIGHBOURS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)])
@@ -335,6 +422,47 @@ def ground_voxels(centroids: np.ndarray, cell: float, band: float) -> np.ndarray
     return centroids[:, 2] <= lowest[idx] + band
 
 
+def scan_ground_points(points: np.ndarray, cell: float, band: float, rise: float, slope: float) -> np.ndarray:
+    """``(N,)`` bool: the ground points of one scan ``(N, 3)`` (base frame, z up): within ``band`` [m] of
+    the lowest point of their ``cell`` x ``cell`` column, where that lowest point is no more than
+    ``rise + slope * range`` above the scan's ground level (the median lowest point of the columns
+    within 20 m). Decided in the scan's own frame, so pose errors between scans cannot thicken it.
+    """
+    p = np.asarray(points)
+    if not len(p):
+        return np.zeros(0, dtype=bool)
+    ij = np.floor(p[:, :2] / cell).astype(np.int64)
+    col = (ij[:, 0] << 32) + (ij[:, 1] & 0xFFFFFFFF)
+    order = np.argsort(col)
+    idx, start = _groups(col[order])
+    z = p[order, 2]
+    lowest = np.minimum.reduceat(z, start)
+    centre = (np.stack([np.minimum.reduceat(ij[order, 0], start), np.minimum.reduceat(ij[order, 1], start)], 1)
+              + 0.5) * cell
+    r = np.hypot(centre[:, 0], centre[:, 1])
+    plausible = lowest - _ground_plane(centre, lowest, r) <= rise + slope * r
+    out = np.empty(len(p), dtype=bool)
+    out[order] = plausible[idx] & (z <= lowest[idx] + band)
+    return out
+
+
+def _ground_plane(xy: np.ndarray, z: np.ndarray, r: np.ndarray, rounds: int = 3) -> np.ndarray:
+    """Height ``(C,)`` at ``xy`` ``(C, 2)`` of a plane fitted to the columns' lowest points ``z`` ``(C,)``:
+    least squares over the columns within 30 m, then again over those within 0.2 m of it (cars,
+    walls and kerbs drop out)."""
+    A = np.column_stack([xy, np.ones(len(z))])
+    use = r < 30.0
+    if use.sum() < 3:
+        use = np.ones(len(z), dtype=bool)
+    coef = np.array([0.0, 0.0, float(np.median(z[use]))])
+    for _ in range(rounds):
+        use &= np.abs(z - A @ coef) < (1.0 if _ == 0 else 0.2)
+        if use.sum() < 3:
+            break
+        coef = np.linalg.lstsq(A[use], z[use], rcond=None)[0]
+    return A @ coef
+
+
 def co_observed_clusters(keys: np.ndarray, first: np.ndarray, last: np.ndarray, members: np.ndarray,
                          slack: int) -> np.ndarray:
     """Cluster id ``(V,)`` of every voxel (-1 for non-members): ``members`` joined with each
@@ -347,9 +475,8 @@ def co_observed_clusters(keys: np.ndarray, first: np.ndarray, last: np.ndarray, 
     labels = np.full(len(keys), -1, dtype=np.int64)
     if not len(idx):
         return labels
-    src, nb = _neighbour_pairs(keys, idx, half=True)
-    ok = members[nb] & (first[nb] <= last[src] + slack) & (first[src] <= last[nb] + slack)
-    src, nb = src[ok], nb[ok]
+    src, nb = _neighbour_pairs(keys, idx, half=True, keep=lambda src, nb: members[nb] & (
+        first[nb] <= last[src] + slack) & (first[src] <= last[nb] + slack))
     n = len(keys)
     graph = coo_matrix((np.ones(len(src), dtype=np.int8), (src, nb)), shape=(n, n))
     _, comp = connected_components(graph, directed=False)
@@ -398,20 +525,29 @@ def dynamic_clusters(cluster: np.ndarray, voted: np.ndarray, fraction: float, mi
 _HALF = _NEIGHBOURS[:13]  # one of each +-offset pair: enough for an undirected graph
 
 
-def _neighbour_pairs(keys: np.ndarray, of: np.ndarray, half: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def _neighbour_pairs(keys: np.ndarray, of: np.ndarray, half: bool = False,
+                     keep: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """``(src, nb)``: every occupied 26-neighbour ``nb`` of each voxel index in ``of`` (``of``
-    ascending; ``half``: 13 of the 26 directions, each pair once)."""
+    ascending; ``half``: 13 of the 26 directions, each pair once); ``keep(src, nb)``: only the
+    pairs it accepts (filtered direction by direction, so memory holds the kept pairs only). Indices
+    are int32 when the voxels fit."""
     nbs = _HALF if half else _NEIGHBOURS
     offsets = (nbs[:, 0] << (2 * _BITS)) + (nbs[:, 1] << _BITS) + nbs[:, 2]
     srcs, found = [], []
+    index = np.int32 if len(keys) < 2**31 else np.int64
     if len(of) and len(keys):
         base = keys[of]
         for off in offsets:
             q = base + off  # ascending like keys[of]: a cache-friendly search
             pos = np.minimum(np.searchsorted(keys, q), len(keys) - 1)
-            hit = keys[pos] == q
-            srcs.append(of[hit])
-            found.append(pos[hit])
+            hit = np.flatnonzero(keys[pos] == q)
+            src, nb = of[hit], pos[hit]
+            del q, pos, hit
+            if keep is not None:
+                ok = keep(src, nb)
+                src, nb = src[ok], nb[ok]
+            srcs.append(src.astype(index))
+            found.append(nb.astype(index))
     if not srcs:
         return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
     return np.concatenate(srcs), np.concatenate(found)
