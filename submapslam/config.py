@@ -58,9 +58,12 @@ class OdometryConfig(_Strict):
         "that the last movers_history scans saw through (movers entering), and, in KISS-ICP's local map (each "
         "scan enters it movers_delay scans late), the points the scans before and after saw through (movers "
         "leaving); 2D lasers: not used")
-    movers_history: int = Field(6, ge=1, description="3D: recent scans (range images) that test each scan for movers")
-    movers_delay: int = Field(3, ge=0, description="3D: scans a scan waits before it enters the local map, so that "
-                              "later scans can see through what moved")
+    movers_history: int = Field(10, ge=1, description="3D: recent scans (range images) that test each scan for movers")
+    movers_delay: int = Field(8, ge=0, description="3D: scans a scan waits before it enters the local map, so that "
+                              "later scans can see through what moved (also without movers the odometry drifts "
+                              "less when the newest scans are not yet in the map it registers to)")
+    movers_views: int = Field(4, ge=1, description="3D: at most this many of those scans test one scan (spread "
+                              "over them): the cost per scan")
     separate_process: bool | None = Field(
         None, description="register scans in a child process, a few scans ahead of the graph work (KISS-ICP "
         "holds Python's GIL while it registers, so in one process the two wait for each other); the same "

@@ -68,7 +68,8 @@ class Odometry:
         if not planar and config.drop_movers:
             from .mapping.moving_points import MoverFilter
 
-            self.movers = MoverFilter(history=config.movers_history, delay=config.movers_delay)
+            self.movers = MoverFilter(history=config.movers_history, delay=config.movers_delay,
+                                      max_views=config.movers_views)
         if planar and config.planar_point_to_line:
             from .registration.point_to_line import RecentScanMap
 

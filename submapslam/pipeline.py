@@ -221,7 +221,7 @@ class SubmapSLAM:
             self._scan_submap[idx] = submap.id
         hint_pairs = self._hint_pairs()
         wheel = self._wheel_scans > 0  # read here: the worker must not see the main thread's later scans
-        movers = self._movers.take(submap.scan_indices, submap.T_odom_anchor) if self._movers is not None else None
+        movers = self._movers.take(submap.scan_indices) if self._movers is not None else None
         if not background:
             self._add_submap_to_graph(submap, hint_pairs, wheel, movers)
             return
@@ -240,9 +240,7 @@ class SubmapSLAM:
         (replayed from the checkpoint being resumed, when it holds them)."""
         if movers is not None:
             with self.timer("movers"):
-                moved = self._movers.split(movers, submap.points)
-                submap.dynamic_points = submap.points[moved]
-                submap.points = submap.points[~moved]
+                self._split_movers(submap, movers)
         previous = self.submaps[submap.id - 1] if submap.id > 0 else None
         replay = self._replay if self._replay is not None and submap.id < self._replay.n_submaps else None
         self._graph_builder.add_submap(submap, previous, wheel_odometry=wheel_odometry,
@@ -259,6 +257,24 @@ class SubmapSLAM:
         if self._observer is not None:
             notify_closed_submap(self._observer, submap.id, submap.T_odom_anchor, submap.points, records,
                                  self._graph_builder.graph.pose)
+
+    def _split_movers(self, submap: Submap, movers: tuple) -> None:
+        """Move what the evidence says moved out of ``submap``'s cloud into its dynamic cloud, and
+        the same for the recent submaps within reach whose points its scans saw through."""
+        moved = self._movers.split(movers, submap.T_odom_anchor, submap.points)
+        submap.dynamic_points = submap.points[moved]
+        submap.points = submap.points[~moved]
+        reach = self.config.odometry.max_range + self._builder.max_distance
+        for earlier in self.submaps[max(0, submap.id - _LATER_SUBMAPS):submap.id]:
+            apart = earlier.T_odom_anchor[:3, 3] - submap.T_odom_anchor[:3, 3]
+            if np.linalg.norm(apart) > reach or not len(earlier.points):
+                continue
+            moved = self._movers.seen_through_later(movers, earlier.T_odom_anchor, earlier.points)
+            if moved.any():
+                earlier.dynamic_points = np.concatenate([earlier.dynamic_points, earlier.points[moved]])
+                earlier.points = earlier.points[~moved]
+                if self._clouds is not None:
+                    self._clouds.forget(earlier.id)
 
     def checkpoint(self, source: str = "") -> Checkpoint:
         """The decisions so far (every scan's odometry, every closed submap's graph work), after
@@ -510,6 +526,9 @@ def run(
     result.log_info = dict(getattr(scans, "log_info", None) or {})  # the reader's account (record, skips)
     return result
 
+
+# 3D: earlier submaps whose points a new submap's scans test for what has moved away since
+_LATER_SUBMAPS = 6
 
 # scans registered ahead of the one being completed: keeps an odometry child process busy
 # while the main process builds submaps (a few scans: ~1 MB each, ~20 ms of registration)

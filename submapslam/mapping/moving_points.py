@@ -24,7 +24,6 @@ moved by ``T_base_sensor`` first), poses ``T_world_sensor`` ``(4, 4)``. Units: m
 
 from __future__ import annotations
 
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,36 +54,78 @@ class MoverParams:
     az_bin_deg: float = 0.4  # ... and azimuth
 
 
-def _margin(params: MoverParams):
-    def margin(r: np.ndarray) -> np.ndarray:
-        return np.maximum(params.margin, params.margin_per_m * r)
-    return margin
+class ViewStack:
+    """The range images (:class:`~submapslam.mapping.dynamic_removal.RangeImage`) of up to
+    ``capacity`` scans in a ring, each with its scan index and pose. Memory: ``capacity``
+    images (16 rings at the default 0.5 x 0.4 deg pixels: 0.7 MB each)."""
 
+    def __init__(self, capacity: int, params: MoverParams = MoverParams()) -> None:
+        self.capacity = capacity
+        self.params = params
+        self.images: list[RangeImage | None] = [None] * capacity
+        self.index = np.zeros(capacity, dtype=np.int64)
+        self.valid = np.zeros(capacity, dtype=bool)
+        self.T_sensor_world = np.tile(np.eye(4), (capacity, 1, 1))
+        self._next = 0
 
-@dataclass
-class _View:
-    """One scan as evidence: its range image and ``T_world_sensor`` (inverse kept)."""
+    def add(self, index: int, T_world_sensor: np.ndarray, points_sensor: np.ndarray) -> None:
+        """File scan ``index`` (``(N, 3)`` sensor-frame points at ``T_world_sensor``), replacing the oldest."""
+        p = self.params
+        k = self._next % self.capacity
+        self._next += 1
+        self.images[k] = RangeImage(np.asarray(points_sensor, dtype=np.float64), p.el_bin_deg, p.az_bin_deg)
+        self.index[k], self.valid[k] = index, True
+        self.T_sensor_world[k] = np.linalg.inv(np.asarray(T_world_sensor, dtype=np.float64))
 
-    index: int
-    T_world_sensor: np.ndarray
-    image: RangeImage
-
-    def seen_through(self, points_world: np.ndarray, params: MoverParams) -> np.ndarray:
-        """``(N,)`` bool: this scan's beams passed the world points ``(N, 3)`` and ended beyond."""
-        R, t = self.T_world_sensor[:3, :3], self.T_world_sensor[:3, 3]
-        local = (points_world - t) @ R
-        near = np.einsum("ij,ij->i", local, local) < params.max_range ** 2
-        out = np.zeros(len(points_world), dtype=bool)
-        if near.any():
-            _, free, _ = self.image.passes(local[near], params.tolerance, _margin(params))
-            out[near] = free
+    def subset(self, slots: np.ndarray) -> ViewStack:
+        """A stack of only the scans in ``slots`` (the images shared, not copied: an image never
+        changes), e.g. for work in another thread while this stack takes new scans."""
+        out = ViewStack(max(1, len(slots)), self.params)
+        for j, k in enumerate(slots):
+            out.images[j], out.index[j], out.valid[j] = self.images[k], self.index[k], True
+            out.T_sensor_world[j] = self.T_sensor_world[k]
+        out._next = len(slots)
         return out
 
+    def slots(self, lo: int, hi: int, most: int | None = None) -> np.ndarray:
+        """Slots holding scans ``lo <= index <= hi`` in scan order; ``most``: at most that many,
+        spread evenly over them (the newest always among them)."""
+        found = np.flatnonzero(self.valid & (self.index >= lo) & (self.index <= hi))
+        found = found[np.argsort(self.index[found], kind="stable")]
+        if most is not None and len(found) > most:
+            found = found[np.unique(np.round(np.linspace(len(found) - 1, 0, most)).astype(np.int64))]
+        return found
 
-def view_of(index: int, T_world_sensor: np.ndarray, points_sensor: np.ndarray, params: MoverParams) -> _View:
-    """A scan's evidence view: its range image built from ``(N, 3)`` sensor-frame points."""
-    return _View(index, np.asarray(T_world_sensor, dtype=np.float64),
-                 RangeImage(np.asarray(points_sensor, dtype=np.float64), params.el_bin_deg, params.az_bin_deg))
+    def seen_through(self, points_world: np.ndarray, slots: np.ndarray,
+                     allowed=None) -> tuple[np.ndarray, np.ndarray]:
+        """``(tested, free)``, each ``(N,)`` bool, for world points ``(N, 3)`` and the scans in ``slots``.
+
+        ``free``: at least one of those scans saw through the point (RangeImage's test: a beam
+        within ``tolerance`` of it ended more than the margin beyond; within ``max_range``).
+        ``tested``: at least one was allowed to test it. ``allowed(slot, point_indices)`` ->
+        bool per point (None: every point).
+        """
+        p = self.params
+        n = len(points_world)
+        tested, free = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
+        points_world = np.asarray(points_world, dtype=np.float64)
+
+        def margin(r: np.ndarray) -> np.ndarray:
+            return np.maximum(p.margin, p.margin_per_m * r)
+
+        every = np.arange(n)
+        for k in slots:
+            cand = every if allowed is None else np.flatnonzero(allowed(k, every))
+            if not len(cand):
+                continue
+            tested[cand] = True
+            T = self.T_sensor_world[k]
+            local = points_world[cand] @ T[:3, :3].T + T[:3, 3]
+            near = np.einsum("ij,ij->i", local, local) < p.max_range ** 2
+            if near.any():
+                _, f, _ = self.images[k].passes(local[near], p.tolerance, margin)
+                free[cand[near][f]] = True
+        return tested, free
 
 
 def non_ground(points_sensor: np.ndarray, band: float) -> np.ndarray:
@@ -96,24 +137,34 @@ def non_ground(points_sensor: np.ndarray, band: float) -> np.ndarray:
     return points_sensor[:, 2] > ground + band
 
 
-def moving_in_scan(points_sensor: np.ndarray, T_world_sensor: np.ndarray, views: list[_View],
-                   params: MoverParams) -> np.ndarray:
-    """``(N,)`` bool: the points of one scan (sensor frame, at pose ``T_world_sensor``) in clusters
-    that the other ``views`` saw through."""
-    n = len(points_sensor)
-    out = np.zeros(n, dtype=bool)
-    if not views or not n:
+def scan_votes(points_sensor: np.ndarray, T_world_sensor: np.ndarray, views: ViewStack,
+               slots: np.ndarray, params: MoverParams) -> np.ndarray:
+    """``(N,)`` bool: the non-ground points of one scan (sensor frame, at ``T_world_sensor``)
+    that a scan in ``slots`` of ``views`` saw through (each point on its own; see :func:`clusters_moved`)."""
+    points_sensor = np.asarray(points_sensor, dtype=np.float64)
+    out = np.zeros(len(points_sensor), dtype=bool)
+    if not len(slots) or not len(points_sensor):
         return out
     test = np.flatnonzero(non_ground(points_sensor, params.ground_band))
-    if not len(test):
+    world = points_sensor[test] @ T_world_sensor[:3, :3].T + T_world_sensor[:3, 3]
+    out[test] = views.seen_through(world, slots)[1]
+    return out
+
+
+def clusters_moved(points_sensor: np.ndarray, T_world_sensor: np.ndarray, votes: np.ndarray,
+                   params: MoverParams) -> np.ndarray:
+    """``(N,)`` bool: the points of the non-ground clusters (26-connected ``params.voxel`` voxels)
+    of which at least ``cluster_fraction`` of the voxels (and ``min_votes``) hold a voted point
+    (``votes`` ``(N,)``, e.g. from :func:`scan_votes`)."""
+    points_sensor = np.asarray(points_sensor, dtype=np.float64)
+    out = np.zeros(len(points_sensor), dtype=bool)
+    if int(votes.sum()) < params.min_votes:
         return out
+    test = np.flatnonzero(non_ground(points_sensor, params.ground_band))
     world = points_sensor[test] @ T_world_sensor[:3, :3].T + T_world_sensor[:3, 3]
     keys, inverse = np.unique(voxel_keys(world, params.voxel), return_inverse=True)
-    voted_point = np.zeros(len(test), dtype=bool)
-    for view in views:
-        voted_point |= view.seen_through(world, params)
     voted = np.zeros(len(keys), dtype=np.int8)
-    np.maximum.at(voted, inverse, voted_point.astype(np.int8))
+    np.maximum.at(voted, inverse, votes[test].astype(np.int8))
     zero = np.zeros(len(keys), dtype=np.int32)
     cluster = co_observed_clusters(keys, zero, zero, np.ones(len(keys), dtype=bool), 0)
     moved = dynamic_clusters(cluster, voted, params.cluster_fraction, params.min_votes)
@@ -121,30 +172,42 @@ def moving_in_scan(points_sensor: np.ndarray, T_world_sensor: np.ndarray, views:
     return out
 
 
+def moving_in_scan(points_sensor: np.ndarray, T_world_sensor: np.ndarray, views: ViewStack, slots: np.ndarray,
+                   params: MoverParams) -> np.ndarray:
+    """``(N,)`` bool: the points of one scan (or submap: sensor/anchor frame, at pose
+    ``T_world_sensor``) in clusters that the scans in ``slots`` of ``views`` saw through."""
+    votes = scan_votes(points_sensor, T_world_sensor, views, slots, params)
+    return clusters_moved(points_sensor, T_world_sensor, votes, params)
+
+
 class MoverFilter:
     """Keeps movers out of scan-to-map odometry (KISS-ICP's local map and each registration).
 
-    ``history`` recent scans are kept as range images. :meth:`entering` marks the points of the
-    scan being registered that those scans saw through; :meth:`add` files a registered scan and
-    returns the scans now ready for the local map (``delay`` scans late), each without the
-    clusters the scans around it saw through. Memory: ``history`` range images and ``delay``
-    thinned scans.
+    The last ``history + delay + 1`` scans are kept as range images. :meth:`entering` marks the
+    points of the scan being registered that the last ``history`` scans saw through; :meth:`add`
+    files a registered scan and returns the scans now ready for the local map (``delay`` scans
+    late), each without the clusters the scans before and after it saw through.
     """
 
-    def __init__(self, params: MoverParams = MoverParams(), history: int = 6, delay: int = 3) -> None:
+    def __init__(self, params: MoverParams = MoverParams(), history: int = 6, delay: int = 3,
+                 max_views: int = 6) -> None:
         self.params = params
         self.history = history
         self.delay = delay
-        self._views: deque[_View] = deque(maxlen=history + delay + 1)
-        self._waiting: deque[tuple[int, np.ndarray, np.ndarray]] = deque()  # (index, points, pose) for the map
+        self.max_views = max_views  # scans that test one scan, spread over those at hand
+        self._views = ViewStack(history + delay + 1, params)
+        self._waiting: list[tuple] = []  # (index, points, pose, votes before) waiting for the map
+        self._before: np.ndarray | None = None  # votes of the last entering() test
         self._count = 0
         self.dropped = 0  # points kept out of registration and the local map so far
 
     def entering(self, points_sensor: np.ndarray, T_world_sensor: np.ndarray) -> np.ndarray:
         """``(N,)`` bool: points of the scan about to be registered (at its predicted pose) that the
-        last ``history`` scans saw through."""
-        views = list(self._views)[-self.history:]
-        mask = moving_in_scan(np.asarray(points_sensor, dtype=np.float64), T_world_sensor, views, self.params)
+        last ``history`` scans saw through. The votes are kept for the same points' map entry
+        (:meth:`add` with the same ``points_down``)."""
+        slots = self._views.slots(self._count - self.history, self._count - 1, self.max_views)
+        self._before = scan_votes(points_sensor, T_world_sensor, self._views, slots, self.params)
+        mask = clusters_moved(points_sensor, T_world_sensor, self._before, self.params)
         self.dropped += int(mask.sum())
         return mask
 
@@ -154,100 +217,103 @@ class MoverFilter:
         ``points_down`` ``(M, 3)`` (what goes into the map), sensor frame, at ``T_world_sensor``.
 
         Returns ``[(points, T_world_sensor)]`` to insert into the local map now: the scan that
-        is ``delay`` scans old, without its moving clusters (``immediate``: this scan, as it is,
-        e.g. the first scan of an empty map; the scans waiting are released too).
+        is ``delay`` scans old, without its moving clusters (``immediate``: this scan as it is,
+        e.g. the first scan of an empty map, after the scans still waiting, as they are).
         """
         index = self._count
         self._count += 1
         T = np.asarray(T_world_sensor, dtype=np.float64)
         if len(scan_points) >= 10:
-            self._views.append(view_of(index, T, scan_points, self.params))
-        ready: list[tuple[np.ndarray, np.ndarray]] = []
+            self._views.add(index, T, scan_points)
+        before, self._before = self._before, None
         if immediate:
-            ready = [(p, pose) for _, p, pose in self._waiting] + [(points_down, T)]
-            self._waiting.clear()
+            ready = [(pts, pose) for _, pts, pose, _ in self._waiting] + [(points_down, T)]
+            self._waiting = []
             return ready
-        self._waiting.append((index, np.asarray(points_down, dtype=np.float64), T))
+        points_down = np.asarray(points_down, dtype=np.float64)
+        if before is None or len(before) != len(points_down):
+            before = np.zeros(len(points_down), dtype=bool)
+        self._waiting.append((index, points_down, T, before))
+        ready = []
         while len(self._waiting) > self.delay:
-            k, pts, pose = self._waiting.popleft()
-            others = [v for v in self._views if v.index != k]
-            moved = moving_in_scan(pts, pose, others, self.params)
+            # the votes of the scans before it (taken at its predicted pose) and of those after it
+            k, pts, pose, votes = self._waiting.pop(0)
+            slots = self._views.slots(k + 1, index, self.max_views)
+            votes = votes | scan_votes(pts, pose, self._views, slots, self.params)
+            moved = clusters_moved(pts, pose, votes, self.params)
             self.dropped += int(moved.sum())
             ready.append((pts[~moved], pose))
         return ready
 
 
-def split_submap(T_anchor_scans: np.ndarray, scans_down: list[np.ndarray], views: list[_View],
-                 points: np.ndarray, params: MoverParams, slack: int = 1) -> np.ndarray:
-    """``(M,)`` bool: which of a submap's fused ``points`` ``(M, 3)`` (anchor frame) moved.
-
-    ``scans_down``: the submap's scans (thinned, sensor frame) at ``T_anchor_scans`` ``(K, 4, 4)``;
-    their points are voxelised at ``params.voxel`` with the first and last scan that saw each
-    voxel. ``views``: range images with ``T_anchor_sensor`` poses (the submap's scans and a few
-    before it), ``view.index`` counting in the same numbering as ``scans_down`` (negative:
-    before the submap). A voxel is tested by the views outside its sightings (+- ``slack``
-    scans); clusters of voxels seen at overlapping times are decided together.
-    """
-    if not len(points) or not scans_down:
-        return np.zeros(len(points), dtype=bool)
-    acc = VoxelAccumulator(params.voxel)
-    for k, (T, pts) in enumerate(zip(T_anchor_scans, scans_down)):
-        pts = np.asarray(pts, dtype=np.float64)
-        if not len(pts):
-            continue
-        keep = non_ground(pts, params.ground_band)
-        acc.add(pts[keep] @ T[:3, :3].T + T[:3, 3], k)
-    keys, centroids, _, first, last = acc.result()
-    if not len(keys):
-        return np.zeros(len(points), dtype=bool)
-    voted = np.zeros(len(keys), dtype=np.int8) - 1  # -1: no view could test it
-    for view in views:
-        cand = np.flatnonzero((view.index < first - slack) | (view.index > last + slack))
-        if not len(cand):
-            continue
-        voted[cand] = np.maximum(voted[cand], 0)
-        free = view.seen_through(centroids[cand], params)
-        voted[cand[free]] = 1
-    cluster = co_observed_clusters(keys, first, last, np.ones(len(keys), dtype=bool), slack + 1)
-    moved = dynamic_clusters(cluster, voted, params.cluster_fraction, params.min_votes)
-    k = voxel_keys(np.asarray(points, dtype=np.float64), params.voxel)
-    pos = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
-    return (keys[pos] == k) & moved[pos]
-
-
 class SubmapMovers:
-    """The submap side in a streaming run: each scan's thinned points and range image while its
-    submap grows (and the last ``before`` scans of the previous one), so that a closed submap can
-    be split into what stayed and what moved (:func:`split_submap`). Memory: one submap's scans."""
+    """The submap side of a streaming run: each scan's thinned points while its submap grows,
+    and the range images of the last ``max_views`` scans, so that a closed submap can be split
+    into what stayed and what moved (:meth:`split`), and earlier submaps lose what the new one's
+    scans saw through (:meth:`seen_through_later`). Memory: one submap's thinned scans and
+    ``max_views`` range images."""
 
-    def __init__(self, params: MoverParams = MoverParams(), before: int = 10) -> None:
+    def __init__(self, params: MoverParams = MoverParams(), before: int = 10, max_views: int = 40,
+                 slack: int = 1) -> None:
         self.params = params
         self.before = before
-        self._scans: list[tuple[int, np.ndarray, np.ndarray, _View | None]] = []  # (scan index, T_odom, down, view)
+        self.slack = slack
+        self.views = ViewStack(max_views, params)
+        self._scans: list[tuple[int, np.ndarray, np.ndarray]] = []  # (scan index, T_odom_sensor, thinned points)
 
     def add(self, index: int, T_odom_sensor: np.ndarray, points_down: np.ndarray, scan_points: np.ndarray) -> None:
-        """File one registered scan (sensor frame; ``scan_points`` all of it, for the image)."""
-        view = view_of(index, T_odom_sensor, scan_points, self.params) if len(scan_points) >= 10 else None
-        self._scans.append((index, np.asarray(T_odom_sensor, dtype=np.float64),
-                            np.asarray(points_down, dtype=np.float32), view))
+        """File one registered scan (sensor frame; ``scan_points`` all of it, for its range image)."""
+        if len(scan_points) >= 10:
+            self.views.add(index, T_odom_sensor, scan_points)
+        self._scans.append((index, np.asarray(T_odom_sensor, dtype=np.float64), np.asarray(points_down, np.float32)))
 
-    def take(self, scan_indices: list[int], T_odom_anchor: np.ndarray) -> tuple:
-        """The evidence for the submap of ``scan_indices`` (anchor ``T_odom_anchor``) as arguments
-        for :meth:`split`; forgets the scans no later submap needs."""
-        first = scan_indices[0]
-        members = [s for s in self._scans if s[0] in set(scan_indices)]
-        inv = np.linalg.inv(T_odom_anchor)
-        views = []
-        for idx, _, _, view in self._scans:
-            if view is not None and first - self.before <= idx <= scan_indices[-1]:
-                views.append(_View(idx - first, inv @ view.T_world_sensor, view.image))
-        T_anchor_scans = np.array([inv @ T for _, T, _, _ in members]).reshape(-1, 4, 4)
-        downs = [d for _, _, d, _ in members]
-        last = scan_indices[-1]
-        self._scans = [s for s in self._scans if s[0] >= last - self.before]
-        return T_anchor_scans, downs, views
+    def take(self, scan_indices: list[int]) -> tuple:
+        """The evidence for the submap of ``scan_indices``: its scans and the view slots of scans
+        from ``before`` ahead of it to its end (for :meth:`split`, :meth:`seen_through_later`);
+        the scans before its last are forgotten (the last one starts the next submap)."""
+        first, last = scan_indices[0], scan_indices[-1]
+        members = [s for s in self._scans if first <= s[0] <= last]
+        self._scans = [s for s in self._scans if s[0] >= last]
+        views = self.views.subset(self.views.slots(first - self.before, last))  # split runs in a worker
+        return members, views, first
 
-    def split(self, evidence: tuple, points: np.ndarray) -> np.ndarray:
-        """``(M,)`` bool over a submap's ``points`` (anchor frame): what moved."""
-        T_anchor_scans, downs, views = evidence
-        return split_submap(T_anchor_scans, downs, views, points, self.params)
+    def split(self, evidence: tuple, T_odom_anchor: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """``(M,)`` bool over a closed submap's fused ``points`` (anchor frame, anchor at
+        ``T_odom_anchor``): the voxels (``params.voxel``) of its scans that other scans (outside
+        each voxel's sightings, +- ``slack``) saw through, decided per cluster of voxels seen at
+        overlapping times."""
+        members, views, _ = evidence
+        p = self.params
+        if not len(points) or not members:
+            return np.zeros(len(points), dtype=bool)
+        acc = VoxelAccumulator(p.voxel)
+        for index, T, pts in members:
+            pts = np.asarray(pts, dtype=np.float64)
+            if len(pts):
+                keep = non_ground(pts, p.ground_band)
+                acc.add(pts[keep] @ T[:3, :3].T + T[:3, 3], index)  # odometry frame
+        keys, centroids, _, first, last = acc.result()
+        if not len(keys):
+            return np.zeros(len(points), dtype=bool)
+        index = views.index
+
+        def outside_sightings(k: int, vi: np.ndarray) -> np.ndarray:
+            return (index[k] < first[vi] - self.slack) | (index[k] > last[vi] + self.slack)
+
+        tested, free = views.seen_through(centroids, views.slots(-(1 << 62), 1 << 62), outside_sightings)
+        voted = np.where(tested, free.astype(np.int8), np.int8(-1))
+        cluster = co_observed_clusters(keys, first, last, np.ones(len(keys), dtype=bool), self.slack + 1)
+        moved = dynamic_clusters(cluster, voted, p.cluster_fraction, p.min_votes)
+        T = np.asarray(T_odom_anchor, dtype=np.float64)
+        k = voxel_keys(np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3], p.voxel)
+        pos = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
+        return (keys[pos] == k) & moved[pos]
+
+    def seen_through_later(self, evidence: tuple, T_odom_anchor: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """``(M,)`` bool over an *earlier* submap's ``points`` (its anchor frame, anchor at
+        ``T_odom_anchor``): the clusters the new submap's scans (after its first, which the
+        earlier submap shares) saw through: a parked car that left, a car seen at the edge of
+        its own submap's window. ``evidence``: the new submap's, from :meth:`take`."""
+        _, views, first = evidence
+        later = views.slots(first + 1, 1 << 62)
+        return moving_in_scan(points, np.asarray(T_odom_anchor, dtype=np.float64), views, later, self.params)
