@@ -259,11 +259,11 @@ class SubmapSLAM:
                                  self._graph_builder.graph.pose)
 
     def _split_movers(self, submap: Submap, movers: tuple) -> None:
-        """Move what the evidence says moved out of ``submap``'s cloud into its dynamic cloud, and
-        the same for the recent submaps within reach whose points its scans saw through."""
+        """Move what the evidence says moved out of ``submap``'s cloud into its dynamic cloud (and
+        out of its scans' obstacle slices, which the occupancy grid traces), and the same for the
+        recent submaps within reach whose points its scans saw through."""
         moved = self._movers.split(movers, submap.T_odom_anchor, submap.points)
-        submap.dynamic_points = submap.points[moved]
-        submap.points = submap.points[~moved]
+        self._move_out(submap, moved)
         reach = self.config.odometry.max_range + self._builder.max_distance
         for earlier in self.submaps[max(0, submap.id - _LATER_SUBMAPS):submap.id]:
             apart = earlier.T_odom_anchor[:3, 3] - submap.T_odom_anchor[:3, 3]
@@ -271,10 +271,22 @@ class SubmapSLAM:
                 continue
             moved = self._movers.seen_through_later(movers, earlier.T_odom_anchor, earlier.points)
             if moved.any():
-                earlier.dynamic_points = np.concatenate([earlier.dynamic_points, earlier.points[moved]])
-                earlier.points = earlier.points[~moved]
+                self._move_out(earlier, moved)
                 if self._clouds is not None:
                     self._clouds.forget(earlier.id)
+
+    def _move_out(self, submap: Submap, moved: np.ndarray) -> None:
+        """``moved`` ``(M,)`` bool over ``submap.points``: into its dynamic cloud, and the obstacle-slice
+        points of its scans in the same voxels out of the grid's input."""
+        from .mapping.moving_points import drop_from_slices
+
+        gone = submap.points[moved]
+        previous = submap.dynamic_points if submap.dynamic_points is not None else gone[:0]
+        submap.dynamic_points = np.concatenate([previous, gone])
+        submap.points = submap.points[~moved]
+        if len(gone) and submap.scan_points:
+            submap.scan_points = drop_from_slices(submap.scan_points, submap.T_anchor_scans, gone,
+                                                  self._movers.params.voxel)
 
     def checkpoint(self, source: str = "") -> Checkpoint:
         """The decisions so far (every scan's odometry, every closed submap's graph work), after
@@ -528,7 +540,7 @@ def run(
 
 
 # 3D: earlier submaps whose points a new submap's scans test for what has moved away since
-_LATER_SUBMAPS = 6
+_LATER_SUBMAPS = 4
 
 # scans registered ahead of the one being completed: keeps an odometry child process busy
 # while the main process builds submaps (a few scans: ~1 MB each, ~20 ms of registration)

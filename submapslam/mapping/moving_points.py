@@ -254,10 +254,12 @@ class SubmapMovers:
     ``max_views`` range images."""
 
     def __init__(self, params: MoverParams = MoverParams(), before: int = 10, max_views: int = 40,
-                 slack: int = 1) -> None:
+                 slack: int = 1, split_views: int = 8, later_views: int = 4) -> None:
         self.params = params
         self.before = before
         self.slack = slack
+        self.split_views = split_views  # scans (spread over the window) that test a closed submap ...
+        self.later_views = later_views  # ... and of its scans, those that test each earlier submap
         self.views = ViewStack(max_views, params)
         self._scans: list[tuple[int, np.ndarray, np.ndarray]] = []  # (scan index, T_odom_sensor, thinned points)
 
@@ -300,7 +302,8 @@ class SubmapMovers:
         def outside_sightings(k: int, vi: np.ndarray) -> np.ndarray:
             return (index[k] < first[vi] - self.slack) | (index[k] > last[vi] + self.slack)
 
-        tested, free = views.seen_through(centroids, views.slots(-(1 << 62), 1 << 62), outside_sightings)
+        slots = views.slots(-(1 << 62), 1 << 62, self.split_views)
+        tested, free = views.seen_through(centroids, slots, outside_sightings)
         voted = np.where(tested, free.astype(np.int8), np.int8(-1))
         cluster = co_observed_clusters(keys, first, last, np.ones(len(keys), dtype=bool), self.slack + 1)
         moved = dynamic_clusters(cluster, voted, p.cluster_fraction, p.min_votes)
@@ -315,5 +318,21 @@ class SubmapMovers:
         earlier submap shares) saw through: a parked car that left, a car seen at the edge of
         its own submap's window. ``evidence``: the new submap's, from :meth:`take`."""
         _, views, first = evidence
-        later = views.slots(first + 1, 1 << 62)
+        later = views.slots(first + 1, 1 << 62, self.later_views)
         return moving_in_scan(points, np.asarray(T_odom_anchor, dtype=np.float64), views, later, self.params)
+
+
+def drop_from_slices(scan_points: list[np.ndarray], T_anchor_scans: np.ndarray, moved: np.ndarray,
+                     voxel: float) -> list[np.ndarray]:
+    """Each scan's points ``(n_k, 3)`` (sensor frame, at ``T_anchor_scans[k]``) without those in the
+    ``voxel`` cells of the ``moved`` points ``(D, 3)`` (anchor frame); dtype kept."""
+    gone = np.unique(voxel_keys(np.asarray(moved, dtype=np.float64), voxel))
+    out = []
+    for T, pts in zip(T_anchor_scans, scan_points):
+        if not len(pts):
+            out.append(pts)
+            continue
+        k = voxel_keys(np.asarray(pts, dtype=np.float64) @ T[:3, :3].T + T[:3, 3], voxel)
+        pos = np.minimum(np.searchsorted(gone, k), len(gone) - 1)
+        out.append(pts[gone[pos] != k])
+    return out
