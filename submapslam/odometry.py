@@ -98,8 +98,9 @@ class Odometry:
         frame_down = self._down(frame, self.frame_voxel)
         initial_guess = self.last_pose @ prediction
         registered = frame_down
-        if self.movers is not None and known is None and not self._local_map.empty():
-            # what the last scans saw through is a mover entering: not registered
+        if self.movers is not None and not self._local_map.empty():
+            # what the last scans saw through is a mover entering: not registered (a replay tests
+            # it too: its votes decide the scan's later map entry, as they did live)
             registered = frame_down[~self.movers.entering(frame_down, initial_guess)]
         source = self._down(registered, self.voxel_size * 1.5)
         if known is not None:
