@@ -13,7 +13,14 @@ from submapslam.evaluation.metrics import ate
 from submapslam.io.labels import labelled_scans
 from submapslam.io.run_folder import read_ply_points
 from submapslam.io.trajectory import read_trajectory
-from submapslam.mapping.moving_points import MoverFilter, MoverParams, ViewStack, moving_in_scan
+from submapslam.mapping.dynamic_removal import co_observed_clusters, voxel_keys
+from submapslam.mapping.moving_points import (
+    MoverFilter,
+    MoverParams,
+    ViewStack,
+    moving_in_scan,
+    spatial_clusters,
+)
 
 from .conftest import shared_data
 
@@ -72,6 +79,17 @@ def test_a_scan_enters_the_local_map_late_without_what_later_scans_saw_through()
     # entering: the car seen again where the last scans saw the street empty is not registered
     again = cast(box=True)
     assert filt.entering(again, np.eye(4))[in_box(again)].mean() > 0.9
+
+
+def test_numpy_clusters_are_the_26_connected_components():
+    points = np.random.default_rng(1).uniform(0.0, 30.0, (3000, 3))
+    keys = np.unique(voxel_keys(points, 0.4))
+    zero = np.zeros(len(keys), dtype=np.int32)
+    ours = spatial_clusters(keys)
+    scipys = co_observed_clusters(keys, zero, zero, np.ones(len(keys), dtype=bool), 0)
+    # the same partition: each of our clusters is one of scipy's and their numbers agree
+    assert len(np.unique(ours)) == len(np.unique(scipys)) == len(np.unique(ours * len(keys) + scipys))
+    assert 1 < len(np.unique(ours)) < len(keys)
 
 
 @pytest.fixture(scope="module")

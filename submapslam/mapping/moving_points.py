@@ -35,7 +35,6 @@ from .dynamic_removal import (
     dynamic_clusters,
     voxel_keys,
 )
-from .height_band import estimate_ground_z
 
 
 @dataclass(frozen=True)
@@ -128,13 +127,44 @@ class ViewStack:
         return tested, free
 
 
-def non_ground(points_sensor: np.ndarray, band: float) -> np.ndarray:
-    """``(N,)`` bool: points more than ``band`` [m] above the scan's ground (estimated per scan,
-    :func:`~submapslam.mapping.height_band.estimate_ground_z`); all of them when no ground is seen."""
-    ground = estimate_ground_z(points_sensor)
-    if ground is None:
+def non_ground(points_sensor: np.ndarray, band: float, radius: float = 15.0, percentile: float = 2.0) -> np.ndarray:
+    """``(N,)`` bool: points more than ``band`` [m] above the scan's ground, the ``percentile`` of the
+    heights within ``radius`` [m] (as :func:`~submapslam.mapping.height_band.estimate_ground_z`, not
+    imported: the odometry's child process stays without scipy); all when no ground is near."""
+    near = points_sensor[np.hypot(points_sensor[:, 0], points_sensor[:, 1]) <= radius, 2]
+    if not len(near):
         return np.ones(len(points_sensor), dtype=bool)
-    return points_sensor[:, 2] > ground + band
+    return points_sensor[:, 2] > float(np.percentile(near, percentile)) + band
+
+
+_HALF = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) > (0, 0, 0)])
+# key differences to 13 of the 26 neighbours (the other 13 are their negatives), from voxel_keys itself
+_HALF_OFFSETS = voxel_keys(_HALF + 0.5, 1.0) - voxel_keys(np.full((1, 3), 0.5), 1.0)
+
+
+def spatial_clusters(keys: np.ndarray) -> np.ndarray:
+    """Component id ``(V,)`` of sorted voxel keys (:func:`voxel_keys`) under 26-connectivity: numpy
+    only (min-label propagation with pointer jumping; no scipy in the odometry's child process)."""
+    n = len(keys)
+    labels = np.arange(n)
+    src, nb = [], []
+    for off in _HALF_OFFSETS:
+        q = keys + off
+        pos = np.minimum(np.searchsorted(keys, q), max(n - 1, 0))
+        hit = keys[pos] == q
+        src.append(np.flatnonzero(hit))
+        nb.append(pos[hit])
+    src, nb = np.concatenate(src), np.concatenate(nb)
+    while len(src):
+        low = np.minimum(labels[src], labels[nb])
+        new = labels.copy()
+        np.minimum.at(new, src, low)
+        np.minimum.at(new, nb, low)
+        new = new[new]  # labels only fall (to a smaller index), so this jumps towards the root
+        if np.array_equal(new, labels):
+            break
+        labels = new
+    return labels
 
 
 def scan_votes(points_sensor: np.ndarray, T_world_sensor: np.ndarray, views: ViewStack,
@@ -165,9 +195,7 @@ def clusters_moved(points_sensor: np.ndarray, T_world_sensor: np.ndarray, votes:
     keys, inverse = np.unique(voxel_keys(world, params.voxel), return_inverse=True)
     voted = np.zeros(len(keys), dtype=np.int8)
     np.maximum.at(voted, inverse, votes[test].astype(np.int8))
-    zero = np.zeros(len(keys), dtype=np.int32)
-    cluster = co_observed_clusters(keys, zero, zero, np.ones(len(keys), dtype=bool), 0)
-    moved = dynamic_clusters(cluster, voted, params.cluster_fraction, params.min_votes)
+    moved = dynamic_clusters(spatial_clusters(keys), voted, params.cluster_fraction, params.min_votes)
     out[test] = moved[inverse]
     return out
 
@@ -253,9 +281,10 @@ class SubmapMovers:
     scans saw through (:meth:`seen_through_later`). Memory: one submap's thinned scans and
     ``max_views`` range images."""
 
-    def __init__(self, params: MoverParams = MoverParams(), before: int = 10, max_views: int = 40,
-                 slack: int = 1, split_views: int = 8, later_views: int = 4) -> None:
+    def __init__(self, params: MoverParams = MoverParams(), before: int = 10, max_views: int = 24,
+                 slack: int = 1, split_views: int = 8, later_views: int = 4, view_stride: int = 2) -> None:
         self.params = params
+        self.view_stride = view_stride  # a range image of every view_stride-th scan
         self.before = before
         self.slack = slack
         self.split_views = split_views  # scans (spread over the window) that test a closed submap ...
@@ -265,7 +294,7 @@ class SubmapMovers:
 
     def add(self, index: int, T_odom_sensor: np.ndarray, points_down: np.ndarray, scan_points: np.ndarray) -> None:
         """File one registered scan (sensor frame; ``scan_points`` all of it, for its range image)."""
-        if len(scan_points) >= 10:
+        if len(scan_points) >= 10 and index % self.view_stride == 0:
             self.views.add(index, T_odom_sensor, scan_points)
         self._scans.append((index, np.asarray(T_odom_sensor, dtype=np.float64), np.asarray(points_down, np.float32)))
 
