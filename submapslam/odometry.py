@@ -65,11 +65,11 @@ class Odometry:
         self.n_registered = 0
         self._refiner = None
         self.movers = None  # 3D: keeps what moved out of registration and the local map
-        if not planar and config.drop_movers:
+        if not planar and (config.drop_movers or config.movers_delay > 0):
             from .mapping.moving_points import MoverFilter
 
             self.movers = MoverFilter(history=config.movers_history, delay=config.movers_delay,
-                                      max_views=config.movers_views)
+                                      max_views=config.movers_views, test=config.drop_movers)
         if planar and config.planar_point_to_line:
             from .registration.point_to_line import RecentScanMap
 

@@ -98,7 +98,8 @@ def runs(tmp_path_factory):
     root = tmp_path_factory.mktemp("run_movers")
     log = generate_kitti_drive(shared_data("trajectories", "kitti_gt", "00.txt.xz"), root / "log", rings=16,
                                max_scans=80, movers=16)
-    off = with_updates(PipelineConfig(), {"odometry": {"drop_movers": False}, "mapping": {"split_movers": False}})
+    off = with_updates(PipelineConfig(), {"odometry": {"drop_movers": False, "movers_delay": 0},  # as before
+                                          "mapping": {"split_movers": False}})
     _, on_files = run_log(log, root / "on")
     _, off_files = run_log(log, root / "off", config=off)
     return log, on_files, off_files

@@ -218,8 +218,10 @@ class MoverFilter:
     """
 
     def __init__(self, params: MoverParams = MoverParams(), history: int = 6, delay: int = 3,
-                 max_views: int = 6) -> None:
+                 max_views: int = 6, test: bool = True) -> None:
+        """``test=False``: only the delay (nothing is tested, no range image is kept)."""
         self.params = params
+        self.test = test
         self.history = history
         self.delay = delay
         self.max_views = max_views  # scans that test one scan, spread over those at hand
@@ -233,6 +235,8 @@ class MoverFilter:
         """``(N,)`` bool: points of the scan about to be registered (at its predicted pose) that the
         last ``history`` scans saw through. The votes are kept for the same points' map entry
         (:meth:`add` with the same ``points_down``)."""
+        if not self.test:
+            return np.zeros(len(points_sensor), dtype=bool)
         slots = self._views.slots(self._count - self.history, self._count - 1, self.max_views)
         self._before = scan_votes(points_sensor, T_world_sensor, self._views, slots, self.params)
         mask = clusters_moved(points_sensor, T_world_sensor, self._before, self.params)
@@ -251,7 +255,7 @@ class MoverFilter:
         index = self._count
         self._count += 1
         T = np.asarray(T_world_sensor, dtype=np.float64)
-        if len(scan_points) >= 10:
+        if len(scan_points) >= 10 and self.test:
             self._views.add(index, T, scan_points)
         before, self._before = self._before, None
         if immediate:
@@ -266,6 +270,9 @@ class MoverFilter:
         while len(self._waiting) > self.delay:
             # the votes of the scans before it (taken at its predicted pose) and of those after it
             k, pts, pose, votes = self._waiting.pop(0)
+            if not self.test:
+                ready.append((pts, pose))
+                continue
             slots = self._views.slots(k + 1, index, self.max_views)
             votes = votes | scan_votes(pts, pose, self._views, slots, self.params)
             moved = clusters_moved(pts, pose, votes, self.params)
