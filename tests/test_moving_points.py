@@ -100,7 +100,8 @@ def runs(tmp_path_factory):
                                max_scans=80, movers=16)
     off = with_updates(PipelineConfig(), {"odometry": {"drop_movers": False, "movers_delay": 0},  # as before
                                           "mapping": {"split_movers": False}})
-    _, on_files = run_log(log, root / "on")
+    on = with_updates(PipelineConfig(), {"odometry": {"drop_movers": True}})
+    _, on_files = run_log(log, root / "on", config=on)
     _, off_files = run_log(log, root / "off", config=off)
     return log, on_files, off_files
 
