@@ -64,6 +64,12 @@ class Odometry:
         self._last_wheel: np.ndarray | None = None
         self.n_registered = 0
         self._refiner = None
+        self.movers = None  # 3D: keeps what moved out of registration and the local map
+        if not planar and (config.drop_movers or config.movers_delay > 0):
+            from .mapping.moving_points import MoverFilter
+
+            self.movers = MoverFilter(history=config.movers_history, delay=config.movers_delay,
+                                      max_views=config.movers_views, test=config.drop_movers)
         if planar and config.planar_point_to_line:
             from .registration.point_to_line import RecentScanMap
 
@@ -90,8 +96,13 @@ class Odometry:
             self.last_frame_down = frame
             return new_pose, frame
         frame_down = self._down(frame, self.frame_voxel)
-        source = self._down(frame_down, self.voxel_size * 1.5)
         initial_guess = self.last_pose @ prediction
+        registered = frame_down
+        if self.movers is not None and not self._local_map.empty():
+            # what the last scans saw through is a mover entering: not registered (a replay tests
+            # it too: its votes decide the scan's later map entry, as they did live)
+            registered = frame_down[~self.movers.entering(frame_down, initial_guess)]
+        source = self._down(registered, self.voxel_size * 1.5)
         if known is not None:
             new_pose = known[0]
             if self.planar:
@@ -119,7 +130,11 @@ class Odometry:
             new_pose = se2_to_matrix(*xyt)
             self.last_xyt = xyt
         self._threshold.update_model_deviation(inverse(initial_guess) @ new_pose)
-        self._local_map.update(frame_down, new_pose)
+        if self.movers is None:
+            self._local_map.update(frame_down, new_pose)
+        else:  # each scan enters the local map a few scans late, without what the scans around it saw through
+            for points, pose in self.movers.add(frame, frame_down, new_pose, immediate=self._local_map.empty()):
+                self._local_map.update(points, pose)
         self._advance(new_pose)
         self.last_frame_down = frame_down
         return new_pose, frame

@@ -80,6 +80,7 @@ class SubmapSLAM:
         self._graph_builder: GraphBuilder | None = None  # made at the first scan (planar or not)
         self._loop_closer = None
         self._clouds = None  # 3D: SubmapClouds
+        self._movers = None  # 3D with mapping.split_movers: SubmapMovers (each submap's evidence of what moved)
         self._hints = list(hints or [])
         self.timestamps: list[float] = []
         self._odom_poses: list[np.ndarray] = []
@@ -150,6 +151,8 @@ class SubmapSLAM:
         self._odom_poses.append(T_odom_base)
         self._scan_submap.append(-1)
         with self.timer("submaps"):
+            if self._movers is not None:
+                self._movers.add(len(self.timestamps) - 1, T_odom_base, registered.frame_down, frame)
             if self._fuse_thinned:
                 submap = self._builder.add(len(self.timestamps) - 1, T_odom_base, registered.frame_down,
                                            full_scan=frame)
@@ -172,6 +175,10 @@ class SubmapSLAM:
         self._builder = SubmapBuilder(cfg.submaps, voxel, self.planar, grid_points=self._grid_slice())
         from .registration.correspondence import match_voxel
 
+        if not self.planar and cfg.mapping.split_movers:
+            from .mapping.moving_points import SubmapMovers
+
+            self._movers = SubmapMovers()
         if not self.planar:  # prepared clouds, shared by odometry-edge registration and loop tests
             from .registration.spatial import SubmapClouds
 
@@ -214,8 +221,9 @@ class SubmapSLAM:
             self._scan_submap[idx] = submap.id
         hint_pairs = self._hint_pairs()
         wheel = self._wheel_scans > 0  # read here: the worker must not see the main thread's later scans
+        movers = self._movers.take(submap.scan_indices) if self._movers is not None else None
         if not background:
-            self._add_submap_to_graph(submap, hint_pairs, wheel)
+            self._add_submap_to_graph(submap, hint_pairs, wheel, movers)
             return
         if self._worker is None:
             from concurrent.futures import ThreadPoolExecutor
@@ -223,11 +231,16 @@ class SubmapSLAM:
             self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="submap-graph")
         # scan registration (main thread) does not read the graph: its KISS-ICP, k-d tree, FFT
         # and numpy kernels overlap with the loop tests on a second core
-        self._pending = self._worker.submit(self._add_submap_to_graph, submap, hint_pairs, wheel)
+        self._pending = self._worker.submit(self._add_submap_to_graph, submap, hint_pairs, wheel, movers)
 
-    def _add_submap_to_graph(self, submap: Submap, hint_pairs: list[tuple[int, int]], wheel_odometry: bool) -> None:
-        """The graph work of one closed submap: node and odometry edge, then its loop tests
+    def _add_submap_to_graph(self, submap: Submap, hint_pairs: list[tuple[int, int]], wheel_odometry: bool,
+                             movers: tuple | None = None) -> None:
+        """The graph work of one closed submap: what moved leaves its cloud (``movers``: the
+        evidence :meth:`SubmapMovers.take` gave), node and odometry edge, then its loop tests
         (replayed from the checkpoint being resumed, when it holds them)."""
+        if movers is not None:
+            with self.timer("movers"):
+                self._split_movers(submap, movers)
         previous = self.submaps[submap.id - 1] if submap.id > 0 else None
         replay = self._replay if self._replay is not None and submap.id < self._replay.n_submaps else None
         self._graph_builder.add_submap(submap, previous, wheel_odometry=wheel_odometry,
@@ -244,6 +257,36 @@ class SubmapSLAM:
         if self._observer is not None:
             notify_closed_submap(self._observer, submap.id, submap.T_odom_anchor, submap.points, records,
                                  self._graph_builder.graph.pose)
+
+    def _split_movers(self, submap: Submap, movers: tuple) -> None:
+        """Move what the evidence says moved out of ``submap``'s cloud into its dynamic cloud (and
+        out of its scans' obstacle slices, which the occupancy grid traces), and the same for the
+        recent submaps within reach whose points its scans saw through."""
+        moved = self._movers.split(movers, submap.T_odom_anchor, submap.points)
+        self._move_out(submap, moved)
+        reach = self.config.odometry.max_range + self._builder.max_distance
+        for earlier in self.submaps[max(0, submap.id - _LATER_SUBMAPS):submap.id]:
+            apart = earlier.T_odom_anchor[:3, 3] - submap.T_odom_anchor[:3, 3]
+            if np.linalg.norm(apart) > reach or not len(earlier.points):
+                continue
+            moved = self._movers.seen_through_later(movers, earlier.T_odom_anchor, earlier.points)
+            if moved.any():
+                self._move_out(earlier, moved)
+                if self._clouds is not None:
+                    self._clouds.forget(earlier.id)
+
+    def _move_out(self, submap: Submap, moved: np.ndarray) -> None:
+        """``moved`` ``(M,)`` bool over ``submap.points``: into its dynamic cloud, and the obstacle-slice
+        points of its scans in the same voxels out of the grid's input."""
+        from .mapping.moving_points import drop_from_slices
+
+        gone = submap.points[moved]
+        previous = submap.dynamic_points if submap.dynamic_points is not None else gone[:0]
+        submap.dynamic_points = np.concatenate([previous, gone])
+        submap.points = submap.points[~moved]
+        if len(gone) and submap.scan_points:
+            submap.scan_points = drop_from_slices(submap.scan_points, submap.T_anchor_scans, gone,
+                                                  self._movers.params.voxel)
 
     def checkpoint(self, source: str = "") -> Checkpoint:
         """The decisions so far (every scan's odometry, every closed submap's graph work), after
@@ -384,6 +427,7 @@ class SubmapSLAM:
             source=source,
             interrupted=interrupted,
             submap_descriptors=self._descriptors(n),
+            submap_dynamic_points=[s.dynamic_points for s in self.submaps] if self._movers is not None else None,
         )
 
     def close(self) -> None:
@@ -494,6 +538,9 @@ def run(
     result.log_info = dict(getattr(scans, "log_info", None) or {})  # the reader's account (record, skips)
     return result
 
+
+# 3D: earlier submaps whose points a new submap's scans test for what has moved away since
+_LATER_SUBMAPS = 4
 
 # scans registered ahead of the one being completed: keeps an odometry child process busy
 # while the main process builds submaps (a few scans: ~1 MB each, ~20 ms of registration)

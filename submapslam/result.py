@@ -78,6 +78,8 @@ class SlamResult:
         log_info: what the reader reports about the log (its ``log_info``: e.g. the CARMEN
             record read, damaged records skipped), written into ``summary.json``.
         hint_problems: one message per manual loop hint the log could not use.
+        submap_dynamic_points: 3D runs with ``mapping.split_movers``: per submap the ``(D_k, 3)``
+            points (anchor frame) that moved, taken out of ``submap_points``; None otherwise.
     """
 
     timestamps: np.ndarray
@@ -109,6 +111,7 @@ class SlamResult:
     submap_descriptors: np.ndarray | None = None
     log_info: dict = field(default_factory=dict)
     hint_problems: list[str] = field(default_factory=list)
+    submap_dynamic_points: list[np.ndarray] | None = None
 
     @property
     def n_scans(self) -> int:

@@ -53,6 +53,8 @@ class Submap:
         scan_points: each scan's ``(n, 3)`` points in its sensor frame, kept for the evidence
             grids, which need the rays: all points of a 2D laser scan; for 3D scans, the
             obstacle slice the builder's ``grid_points`` gives, in float16 (empty without one).
+        dynamic_points: 3D with ``mapping.split_movers``: ``(D, 3)`` the fused points (anchor frame,
+            compact) that other scans saw through, taken out of ``points``; None when not split.
     """
 
     id: int
@@ -64,6 +66,7 @@ class Submap:
     planar: bool
     scan_points: list[np.ndarray] = field(default_factory=list)
     descriptor: np.ndarray | None = None
+    dynamic_points: np.ndarray | None = None
 
 
 class SubmapBuilder:

@@ -25,7 +25,7 @@ def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs,
     build_map_outputs`); return ``{name: path}``. Nothing is computed here.
 
     Files: ``poses_tum.txt``, ``poses_kitti.txt``, ``odometry_tum.txt``, ``graph.g2o``,
-    ``map.ply``, ``config.yaml``, ``summary.json``, ``loops.csv``, ``submaps.csv`` (anchor poses,
+    ``map.ply``, ``map_dynamic.ply`` (3D runs that split what moved off the map), ``config.yaml``, ``summary.json``, ``loops.csv``, ``submaps.csv`` (anchor poses,
     marginal standard deviations and the x-y covariance in the anchor frame, for ellipses), and
     for planar runs ``map.pgm`` + ``map.yaml`` (occupancy grid in the ROS map_server format,
     moving objects cleared; for 3D LiDAR from the obstacle slice of each scan).
@@ -45,6 +45,9 @@ def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs,
     write_tum(paths["odometry_tum.txt"], Trajectory(result.timestamps, result.odometry_poses))
     write_g2o(paths["graph.g2o"], result.submap_poses, result.edges)
     write_ply(paths["map.ply"], maps.points)
+    if maps.dynamic_points is not None:
+        paths["map_dynamic.ply"] = out / "map_dynamic.ply"
+        write_ply(paths["map_dynamic.ply"], maps.dynamic_points)
     paths["config.yaml"].write_text(dump_config(result.config))
     _write_loops(paths["loops.csv"], result)
     _write_submaps(paths["submaps.csv"], result)
@@ -62,6 +65,9 @@ def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs,
     summary["wall_time_total_s"] = round(total, 3)
     summary["scans_per_second"] = round(result.n_scans / max(total, 1e-9), 2)
     summary["cleared_cells"] = maps.cleared_cells
+    if maps.dynamic_points is not None:
+        summary["map_points"] = len(maps.points)
+        summary["map_dynamic_points"] = len(maps.dynamic_points)
     # this process's, and the odometry child's when it ran in one (process_stats.combined_peak_mb)
     peaks = (peak_memory_mb(), result.peak_while_odometry_mb, result.odometry_peak_memory_mb)
     summary["peak_memory_mb"] = round(combined_peak_mb(*peaks), 1)

@@ -136,7 +136,9 @@ class MapOutputs:
     ``points``: ``(M, 3)`` float32 fused cloud in the world frame; ``occupancy``: ``(rows, cols)``
     occupancy probabilities of the global grid (None when the run has no grid), with the
     grid's ``origin`` ``(2,)`` [m] and ``resolution`` [m]; ``cleared_cells``: occupied cells later
-    submaps saw free (what moved); ``seconds``: wall time spent building them.
+    submaps saw free (what moved); ``seconds``: wall time spent building them;
+    ``dynamic_points``: ``(D, 3)`` float32 world cloud of what the run found moving (3D runs with
+    ``mapping.split_movers``), else None.
     """
 
     points: np.ndarray
@@ -145,12 +147,16 @@ class MapOutputs:
     resolution: float = 0.0
     cleared_cells: int = 0
     seconds: float = 0.0
+    dynamic_points: np.ndarray | None = None
 
 
 def build_map_outputs(result: SlamResult) -> MapOutputs:
     """Fuse the map cloud and, when the run keeps grid scans, the occupancy grid."""
     t0 = time.perf_counter()
     out = MapOutputs(points=fused_map(result))
+    if result.submap_dynamic_points is not None:
+        out.dynamic_points = fuse_clouds(((T, p) for T, p in zip(result.submap_poses, result.submap_dynamic_points)
+                                          if p is not None), result.map_voxel_size)
     if result.config.mapping.write_grid and any(len(p) for scans in result.submap_scan_points for p in scans):
         grid, out.cleared_cells = build_global_grid(result)
         out.occupancy, out.origin, out.resolution = grid.probabilities(), grid.origin, grid.params.resolution

@@ -132,6 +132,10 @@ class SubmapClouds:
             self._clouds.popitem(last=False)
         return cloud
 
+    def forget(self, submap_id: int) -> None:
+        """Drop the prepared cloud of a submap whose points have changed (rebuilt when next needed)."""
+        self._clouds.pop(submap_id, None)
+
 
 def _kabsch_many(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
     """Rigid ``(H, 4, 4)`` transforms mapping point triples ``P (H, k, 3)`` onto ``Q (H, k, 3)``."""

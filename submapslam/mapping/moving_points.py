@@ -1,0 +1,374 @@
+"""Points that moved, found while a run streams: space that recent scans saw through.
+
+The evidence test is :class:`~submapslam.mapping.dynamic_removal.RangeImage`'s: a point lies in
+free space for an earlier (or later) scan when that scan had a beam passing within
+``tolerance`` of it that ended more than ``margin(r) = max(margin, margin_per_m * r)`` beyond
+it. One such vote can be range noise at the edge of a wall; so the points are grouped into
+clusters (26-connected non-ground voxels, :func:`~submapslam.mapping.dynamic_removal.
+co_observed_clusters`) and a cluster moved when at least ``cluster_fraction`` of its tested
+voxels (and ``min_votes``) were seen through. The ground is never tested.
+
+Two users, both with bounded memory (a few recent range images, one submap's scans):
+
+* :class:`MoverFilter` in the odometry: the scan being registered loses the clusters the last
+  scans saw through (movers entering: a car driving into free space), and each scan goes into
+  KISS-ICP's local map ``delay`` scans late, without the clusters the scans before *and after*
+  it saw through (movers leaving: where a car was, later beams pass).
+* :func:`split_submap`: a closed submap's voxels that other scans of its window saw through
+  go to its dynamic cloud (``map_dynamic.ply``); the rest is the submap cloud that the map,
+  the place descriptors and loop registration use.
+
+Frames: points ``(N, 3)`` in a scan's sensor frame (= base frame of the logs read here, or
+moved by ``T_base_sensor`` first), poses ``T_world_sensor`` ``(4, 4)``. Units: metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .dynamic_removal import (
+    RangeImage,
+    VoxelAccumulator,
+    co_observed_clusters,
+    dynamic_clusters,
+    voxel_keys,
+)
+
+
+@dataclass(frozen=True)
+class MoverParams:
+    """Settings of the streaming mover test (see the module docstring)."""
+
+    voxel: float = 0.4  # [m] cluster / decision voxel
+    margin: float = 0.5  # [m] a beam must end this far beyond a point to see through it ...
+    margin_per_m: float = 0.05  # ... or this fraction of the point's range, whichever is larger
+    tolerance: float = 0.25  # [m] a beam passes a point when its direction comes this close
+    cluster_fraction: float = 0.3  # a cluster with this fraction of seen-through voxels moved ...
+    min_votes: int = 2  # ... and at least this many
+    ground_band: float = 0.3  # [m] points this close above the scan's ground are never tested
+    max_range: float = 50.0  # [m] points farther from a scan get no evidence from it
+    el_bin_deg: float = 0.5  # range-image pixel: elevation ...
+    az_bin_deg: float = 0.4  # ... and azimuth
+
+
+class ViewStack:
+    """The range images (:class:`~submapslam.mapping.dynamic_removal.RangeImage`) of up to
+    ``capacity`` scans in a ring, each with its scan index and pose. Memory: ``capacity``
+    images (16 rings at the default 0.5 x 0.4 deg pixels: 0.7 MB each)."""
+
+    def __init__(self, capacity: int, params: MoverParams = MoverParams()) -> None:
+        self.capacity = capacity
+        self.params = params
+        self.images: list[RangeImage | None] = [None] * capacity
+        self.index = np.zeros(capacity, dtype=np.int64)
+        self.valid = np.zeros(capacity, dtype=bool)
+        self.T_sensor_world = np.tile(np.eye(4), (capacity, 1, 1))
+        self._next = 0
+
+    def add(self, index: int, T_world_sensor: np.ndarray, points_sensor: np.ndarray) -> None:
+        """File scan ``index`` (``(N, 3)`` sensor-frame points at ``T_world_sensor``), replacing the oldest."""
+        p = self.params
+        k = self._next % self.capacity
+        self._next += 1
+        self.images[k] = RangeImage(np.asarray(points_sensor, dtype=np.float64), p.el_bin_deg, p.az_bin_deg)
+        self.index[k], self.valid[k] = index, True
+        self.T_sensor_world[k] = np.linalg.inv(np.asarray(T_world_sensor, dtype=np.float64))
+
+    def subset(self, slots: np.ndarray) -> ViewStack:
+        """A stack of only the scans in ``slots`` (the images shared, not copied: an image never
+        changes), e.g. for work in another thread while this stack takes new scans."""
+        out = ViewStack(max(1, len(slots)), self.params)
+        for j, k in enumerate(slots):
+            out.images[j], out.index[j], out.valid[j] = self.images[k], self.index[k], True
+            out.T_sensor_world[j] = self.T_sensor_world[k]
+        out._next = len(slots)
+        return out
+
+    def slots(self, lo: int, hi: int, most: int | None = None) -> np.ndarray:
+        """Slots holding scans ``lo <= index <= hi`` in scan order; ``most``: at most that many,
+        spread evenly over them (the newest always among them)."""
+        found = np.flatnonzero(self.valid & (self.index >= lo) & (self.index <= hi))
+        found = found[np.argsort(self.index[found], kind="stable")]
+        if most is not None and len(found) > most:
+            found = found[np.unique(np.round(np.linspace(len(found) - 1, 0, most)).astype(np.int64))]
+        return found
+
+    def seen_through(self, points_world: np.ndarray, slots: np.ndarray,
+                     allowed=None) -> tuple[np.ndarray, np.ndarray]:
+        """``(tested, free)``, each ``(N,)`` bool, for world points ``(N, 3)`` and the scans in ``slots``.
+
+        ``free``: at least one of those scans saw through the point (RangeImage's test: a beam
+        within ``tolerance`` of it ended more than the margin beyond; within ``max_range``).
+        ``tested``: at least one was allowed to test it. ``allowed(slot, point_indices)`` ->
+        bool per point (None: every point).
+        """
+        p = self.params
+        n = len(points_world)
+        tested, free = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
+        points_world = np.asarray(points_world, dtype=np.float64)
+
+        def margin(r: np.ndarray) -> np.ndarray:
+            return np.maximum(p.margin, p.margin_per_m * r)
+
+        every = np.arange(n)
+        for k in slots:
+            cand = every if allowed is None else np.flatnonzero(allowed(k, every))
+            if not len(cand):
+                continue
+            tested[cand] = True
+            T = self.T_sensor_world[k]
+            local = points_world[cand] @ T[:3, :3].T + T[:3, 3]
+            near = np.einsum("ij,ij->i", local, local) < p.max_range ** 2
+            if near.any():
+                _, f, _ = self.images[k].passes(local[near], p.tolerance, margin)
+                free[cand[near][f]] = True
+        return tested, free
+
+
+def non_ground(points_sensor: np.ndarray, band: float, radius: float = 15.0, percentile: float = 2.0) -> np.ndarray:
+    """``(N,)`` bool: points more than ``band`` [m] above the scan's ground, the ``percentile`` of the
+    heights within ``radius`` [m] (as :func:`~submapslam.mapping.height_band.estimate_ground_z`, not
+    imported: the odometry's child process stays without scipy); all when no ground is near."""
+    near = points_sensor[np.hypot(points_sensor[:, 0], points_sensor[:, 1]) <= radius, 2]
+    if not len(near):
+        return np.ones(len(points_sensor), dtype=bool)
+    return points_sensor[:, 2] > float(np.percentile(near, percentile)) + band
+
+
+_HALF = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) > (0, 0, 0)])
+# key differences to 13 of the 26 neighbours (the other 13 are their negatives), from voxel_keys itself
+_HALF_OFFSETS = voxel_keys(_HALF + 0.5, 1.0) - voxel_keys(np.full((1, 3), 0.5), 1.0)
+
+
+def spatial_clusters(keys: np.ndarray) -> np.ndarray:
+    """Component id ``(V,)`` of sorted voxel keys (:func:`voxel_keys`) under 26-connectivity: numpy
+    only (min-label propagation with pointer jumping; no scipy in the odometry's child process)."""
+    n = len(keys)
+    labels = np.arange(n)
+    src, nb = [], []
+    for off in _HALF_OFFSETS:
+        q = keys + off
+        pos = np.minimum(np.searchsorted(keys, q), max(n - 1, 0))
+        hit = keys[pos] == q
+        src.append(np.flatnonzero(hit))
+        nb.append(pos[hit])
+    src, nb = np.concatenate(src), np.concatenate(nb)
+    while len(src):
+        low = np.minimum(labels[src], labels[nb])
+        new = labels.copy()
+        np.minimum.at(new, src, low)
+        np.minimum.at(new, nb, low)
+        new = new[new]  # labels only fall (to a smaller index), so this jumps towards the root
+        if np.array_equal(new, labels):
+            break
+        labels = new
+    return labels
+
+
+def scan_votes(points_sensor: np.ndarray, T_world_sensor: np.ndarray, views: ViewStack,
+               slots: np.ndarray, params: MoverParams) -> np.ndarray:
+    """``(N,)`` bool: the non-ground points of one scan (sensor frame, at ``T_world_sensor``)
+    that a scan in ``slots`` of ``views`` saw through (each point on its own; see :func:`clusters_moved`)."""
+    points_sensor = np.asarray(points_sensor, dtype=np.float64)
+    out = np.zeros(len(points_sensor), dtype=bool)
+    if not len(slots) or not len(points_sensor):
+        return out
+    test = np.flatnonzero(non_ground(points_sensor, params.ground_band))
+    world = points_sensor[test] @ T_world_sensor[:3, :3].T + T_world_sensor[:3, 3]
+    out[test] = views.seen_through(world, slots)[1]
+    return out
+
+
+def clusters_moved(points_sensor: np.ndarray, T_world_sensor: np.ndarray, votes: np.ndarray,
+                   params: MoverParams) -> np.ndarray:
+    """``(N,)`` bool: the points of the non-ground clusters (26-connected ``params.voxel`` voxels)
+    of which at least ``cluster_fraction`` of the voxels (and ``min_votes``) hold a voted point
+    (``votes`` ``(N,)``, e.g. from :func:`scan_votes`)."""
+    points_sensor = np.asarray(points_sensor, dtype=np.float64)
+    out = np.zeros(len(points_sensor), dtype=bool)
+    if int(votes.sum()) < params.min_votes:
+        return out
+    test = np.flatnonzero(non_ground(points_sensor, params.ground_band))
+    world = points_sensor[test] @ T_world_sensor[:3, :3].T + T_world_sensor[:3, 3]
+    keys, inverse = np.unique(voxel_keys(world, params.voxel), return_inverse=True)
+    voted = np.zeros(len(keys), dtype=np.int8)
+    np.maximum.at(voted, inverse, votes[test].astype(np.int8))
+    moved = dynamic_clusters(spatial_clusters(keys), voted, params.cluster_fraction, params.min_votes)
+    out[test] = moved[inverse]
+    return out
+
+
+def moving_in_scan(points_sensor: np.ndarray, T_world_sensor: np.ndarray, views: ViewStack, slots: np.ndarray,
+                   params: MoverParams) -> np.ndarray:
+    """``(N,)`` bool: the points of one scan (or submap: sensor/anchor frame, at pose
+    ``T_world_sensor``) in clusters that the scans in ``slots`` of ``views`` saw through."""
+    votes = scan_votes(points_sensor, T_world_sensor, views, slots, params)
+    return clusters_moved(points_sensor, T_world_sensor, votes, params)
+
+
+class MoverFilter:
+    """Keeps movers out of scan-to-map odometry (KISS-ICP's local map and each registration).
+
+    The last ``history + delay + 1`` scans are kept as range images. :meth:`entering` marks the
+    points of the scan being registered that the last ``history`` scans saw through; :meth:`add`
+    files a registered scan and returns the scans now ready for the local map (``delay`` scans
+    late), each without the clusters the scans before and after it saw through.
+    """
+
+    def __init__(self, params: MoverParams = MoverParams(), history: int = 6, delay: int = 3,
+                 max_views: int = 6, test: bool = True) -> None:
+        """``test=False``: only the delay (nothing is tested, no range image is kept)."""
+        self.params = params
+        self.test = test
+        self.history = history
+        self.delay = delay
+        self.max_views = max_views  # scans that test one scan, spread over those at hand
+        self._views = ViewStack(history + delay + 1, params)
+        self._waiting: list[tuple] = []  # (index, points, pose, votes before) waiting for the map
+        self._before: np.ndarray | None = None  # votes of the last entering() test
+        self._count = 0
+        self.dropped = 0  # points kept out of registration and the local map so far
+
+    def entering(self, points_sensor: np.ndarray, T_world_sensor: np.ndarray) -> np.ndarray:
+        """``(N,)`` bool: points of the scan about to be registered (at its predicted pose) that the
+        last ``history`` scans saw through. The votes are kept for the same points' map entry
+        (:meth:`add` with the same ``points_down``)."""
+        if not self.test:
+            return np.zeros(len(points_sensor), dtype=bool)
+        slots = self._views.slots(self._count - self.history, self._count - 1, self.max_views)
+        self._before = scan_votes(points_sensor, T_world_sensor, self._views, slots, self.params)
+        mask = clusters_moved(points_sensor, T_world_sensor, self._before, self.params)
+        self.dropped += int(mask.sum())
+        return mask
+
+    def add(self, scan_points: np.ndarray, points_down: np.ndarray, T_world_sensor: np.ndarray,
+            immediate: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
+        """File a registered scan: ``scan_points`` ``(N, 3)`` (all of it, for its range image) and
+        ``points_down`` ``(M, 3)`` (what goes into the map), sensor frame, at ``T_world_sensor``.
+
+        Returns ``[(points, T_world_sensor)]`` to insert into the local map now: the scan that
+        is ``delay`` scans old, without its moving clusters (``immediate``: this scan as it is,
+        e.g. the first scan of an empty map, after the scans still waiting, as they are).
+        """
+        index = self._count
+        self._count += 1
+        T = np.asarray(T_world_sensor, dtype=np.float64)
+        if len(scan_points) >= 10 and self.test:
+            self._views.add(index, T, scan_points)
+        before, self._before = self._before, None
+        if immediate:
+            ready = [(pts, pose) for _, pts, pose, _ in self._waiting] + [(points_down, T)]
+            self._waiting = []
+            return ready
+        points_down = np.asarray(points_down, dtype=np.float64)
+        if before is None or len(before) != len(points_down):
+            before = np.zeros(len(points_down), dtype=bool)
+        self._waiting.append((index, points_down, T, before))
+        ready = []
+        while len(self._waiting) > self.delay:
+            # the votes of the scans before it (taken at its predicted pose) and of those after it
+            k, pts, pose, votes = self._waiting.pop(0)
+            if not self.test:
+                ready.append((pts, pose))
+                continue
+            slots = self._views.slots(k + 1, index, self.max_views)
+            votes = votes | scan_votes(pts, pose, self._views, slots, self.params)
+            moved = clusters_moved(pts, pose, votes, self.params)
+            self.dropped += int(moved.sum())
+            ready.append((pts[~moved], pose))
+        return ready
+
+
+class SubmapMovers:
+    """The submap side of a streaming run: each scan's thinned points while its submap grows,
+    and the range images of the last ``max_views`` scans, so that a closed submap can be split
+    into what stayed and what moved (:meth:`split`), and earlier submaps lose what the new one's
+    scans saw through (:meth:`seen_through_later`). Memory: one submap's thinned scans and
+    ``max_views`` range images."""
+
+    def __init__(self, params: MoverParams = MoverParams(), before: int = 10, max_views: int = 24,
+                 slack: int = 1, split_views: int = 8, later_views: int = 4, view_stride: int = 2) -> None:
+        self.params = params
+        self.view_stride = view_stride  # a range image of every view_stride-th scan
+        self.before = before
+        self.slack = slack
+        self.split_views = split_views  # scans (spread over the window) that test a closed submap ...
+        self.later_views = later_views  # ... and of its scans, those that test each earlier submap
+        self.views = ViewStack(max_views, params)
+        self._scans: list[tuple[int, np.ndarray, np.ndarray]] = []  # (scan index, T_odom_sensor, thinned points)
+
+    def add(self, index: int, T_odom_sensor: np.ndarray, points_down: np.ndarray, scan_points: np.ndarray) -> None:
+        """File one registered scan (sensor frame; ``scan_points`` all of it, for its range image)."""
+        if len(scan_points) >= 10 and index % self.view_stride == 0:
+            self.views.add(index, T_odom_sensor, scan_points)
+        self._scans.append((index, np.asarray(T_odom_sensor, dtype=np.float64), np.asarray(points_down, np.float32)))
+
+    def take(self, scan_indices: list[int]) -> tuple:
+        """The evidence for the submap of ``scan_indices``: its scans and the view slots of scans
+        from ``before`` ahead of it to its end (for :meth:`split`, :meth:`seen_through_later`);
+        the scans before its last are forgotten (the last one starts the next submap)."""
+        first, last = scan_indices[0], scan_indices[-1]
+        members = [s for s in self._scans if first <= s[0] <= last]
+        self._scans = [s for s in self._scans if s[0] >= last]
+        views = self.views.subset(self.views.slots(first - self.before, last))  # split runs in a worker
+        return members, views, first
+
+    def split(self, evidence: tuple, T_odom_anchor: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """``(M,)`` bool over a closed submap's fused ``points`` (anchor frame, anchor at
+        ``T_odom_anchor``): the voxels (``params.voxel``) of its scans that other scans (outside
+        each voxel's sightings, +- ``slack``) saw through, decided per cluster of voxels seen at
+        overlapping times."""
+        members, views, _ = evidence
+        p = self.params
+        if not len(points) or not members:
+            return np.zeros(len(points), dtype=bool)
+        acc = VoxelAccumulator(p.voxel)
+        for index, T, pts in members:
+            pts = np.asarray(pts, dtype=np.float64)
+            if len(pts):
+                keep = non_ground(pts, p.ground_band)
+                acc.add(pts[keep] @ T[:3, :3].T + T[:3, 3], index)  # odometry frame
+        keys, centroids, _, first, last = acc.result()
+        if not len(keys):
+            return np.zeros(len(points), dtype=bool)
+        index = views.index
+
+        def outside_sightings(k: int, vi: np.ndarray) -> np.ndarray:
+            return (index[k] < first[vi] - self.slack) | (index[k] > last[vi] + self.slack)
+
+        slots = views.slots(-(1 << 62), 1 << 62, self.split_views)
+        tested, free = views.seen_through(centroids, slots, outside_sightings)
+        voted = np.where(tested, free.astype(np.int8), np.int8(-1))
+        cluster = co_observed_clusters(keys, first, last, np.ones(len(keys), dtype=bool), self.slack + 1)
+        moved = dynamic_clusters(cluster, voted, p.cluster_fraction, p.min_votes)
+        T = np.asarray(T_odom_anchor, dtype=np.float64)
+        k = voxel_keys(np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3], p.voxel)
+        pos = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
+        return (keys[pos] == k) & moved[pos]
+
+    def seen_through_later(self, evidence: tuple, T_odom_anchor: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """``(M,)`` bool over an *earlier* submap's ``points`` (its anchor frame, anchor at
+        ``T_odom_anchor``): the clusters the new submap's scans (after its first, which the
+        earlier submap shares) saw through: a parked car that left, a car seen at the edge of
+        its own submap's window. ``evidence``: the new submap's, from :meth:`take`."""
+        _, views, first = evidence
+        later = views.slots(first + 1, 1 << 62, self.later_views)
+        return moving_in_scan(points, np.asarray(T_odom_anchor, dtype=np.float64), views, later, self.params)
+
+
+def drop_from_slices(scan_points: list[np.ndarray], T_anchor_scans: np.ndarray, moved: np.ndarray,
+                     voxel: float) -> list[np.ndarray]:
+    """Each scan's points ``(n_k, 3)`` (sensor frame, at ``T_anchor_scans[k]``) without those in the
+    ``voxel`` cells of the ``moved`` points ``(D, 3)`` (anchor frame); dtype kept."""
+    gone = np.unique(voxel_keys(np.asarray(moved, dtype=np.float64), voxel))
+    out = []
+    for T, pts in zip(T_anchor_scans, scan_points):
+        if not len(pts):
+            out.append(pts)
+            continue
+        k = voxel_keys(np.asarray(pts, dtype=np.float64) @ T[:3, :3].T + T[:3, 3], voxel)
+        pos = np.minimum(np.searchsorted(gone, k), len(gone) - 1)
+        out.append(pts[gone[pos] != k])
+    return out
