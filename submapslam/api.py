@@ -143,6 +143,7 @@ def run_log(
         from .io.provenance import input_provenance, write_provenance
         from .io.results import write_results
         from .mapping.global_map import build_map_outputs
+        from .process_stats import release_free_memory
 
         with staged_folder(out_dir, "run", overwrite=overwrite, inputs=inputs) as staging:
             written: dict[str, Path] = {}
@@ -154,6 +155,7 @@ def run_log(
                 name = session_name or session_names([log_path])[0]
                 written.update({f"map/{k}": v for k, v in save_session_map(
                     session_map_from_result(result, name), staging / "map").items()})
+            release_free_memory()  # the run's freed temporaries out of the map fusion's peak
             maps = build_map_outputs(result)
             written.update(write_results(result, staging, maps, run_started=t_start))
             written["input.json"] = write_provenance(staging, input_provenance(log_path, result.timestamps))

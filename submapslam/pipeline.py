@@ -22,7 +22,7 @@ from .geometry import blend_poses_many, inverse
 from .graph_builder import GraphBuilder
 from .observer import RunObserver, notify_closed_submap
 from .odometry_stage import InlineOdometry, OdometryProcess, start_odometry
-from .process_stats import combined_peak_mb, current_memory_mb, peak_memory_mb
+from .process_stats import combined_peak_mb, current_memory_mb, peak_memory_mb, release_free_memory
 from .result import LoopRecord, SlamResult
 from .scan import LoopHint, Scan
 from .submaps import Submap, SubmapBuilder
@@ -241,6 +241,7 @@ class SubmapSLAM:
         if movers is not None:
             with self.timer("movers"):
                 self._split_movers(submap, movers)
+                release_free_memory()  # the split's temporaries out of the resident set (the run's peak)
         previous = self.submaps[submap.id - 1] if submap.id > 0 else None
         replay = self._replay if self._replay is not None and submap.id < self._replay.n_submaps else None
         self._graph_builder.add_submap(submap, previous, wheel_odometry=wheel_odometry,
