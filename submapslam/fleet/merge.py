@@ -104,11 +104,13 @@ def _concatenate(maps: list[SessionMap]) -> tuple[SlamResult, list[SessionInfo],
     return cat, sessions, descriptors
 
 
-def _submaps(result: SlamResult) -> list[Submap]:
-    """The result's submaps as :class:`Submap` objects (global ids) for the correspondence tests."""
+def _submaps(result: SlamResult, start: int = 0) -> list[Submap]:
+    """The result's submaps from id ``start`` on as :class:`Submap` objects (global ids) for the
+    correspondence tests."""
     out = []
-    for k, (T, poses, pts, idx) in enumerate(zip(result.submap_poses, result.submap_scan_poses,
-                                                  result.submap_points, result.submap_scan_indices)):
+    for k, (T, poses, pts, idx) in enumerate(zip(result.submap_poses[start:], result.submap_scan_poses[start:],
+                                                  result.submap_points[start:], result.submap_scan_indices[start:]),
+                                             start):
         steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1) if len(poses) > 1 else np.zeros(0)
         out.append(Submap(id=k, scan_indices=list(idx), T_odom_anchor=T, T_anchor_scans=poses, points=pts,
                           distance=float(steps.sum()), planar=result.planar))
@@ -270,7 +272,7 @@ class SessionMerger:
         for s in sessions[first:]:
             s.placed, s.links, s.note = False, 0, ""
         self.map = SessionMap(result, sessions, descriptors)
-        self._submaps += _submaps(result)[len(self._submaps):]  # ids are global and appended
+        self._submaps += _submaps(result, len(self._submaps))  # ids are global: the addition's are appended
         for k in range(first, len(sessions)):
             self._try(k)
         self._seconds += time.perf_counter() - t

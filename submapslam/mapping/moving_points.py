@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry import transform_points
 from .dynamic_removal import (
     RangeImage,
     VoxelAccumulator,
@@ -119,7 +120,7 @@ class ViewStack:
                 continue
             tested[cand] = True
             T = self.T_sensor_world[k]
-            local = points_world[cand] @ T[:3, :3].T + T[:3, 3]
+            local = transform_points(T, points_world[cand])
             near = np.einsum("ij,ij->i", local, local) < p.max_range ** 2
             if near.any():
                 _, f, _ = self.images[k].passes(local[near], p.tolerance, margin)
@@ -176,7 +177,7 @@ def scan_votes(points_sensor: np.ndarray, T_world_sensor: np.ndarray, views: Vie
     if not len(slots) or not len(points_sensor):
         return out
     test = np.flatnonzero(non_ground(points_sensor, params.ground_band))
-    world = points_sensor[test] @ T_world_sensor[:3, :3].T + T_world_sensor[:3, 3]
+    world = transform_points(T_world_sensor, points_sensor[test])
     out[test] = views.seen_through(world, slots)[1]
     return out
 
@@ -191,7 +192,7 @@ def clusters_moved(points_sensor: np.ndarray, T_world_sensor: np.ndarray, votes:
     if int(votes.sum()) < params.min_votes:
         return out
     test = np.flatnonzero(non_ground(points_sensor, params.ground_band))
-    world = points_sensor[test] @ T_world_sensor[:3, :3].T + T_world_sensor[:3, 3]
+    world = transform_points(T_world_sensor, points_sensor[test])
     keys, inverse = np.unique(voxel_keys(world, params.voxel), return_inverse=True)
     voted = np.zeros(len(keys), dtype=np.int8)
     np.maximum.at(voted, inverse, votes[test].astype(np.int8))
@@ -329,7 +330,7 @@ class SubmapMovers:
             pts = np.asarray(pts, dtype=np.float64)
             if len(pts):
                 keep = non_ground(pts, p.ground_band)
-                acc.add(pts[keep] @ T[:3, :3].T + T[:3, 3], index)  # odometry frame
+                acc.add(transform_points(T, pts[keep]), index)  # odometry frame
         keys, centroids, _, first, last = acc.result()
         if not len(keys):
             return np.zeros(len(points), dtype=bool)
@@ -344,7 +345,7 @@ class SubmapMovers:
         cluster = co_observed_clusters(keys, first, last, np.ones(len(keys), dtype=bool), self.slack + 1)
         moved = dynamic_clusters(cluster, voted, p.cluster_fraction, p.min_votes)
         T = np.asarray(T_odom_anchor, dtype=np.float64)
-        k = voxel_keys(np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3], p.voxel)
+        k = voxel_keys(transform_points(T, points), p.voxel)
         pos = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
         return (keys[pos] == k) & moved[pos]
 
@@ -368,7 +369,7 @@ def drop_from_slices(scan_points: list[np.ndarray], T_anchor_scans: np.ndarray, 
         if not len(pts):
             out.append(pts)
             continue
-        k = voxel_keys(np.asarray(pts, dtype=np.float64) @ T[:3, :3].T + T[:3, 3], voxel)
+        k = voxel_keys(transform_points(T, pts), voxel)
         pos = np.minimum(np.searchsorted(gone, k), len(gone) - 1)
         out.append(pts[gone[pos] != k])
     return out
