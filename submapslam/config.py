@@ -175,6 +175,13 @@ class BackendConfig(_Strict):
         "[deg] (a soft roll/pitch prior; the world's up is the first submap's ground normal). Without an IMU "
         "the vertical drifts: on a 3.7 km drive scan matching alone climbed 45 m on flat ground. null: off "
         "(e.g. a robot climbing ramps of more than a few degrees)")
+    ground_tilt_change_sigma_deg: float | None = Field(
+        0.2, gt=0, description="3D logs: consecutive submaps' ground planes, each seen under its own anchor, "
+        "tilt alike within this sigma [deg]: the road's grade and cross-slope change by less than this from one "
+        "anchor to the next (~12 m). A soft prior on the relative roll and pitch (a constant slope satisfies it; "
+        "the yaw and the positions stay free) that keeps the odometry's small pitch bias from adding up: on three "
+        "600-scan drives ATE 0.10-0.24 -> 0.07-0.13 m, the height error most of it. null: off (terrain whose "
+        "slope changes sharply, ramps)")
     loop_sigma_floor_m: float = Field(0.05, gt=0)
     loop_sigma_floor_deg: float = Field(0.5, gt=0)
     final_check: bool = Field(

@@ -109,6 +109,16 @@ def so3_log(R: ArrayLike) -> Array:
     return th / (2.0 * np.sin(th)) * v
 
 
+def rotation_between(a: ArrayLike, b: ArrayLike) -> Array:
+    """``(3, 3)`` smallest rotation taking unit vector ``a`` ``(3,)`` onto unit vector ``b`` ``(3,)``."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    axis = np.cross(a, b)
+    s = float(np.linalg.norm(axis))
+    if s < 1e-12:
+        return np.eye(3)  # parallel (opposite vectors do not occur for two ups)
+    return so3_exp(axis / s * np.arctan2(s, float(a @ b)))
+
+
 def rotation_angle(R: ArrayLike) -> float:
     """Angle (rad) of a ``(3, 3)`` rotation or of the rotation part of a ``(4, 4)`` pose."""
     R = np.asarray(R, dtype=np.float64)[:3, :3]

@@ -60,6 +60,7 @@ class GraphBuilder:
         self.odometry_information: dict[int, np.ndarray] = {}  # submap id -> its odometry edge's (6, 6)
         self._timer = timer
         self._world_up: np.ndarray | None = None  # 3D: the world's up direction (first ground seen)
+        self._ground_up: dict[int, np.ndarray] = {}  # 3D: submap id -> (3,) ground normal in its anchor frame
 
     def _time(self, stage: str):
         return self._timer(stage) if self._timer is not None else nullcontext()
@@ -94,23 +95,30 @@ class GraphBuilder:
             else:
                 self.graph.add_node(submap.id, self.graph.pose(previous.id) @ T_prev_k)
                 self.graph.add_between(previous.id, submap.id, T_prev_k, info, "odometry")
-            self._add_ground_attitude(submap)
+            self._add_ground_attitude(submap, previous, T_prev_k)
             self.graph.update()
 
-    def _add_ground_attitude(self, submap: Submap) -> None:
+    def _add_ground_attitude(self, submap: Submap, previous: Submap | None, T_prev_k: np.ndarray | None) -> None:
         """3D: the soft prior that the ground under each anchor is level in the world (the
-        world's up is the ground normal under the first anchor that sees ground)."""
+        world's up is the ground normal under the first anchor that sees ground), and that it
+        tilts like the ground under the previous anchor (``T_prev_k``: the odometry between them)."""
         sigma = self.config.ground_attitude_sigma_deg
-        if self.planar or sigma is None:
+        change = self.config.ground_tilt_change_sigma_deg
+        if self.planar or (sigma is None and change is None):
             return
         from .mapping.height_band import ground_normal
 
         up = ground_normal(submap.points)
         if up is None:
             return
-        if self._world_up is None:
-            self._world_up = submap.T_odom_anchor[:3, :3] @ up  # the odometry frame is the world frame
-        self.graph.add_attitude(submap.id, up, self._world_up, np.deg2rad(sigma))
+        self._ground_up[submap.id] = up
+        if sigma is not None:
+            if self._world_up is None:
+                self._world_up = submap.T_odom_anchor[:3, :3] @ up  # the odometry frame is the world frame
+            self.graph.add_attitude(submap.id, up, self._world_up, np.deg2rad(sigma))
+        up_before = self._ground_up.get(previous.id) if previous is not None else None
+        if change is not None and up_before is not None:
+            self.graph.add_relative_attitude(previous.id, submap.id, up_before, up, T_prev_k, np.deg2rad(change))
 
     def _registration_shaped(self, info: np.ndarray, prev: Submap, new: Submap, T_prev_new: np.ndarray,
                              wheel_odometry: bool) -> np.ndarray:

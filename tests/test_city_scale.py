@@ -316,3 +316,46 @@ def test_ground_attitude_prior_holds_a_pitching_odometry_level():
         heights[sigma] = abs(g.pose(n - 1)[2, 3])
     assert heights[None] > 20.0  # 468 m of driving, 0.3 deg more pitch each step
     assert heights[2.0] < 0.1 * heights[None]
+
+
+def test_ground_tilt_change_prior_keeps_a_ramp_and_removes_the_pitch_bias():
+    """A drive up a constant 4 deg ramp, turning 5 deg at each anchor, with odometry that pitches
+    0.3 deg too far up at each step. Each anchor sees the ground straight below it (+z in its own
+    frame). The tilt-change prior between consecutive anchors removes the bias and keeps the ramp
+    and the turns; the level-ground prior would pull the ramp flat."""
+    from submapslam.geometry import so3_exp
+
+    n, step = 40, 12.0
+    ramp = np.eye(4)
+    ramp[:3, :3] = so3_exp(np.deg2rad([0.0, -4.0, 0.0]))  # nose up: climbing
+    truth = [ramp]
+    for _ in range(n - 1):
+        T = np.eye(4)
+        T[:3, :3] = so3_exp(np.deg2rad([0.0, 0.0, 5.0]))
+        T[0, 3] = step
+        truth.append(truth[-1] @ T)
+    bias = np.eye(4)
+    bias[:3, :3] = so3_exp(np.deg2rad([0.0, -0.3, 0.0]))
+    up = np.array([0.0, 0.0, 1.0])
+    errors, yaw_errors = {}, {}
+    for prior in ("none", "tilt change", "level"):
+        config = BackendConfig(robust_kernel="none")
+        g = PoseGraph(config)
+        g.add_node(0, truth[0], np.diag([1e8] * 6))
+        for k in range(1, n):
+            meas = inverse(truth[k - 1]) @ truth[k] @ bias
+            g.add_node(k, g.pose(k - 1) @ meas)
+            g.add_between(k - 1, k, meas, odometry_information(meas, step, False, config), "odometry")
+            if prior == "tilt change":
+                g.add_relative_attitude(k - 1, k, up, up, meas, np.deg2rad(0.2))
+            elif prior == "level":
+                g.add_attitude(k, up, up, np.deg2rad(2.0))
+        g.update()
+        g.optimize_batch()
+        errors[prior] = max(np.linalg.norm(g.pose(k)[:3, 3] - truth[k][:3, 3]) for k in range(n))
+        relative = inverse(truth[n - 1]) @ g.pose(n - 1)
+        yaw_errors[prior] = abs(np.rad2deg(np.arctan2(relative[1, 0], relative[0, 0])))
+    assert errors["none"] > 15.0  # 468 m of driving, 0.3 deg more pitch each step
+    assert errors["tilt change"] < 0.3 * errors["none"]  # the odometry edge still pulls its way
+    assert errors["level"] > 1.5 * errors["tilt change"]  # the level prior pulls the ramp flat
+    assert yaw_errors["tilt change"] < 0.05  # the turns are the odometry's

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..config import BackendConfig
+from ..geometry import rotation_between
 
 log = logging.getLogger(__name__)
 
@@ -108,6 +109,22 @@ class PoseGraph:
         f = gtsam.AttitudeFactorPose3(key, gtsam.Unit3(np.asarray(up_in_world, dtype=np.float64)),
                                       gtsam.noiseModel.Isotropic.Sigma(2, float(sigma_rad)),
                                       gtsam.Unit3(np.asarray(up_in_node, dtype=np.float64)))
+        self._pending_graph.add(f)
+        self._graph.add(f)
+
+    def add_relative_attitude(self, i: int, j: int, up_i: np.ndarray, up_j: np.ndarray, T_i_j: np.ndarray,
+                              sigma_rad: float) -> None:
+        """Soft constraint that node j's ``up_j`` ``(3,)`` and node i's ``up_i`` ``(3,)`` are one
+        direction: node j's roll and pitch relative to node i (2 DOF; never the yaw between them
+        or their positions). ``T_i_j`` ``(4, 4)``: the current guess of the relative pose, whose
+        yaw and translation the factor leaves free (information 1e-9)."""
+        gtsam = self._gtsam
+        measured = np.array(T_i_j, dtype=np.float64)
+        R = measured[:3, :3]
+        measured[:3, :3] = rotation_between(R @ up_j, up_i) @ R  # tilted so that R up_j = up_i
+        info = np.eye(6) * 1e-9  # GTSAM order (rx, ry, rz, tx, ty, tz), in node j's frame
+        info[:3, :3] += (np.eye(3) - np.outer(up_j, up_j)) / sigma_rad**2
+        f = gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(measured), gtsam.noiseModel.Gaussian.Information(info))
         self._pending_graph.add(f)
         self._graph.add(f)
 

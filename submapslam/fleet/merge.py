@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..config import PipelineConfig
-from ..geometry import blend_poses_many
+from ..geometry import blend_poses_many, inverse
 from ..graph_builder import PRIOR_INFORMATION
 from ..result import SlamResult
 from ..session_map import SessionInfo, SessionMap
@@ -156,20 +156,27 @@ def _scan_poses_after(result: SlamResult, sessions: list[SessionInfo], new_ancho
 
 
 def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo], config: PipelineConfig) -> None:
-    """3D: the engine's soft prior that the ground under each anchor is level (as the graph
-    builder adds it), the up direction of the map frame for placed sessions and of its own
-    frame for an unplaced one; without it the merged graph may tilt where the links are few."""
+    """3D: the engine's soft priors on the ground under each anchor (as the graph builder adds
+    them): level, in the up direction of the map frame for placed sessions and of its own frame
+    for an unplaced one (without it the merged graph may tilt where the links are few), and
+    tilted like the ground under the session's previous anchor."""
     sigma = config.backend.ground_attitude_sigma_deg
-    if result.planar or sigma is None:
+    change = config.backend.ground_tilt_change_sigma_deg
+    if result.planar or (sigma is None and change is None):
         return
     from ..mapping.height_band import ground_normal
 
     map_up = None
     for s in sessions:
         own_up = None
+        up_before = None
         for k in s.submaps:
             up = ground_normal(result.submap_points[k])
-            if up is None:
+            if up is not None and change is not None and up_before is not None:
+                T_guess = inverse(result.submap_poses[k - 1]) @ result.submap_poses[k]
+                graph.add_relative_attitude(k - 1, k, up_before, up, T_guess, np.deg2rad(change))
+            up_before = up
+            if up is None or sigma is None:
                 continue
             world = result.submap_poses[k][:3, :3] @ up
             if s.placed:
