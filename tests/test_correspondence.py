@@ -119,3 +119,43 @@ def test_descriptor_finds_the_place_and_its_yaw():
     assert best[0][0] == 0
     assert abs(np.rad2deg(best[0][2]) - 60) <= 6.0  # within one sector
     assert descriptor_distance(q, q)[0] == pytest.approx(0.0, abs=1e-9)
+
+
+
+def test_correlative_search_does_not_wrap_the_source_onto_the_far_side():
+    """The FFT search's grid is only a source radius wider than the target: a source whose other
+    half lies beyond the target must not have that half wrapped onto the target's far side
+    (circular correlation). Its score is the direct search's (one gather per point on a
+    generously padded grid): about half of the points lie on the target."""
+    from submapslam.registration.planar import coarse_search
+
+    rng = np.random.default_rng(5)
+    target = rng.uniform(0.0, 10.0, (600, 2))  # clutter: every wrapped point would find a neighbour
+    source = np.vstack([target[:300], rng.uniform([10.0, 0.0], [20.0, 10.0], (300, 2))])
+    yaws = np.zeros(1)
+    wide, score_fft, _ = coarse_search(source, target, resolution=0.3, sigma=0.45, window=3.0, yaws=yaws,
+                                       max_source_points=5000)
+    near, score_direct, _ = coarse_search(source, target, resolution=0.3, sigma=0.45, window=0.6, yaws=yaws,
+                                          max_source_points=5000)
+    assert np.hypot(*wide[:2]) < 0.45 and np.hypot(*near[:2]) < 0.45  # 1.5 cells
+    assert score_fft == pytest.approx(score_direct, abs=0.05)  # wrapped: 0.81
+
+
+def test_global_search_finds_a_piece_at_the_far_end_of_a_larger_submap():
+    """The correlative search's grid is only a source radius wider than the target (circular
+    correlation must not wrap the source onto the far side): a small piece whose true place is
+    at one end of the target is found there, and its score is the likelihood at that pose."""
+    from submapslam.registration.planar import coarse_search
+
+    target = corridor_submap(1)[:, :2]
+    piece = corridor_submap(0)[:, :2]
+    piece = piece[(piece[:, 1] > 4.0)]  # the far end of the L: the 9 m leg up to y = 12
+    x, y, yaw = 3.0, -2.0, np.deg2rad(25.0)
+    R = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+    source = (piece - [x, y]) @ R  # so that R @ source + (x, y) = piece, in the target's frame
+    extent = float(np.abs(target - target.mean(axis=0)).max()) + 2.0
+    center = target.mean(axis=0) - source.mean(axis=0)
+    xyt, score, _ = coarse_search(source, target, resolution=0.3, sigma=0.45, center=center, window=extent,
+                                  yaws=np.deg2rad(np.arange(0.0, 50.0, 2.0)))
+    assert np.hypot(xyt[0] - x, xyt[1] - y) < 0.35 and abs(np.rad2deg(xyt[2] - yaw)) <= 2.0
+    assert score > 0.8

@@ -139,13 +139,19 @@ def coarse_search(
             t = centroid + np.array([offs[a], offs[b]]) * resolution - R @ c_src
             peaks.append((float(scores[a, b]) / len(src), t[0], t[1], float(yaw)))
         return _best_peaks(peaks)
-    like, lo = _likelihood_grid(target, resolution, sigma, window + r_src + 2 * resolution)
+    # Circular correlation is exact where the source, placed anywhere on the grid, cannot wrap
+    # onto the target: a margin of the source's radius beyond the likelihood's reach suffices
+    # (placements farther out score 0; the window may reach beyond the grid). float32: the
+    # scores are sums of at most max_source_points values in [0, 1].
+    reach = 7.5 * sigma + resolution
+    like, lo = _likelihood_grid(target, resolution, sigma, r_src + min(window, reach) + 2 * resolution)
+    like = like.astype(np.float32)
     H, W = like.shape
     F_like = sfft.rfft2(like, workers=-1)
     cx = lo[0] + np.arange(H) * resolution
     cy = lo[1] + np.arange(W) * resolution
     for chunk in np.array_split(yaws, max(1, int(np.ceil(len(yaws) / 8)))):
-        kern = np.zeros((len(chunk), H, W))
+        kern = np.zeros((len(chunk), H, W), dtype=np.float32)
         Rs = []
         for n, yaw in enumerate(chunk):
             R = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
