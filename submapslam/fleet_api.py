@@ -260,16 +260,24 @@ def batch_logs(
 
 
 def _ray_verifier(ray, workers: int) -> Callable[[dict], VerifyMany]:
-    """For :class:`~submapslam.fleet.SessionMerger`: runs a batch of placement tests as ``workers``
-    Ray tasks (the submaps put once per batch), results in order. The tasks take no CPU slot of
-    their own: while logs still run they share the cores with them, afterwards they use them all."""
-    task = ray.remote(num_cpus=0, max_retries=0)(_verify_on_worker)
+    """For :class:`~submapslam.fleet.SessionMerger`: runs a batch of placement tests on ``workers``
+    Ray actors (:class:`_Verifier`), results in order. The actors take no CPU slot of their own:
+    while logs still run they share the cores with them, afterwards they use them all. Each
+    keeps its loop closer and the submaps between batches (put again only when submaps were
+    added), so its prepared clouds stay warm."""
+    actor_class = ray.remote(num_cpus=0, max_restarts=0)(_Verifier)
 
     def bind(closer_args: dict) -> VerifyMany:
+        actors = [actor_class.remote(closer_args) for _ in range(max(1, workers))]
+        shared: dict = {}  # the submaps as last put: key (list identity, length) and reference
+
         def verify_many(items, submaps, map_poses):
-            box = [ray.put(submaps)]  # in a list: passed as a reference, not resolved per argument
-            bounds = np.linspace(0, len(items), min(workers, len(items)) + 1).astype(int)
-            futures = [task.remote(closer_args, box, map_poses, items[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
+            key = (id(submaps), len(submaps))
+            if shared.get("key") != key:  # the merge appends submaps and never changes their points
+                shared.update(key=key, box=[ray.put(submaps)])  # in a list: passed as a reference
+            bounds = np.linspace(0, len(items), min(len(actors), len(items)) + 1).astype(int)
+            futures = [a.verify.remote(key, shared["box"], map_poses, items[lo:hi])
+                       for a, lo, hi in zip(actors, bounds[:-1], bounds[1:])]
             return [rec for f in futures for rec in ray.get(f)]
 
         return verify_many
@@ -277,14 +285,25 @@ def _ray_verifier(ray, workers: int) -> Callable[[dict], VerifyMany]:
     return bind
 
 
-def _verify_on_worker(closer_args: dict, box: list, map_poses: dict, items: list) -> list:
-    """A Ray task: one batch of placement tests with a loop closer made from ``closer_args``."""
-    import ray
+class _Verifier:
+    """A Ray actor for placement tests: a loop closer made from ``closer_args`` and the submaps
+    of the last batch (fetched again when the driver put new ones)."""
 
-    from .topology.loop_closure import LoopCloser
-    from .topology.session_placement import verify_items
+    def __init__(self, closer_args: dict) -> None:
+        from .topology.loop_closure import LoopCloser
 
-    return verify_items(LoopCloser(**closer_args), items, ray.get(box[0]), map_poses)
+        self.closer = LoopCloser(**closer_args)
+        self.key = None
+        self.submaps: list = []
+
+    def verify(self, key: tuple, box: list, map_poses: dict, items: list) -> list:
+        import ray
+
+        from .topology.session_placement import verify_items
+
+        if key != self.key:
+            self.key, self.submaps = key, ray.get(box[0])
+        return verify_items(self.closer, items, self.submaps, map_poses)
 
 
 def _one_line(exc: BaseException) -> str:

@@ -158,9 +158,9 @@ class SessionPlacer:
     """
 
     def __init__(self, closer: LoopCloser, config: SessionConfig, verify_many: VerifyMany | None = None,
-                 window: int = 4) -> None:
+                 window: int = 48) -> None:
         """``verify_many``: runs batches of independent tests elsewhere (place recognition ``window``
-        session submaps at a time, each densify pass at once); the decisions are those of the tests
+        hypotheses at a time, each densify pass at once); the decisions are those of the tests
         one at a time (tests past an early stop are dropped)."""
         self.closer = closer
         self.config = config
@@ -284,33 +284,27 @@ class SessionPlacer:
             index.add(i, map_descriptors[i])
         records: list[LoopRecord] = []
         links: list[tuple[np.ndarray, int, LoopRecord]] = []
-        plan: list[tuple[int, list[Hypothesis]]] = []  # per session submap, its hypotheses, capped in order
-        planned = 0
-        for j in session_ids:
-            hyps = []
-            for i, dist, yaw in index.query(session_descriptors[j], cfg.descriptor_top_k):
-                if dist <= cfg.descriptor_max_distance and planned < cfg.max_recognition_tests:
-                    planned += 1
-                    hyps.append(Hypothesis(i, j, "session", None, yaw, None))
-            plan.append((j, hyps))
+        # each session submap's nearest map submaps by descriptor, along the session, capped (the
+        # most alike pairs first instead found a wrong frame first in a symmetric building: its
+        # look-alike places come in consistent groups)
+        hyps = [Hypothesis(i, j, "session", None, yaw, None) for j in session_ids
+                for i, dist, yaw in index.query(session_descriptors[j], cfg.descriptor_top_k)
+                if dist <= cfg.descriptor_max_distance][: cfg.max_recognition_tests]
         tested = 0
         step = self.window if self.verify_many is not None else 1
-        for start in range(0, len(plan), step):
-            block = plan[start:start + step]
-            results = iter(self._verify_all([h for _, hyps in block for h in hyps], submaps, graph))
-            for j, hyps in block:
-                for _ in hyps:
-                    rec = next(results)
-                    tested += 1
-                    records.append(rec)
-                    if rec.accepted:
-                        links.append((implied_frame(graph.pose(rec.i), rec.T_i_j, session_poses[j]), j, rec))
-                frames = [f for f, _, _ in links]
-                js = [m for _, m, _ in links]
-                group = largest_consistent_group(frames, [session_poses[m] for m in js], js, cfg,
-                                                 [r.fitness for _, _, r in links])
-                if distinct(group, js) >= cfg.enough_links:
-                    return links, records, tested
+        for start in range(0, len(hyps), step):
+            block = hyps[start:start + step]
+            for hyp, rec in zip(block, self._verify_all(block, submaps, graph)):
+                tested += 1
+                records.append(rec)
+                if rec.accepted:
+                    links.append((implied_frame(graph.pose(rec.i), rec.T_i_j, session_poses[hyp.j]), hyp.j, rec))
+                    frames = [f for f, _, _ in links]
+                    js = [m for _, m, _ in links]
+                    group = largest_consistent_group(frames, [session_poses[m] for m in js], js, cfg,
+                                                     [r.fitness for _, _, r in links])
+                    if distinct(group, js) >= cfg.enough_links:
+                        return links, records, tested
         return links, records, tested
 
     def _confirm(self, group: list[int], links: list[tuple[np.ndarray, int, LoopRecord]],
