@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -190,19 +191,9 @@ def batch_logs(
     finished: set[int] = set()
     next_log = 0  # the merge takes the logs in the order given, each as soon as it and those before it are done
 
-    def record(k: int, value: dict | None, error: BaseException | None) -> None:
+    def merge_ready() -> None:
+        """Merge the logs that are done and whose predecessors are (in the order given)."""
         nonlocal merger, next_log
-        o = outcomes[k]
-        if error is not None:
-            o.ok, o.error = False, _one_line(error)
-        else:
-            o.ok = True
-            o.scans, o.submaps, o.loops_accepted, o.seconds = (value["scans"], value["submaps"],
-                                                               value["loops_accepted"], value["seconds"])
-            o.error = value.get("input_error") or ""
-        if on_done is not None:
-            on_done(o)
-        finished.add(k)
         while next_log in finished:
             o = outcomes[next_log]
             next_log += 1
@@ -217,6 +208,19 @@ def batch_logs(
             except SubmapSlamError as exc:  # e.g. a 2D log among 3D ones: its own results stay
                 o.error = f"not merged: {exc}"
 
+    def record(k: int, value: dict | None, error: BaseException | None) -> None:
+        o = outcomes[k]
+        if error is not None:
+            o.ok, o.error = False, _one_line(error)
+        else:
+            o.ok = True
+            o.scans, o.submaps, o.loops_accepted, o.seconds = (value["scans"], value["submaps"],
+                                                               value["loops_accepted"], value["seconds"])
+            o.error = value.get("input_error") or ""
+        if on_done is not None:
+            on_done(o)
+        finished.add(k)
+
     if ray is not None:
         executor = "ray"
         started_here = not ray.is_initialized()
@@ -227,14 +231,23 @@ def batch_logs(
             verify_elsewhere = _ray_verifier(ray, int(ray.cluster_resources().get("CPU", 1)))
             task = ray.remote(num_cpus=1, max_retries=0)(front_end)
             pending = {task.remote(*a): k for k, a in enumerate(args)}
-            while pending:
-                done, _ = ray.wait(list(pending), num_returns=1)
-                k = pending.pop(done[0])
-                try:
-                    value, error = ray.get(done[0]), None
-                except Exception as exc:  # a failed log is reported; the others go on
-                    value, error = None, exc
-                record(k, value, error)
+            # the merge in a thread of its own, at a lower priority: the logs still running are the
+            # critical path, the merge of those before them is not (it only has to keep up)
+            with ThreadPoolExecutor(max_workers=1, initializer=_lower_thread_priority) as merging:
+                merges = []
+                while pending:
+                    done, _ = ray.wait(list(pending), num_returns=1)
+                    k = pending.pop(done[0])
+                    try:
+                        value, error = ray.get(done[0]), None
+                    except Exception as exc:  # a failed log is reported; the others go on
+                        value, error = None, exc
+                    record(k, value, error)
+                    merges.append(merging.submit(merge_ready))
+                for m in merges:
+                    m.result()  # re-raises a merge's error
+            if merger is not None:
+                merger.finish()  # its retries may test on the Ray actors
         finally:
             if started_here:
                 ray.shutdown()
@@ -246,10 +259,13 @@ def batch_logs(
             except Exception as exc:  # a failed log is reported; the others go on
                 value, error = None, exc
             record(k, value, error)
+            merge_ready()
+        if merger is not None:
+            merger.finish()
     front_end_s = time.perf_counter() - t0
     merged = merged_dir = None
     if merger is not None:
-        merged = merger.finish()
+        merged = merger.map
         merged_dir = out / "merged"
         write_session_map(merged, merged_dir)
         by_name = {s.name: s for s in merged.sessions}
@@ -257,6 +273,21 @@ def batch_logs(
             if o.name in by_name:
                 o.placed, o.links = by_name[o.name].placed, by_name[o.name].links
     return BatchReport(outcomes, merged_dir, time.perf_counter() - t0, executor, merged, front_end_s)
+
+
+def _lower_thread_priority(step: int = 10) -> None:
+    """Raise the calling thread's nice value by ``step`` (Linux, where it is per thread; nothing
+    elsewhere or when not allowed)."""
+    import os
+    import sys
+    import threading
+
+    if sys.platform.startswith("linux"):
+        try:
+            tid = threading.get_native_id()
+            os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + step))
+        except OSError:
+            pass
 
 
 def _ray_verifier(ray, workers: int) -> Callable[[dict], VerifyMany]:
@@ -295,12 +326,18 @@ class _Verifier:
         self.closer = LoopCloser(**closer_args)
         self.key = None
         self.submaps: list = []
+        self.niced: set[int] = set()  # threads whose priority was lowered
 
     def verify(self, key: tuple, box: list, map_poses: dict, items: list) -> list:
+        import threading
+
         import ray
 
         from .topology.session_placement import verify_items
 
+        if threading.get_native_id() not in self.niced:  # the logs still running come first
+            _lower_thread_priority()
+            self.niced.add(threading.get_native_id())
         if key != self.key:
             self.key, self.submaps = key, ray.get(box[0])
         return verify_items(self.closer, items, self.submaps, map_poses)
