@@ -293,6 +293,10 @@ class GridParams(_Strict):
     clear_margin_cells: int = Field(2, ge=0, description="a clearing cell needs this many free cells around it")
     max_free_range: float = Field(12.0, gt=0, description="[m] free space is carved along at most this much of a ray")
     free_scan_stride: int = Field(2, ge=1, description="carve free space with every n-th scan of a submap")
+    recent_free_observations: int = Field(
+        3, ge=0, description="a cell that a submap saw free this many times since its last hit there, as did "
+        "the 8 cells around it, is free in the global grid whatever came before (a door that opened, a box taken "
+        "away while the submap was being built: the summed evidence may still say occupied); 0: off")
 
     @model_validator(mode="after")
     def _evidence_signs(self) -> GridParams:

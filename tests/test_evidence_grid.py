@@ -63,6 +63,30 @@ def test_global_grid_forgets_a_person_who_left_but_keeps_walls():
     assert occupied(g, (HALF + 0.01, 2.0)) and occupied(g, (-HALF + 0.01, -1.0))
 
 
+def test_a_box_taken_away_within_one_submap_is_freed_in_the_global_grid():
+    """A box stands in front of the sensor for the first 24 scans of a submap and is gone for
+    the last 6: the summed evidence of that submap still says occupied (+0.85 a hit, -0.4 a
+    ray), but the cell has been seen free since its last hit, so the global grid frees it
+    (and not with the rule off); the walls stay."""
+    box = (2.0, 0.0, 0.25)
+    front = (box[0] - box[2] + 0.01, 0.0)
+    held = {}
+    for recent in (0, 3):
+        params = GridParams(resolution=0.05, free_scan_stride=1, recent_free_observations=recent)
+        poses = [(-2.0, 0.0), (-2.0, 0.3), (-2.0, -0.3)]
+        first = local(poses * 3, box, params)  # an earlier submap: the box is there
+        grid = local(poses * 8, box, params)  # this submap: there for 24 scans ...
+        for xy in poses * 2:  # ... then gone for 6
+            grid.integrate_scan(se2_to_matrix(*xy, 0.0), room_scan(xy, None))
+        assert occupied(grid, front)  # the submap's own evidence: still occupied
+        g = EvidenceGrid(np.array([-6.0, -6.0]), (240, 240), params)
+        fuse_submap_grids(g, first, np.eye(4))
+        fuse_submap_grids(g, grid, np.eye(4))
+        held[recent] = occupied(g, front)
+        assert occupied(g, (HALF + 0.01, 2.0)) and occupied(g, (-HALF + 0.01, -1.0))
+    assert held == {0: True, 3: False}
+
+
 def test_pgm_yaml_round_trip(tmp_path):
     prob = np.full((4, 6), 0.5)
     prob[0, 0] = 0.99  # row 0 = lowest y -> bottom row of the image

@@ -19,19 +19,26 @@ class EvidenceGrid:
     """A log-odds grid over a fixed extent; cell ``(r, c)`` covers
     ``x in [x0 + c*res, x0 + (c+1)*res)``, ``y in [y0 + r*res, ...)``."""
 
-    def __init__(self, origin_xy: np.ndarray, shape: tuple[int, int], params: GridParams) -> None:
+    def __init__(self, origin_xy: np.ndarray, shape: tuple[int, int], params: GridParams,
+                 track_free_runs: bool = True) -> None:
+        """``track_free_runs``: count each cell's free observations since its last hit (a local
+        grid, for :func:`fuse_submap_grids`; the global grid does not need them)."""
         self.origin = np.asarray(origin_xy, dtype=np.float64)
         self.params = params
         self.logodds = np.zeros(shape, dtype=np.float32)
+        # free observations of each cell since its last hit (saturating): what the cell is *now*
+        self.free_run = np.zeros(shape, dtype=np.uint8) \
+            if track_free_runs and params.recent_free_observations else None
         self._is_hit: np.ndarray | None = None  # scratch mask reused by integrate_scan
 
     @classmethod
-    def covering(cls, points_xy: np.ndarray, params: GridParams, margin: float = 1.0) -> EvidenceGrid:
+    def covering(cls, points_xy: np.ndarray, params: GridParams, margin: float = 1.0,
+                 track_free_runs: bool = True) -> EvidenceGrid:
         """An empty grid covering ``(N, 2)`` points plus a margin [m]."""
         lo = points_xy.min(axis=0) - margin
         hi = points_xy.max(axis=0) + margin
         shape = np.ceil((hi - lo) / params.resolution).astype(int) + 1
-        return cls(lo, (int(shape[1]), int(shape[0])), params)
+        return cls(lo, (int(shape[1]), int(shape[0])), params, track_free_runs)
 
     def cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Row, column and inside-mask of ``(N, 2)`` points."""
@@ -81,7 +88,12 @@ class EvidenceGrid:
             free_idx = free_idx[~self._is_hit[free_idx]]  # a hit cell is not also free
             self._is_hit[hit_idx] = False
             flat[free_idx] = np.maximum(flat[free_idx] + p.l_free, p.l_min)
+            if self.free_run is not None:
+                runs = self.free_run.reshape(-1)
+                runs[free_idx] = np.minimum(runs[free_idx], 254) + 1
         flat[hit_idx] = np.minimum(flat[hit_idx] + p.l_occ, p.l_max)
+        if self.free_run is not None:
+            self.free_run.reshape(-1)[hit_idx] = 0
 
     def probabilities(self) -> np.ndarray:
         """Occupancy probability per cell, ``(rows, cols)`` float32 (the logistic of the log-odds).
@@ -98,9 +110,11 @@ def fuse_submap_grids(global_grid: EvidenceGrid, local: EvidenceGrid, T_global_l
     """Fuse a local grid into the global grid; return how many occupied cells were cleared.
 
     Local cells are mapped through ``T_global_local`` by their centres. Confidently free local
-    cells reset occupied global cells to the local (free) value; other evidence is added.
+    cells reset occupied global cells to the local (free) value; cells the local grid saw free
+    ``recent_free_observations`` times since their last hit, with the 8 cells around them, become
+    free whatever the global grid held; other evidence is added.
     """
-    from scipy.ndimage import maximum_filter
+    from scipy.ndimage import maximum_filter, minimum_filter
 
     p = global_grid.params
     # free "with high confidence": the cell and its whole neighbourhood are free, so pose noise
@@ -117,9 +131,15 @@ def fuse_submap_grids(global_grid: EvidenceGrid, local: EvidenceGrid, T_global_l
     confident_free = neighbourhood_max[rows, cols][inside] < p.free_confidence
     r, c = r[inside], c[inside]
     g = global_grid.logodds
-    clear = confident_free & (g[r, c] > p.occupied_threshold)
+    recent = np.zeros(len(r), dtype=bool)
+    if local.free_run is not None and p.recent_free_observations:
+        # the cell and its neighbours: a wall cell a grazing ray crossed after its last hit stays
+        runs = minimum_filter(local.free_run, size=3)
+        recent = runs[rows, cols][inside] >= p.recent_free_observations
+    clear = (confident_free | recent) & (g[r, c] > p.occupied_threshold)
     g[r[clear], c[clear]] = values[clear]
     rest = ~clear
     np.add.at(g, (r[rest], c[rest]), values[rest])
+    g[r[recent], c[recent]] = np.minimum(g[r[recent], c[recent]], p.free_confidence)  # free now, whatever the sum
     np.clip(g, p.l_min, p.l_max, out=g)
     return int(clear.sum())

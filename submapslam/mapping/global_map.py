@@ -67,7 +67,7 @@ def build_global_grid(result: SlamResult, params: GridParams | None = None) -> t
         corners.append(transform_points(T_world_anchor, box)[:, :2])
     if not corners:
         raise ValueError("no scans to build a grid from")
-    global_grid = EvidenceGrid.covering(np.vstack(corners), params, margin=1.5)
+    global_grid = EvidenceGrid.covering(np.vstack(corners), params, margin=1.5, track_free_runs=False)
     cleared = 0
     for T_world_anchor, poses, points in zip(result.submap_poses, result.submap_scan_poses,
                                              result.submap_scan_points):
