@@ -287,73 +287,61 @@ def test_ground_normal_recovers_the_tilt_of_the_ground_under_walls():
     assert ground_normal(walls[:30]) is None  # too few points near the origin
 
 
-def test_ground_attitude_prior_holds_a_pitching_odometry_level():
-    """Odometry whose every step pitches up 0.3 deg climbs on flat ground; the level-ground prior
-    (each anchor's ground normal points up) brings the chain back to the ground plane."""
+UP = np.array([0.0, 0.0, 1.0])
+
+
+def _pitch_biased_chain(start: np.ndarray, turn_deg: float, prior: str, n: int = 40, step: float = 12.0) -> tuple:
+    """Anchors ``step`` m apart from ``start`` (4, 4), turning ``turn_deg`` at each, whose odometry
+    pitches 0.3 deg too far up at each step; every anchor sees the ground straight below it (+z
+    in its own frame). ``prior``: "none", "level" (2 deg) or "tilt change" (0.2 deg). Returns the
+    true and the optimised poses, ``(n, 4, 4)`` each."""
     from submapslam.geometry import so3_exp
 
-    n, step = 40, 12.0
-    truth = [np.eye(4)]
+    truth = [start]
     for _ in range(n - 1):
         T = np.eye(4)
+        T[:3, :3] = so3_exp(np.deg2rad([0.0, 0.0, turn_deg]))
         T[0, 3] = step
         truth.append(truth[-1] @ T)
     bias = np.eye(4)
     bias[:3, :3] = so3_exp(np.deg2rad([0.0, -0.3, 0.0]))  # pitch up
-    heights = {}
-    for sigma in (None, 2.0):
-        config = BackendConfig(robust_kernel="none")
-        g = PoseGraph(config)
-        g.add_node(0, truth[0], np.diag([1e8] * 6))
-        for k in range(1, n):
-            meas = inverse(truth[k - 1]) @ truth[k] @ bias
-            g.add_node(k, g.pose(k - 1) @ meas)
-            g.add_between(k - 1, k, meas, odometry_information(meas, step, False, config), "odometry")
-            if sigma is not None:  # each anchor sees flat ground: up in its own frame is +z
-                g.add_attitude(k, np.array([0.0, 0.0, 1.0]), np.array([0.0, 0.0, 1.0]), np.deg2rad(sigma))
-        g.update()
-        g.optimize_batch()
-        heights[sigma] = abs(g.pose(n - 1)[2, 3])
-    assert heights[None] > 20.0  # 468 m of driving, 0.3 deg more pitch each step
-    assert heights[2.0] < 0.1 * heights[None]
+    config = BackendConfig(robust_kernel="none")
+    g = PoseGraph(config)
+    g.add_node(0, truth[0], np.diag([1e8] * 6))
+    for k in range(1, n):
+        meas = inverse(truth[k - 1]) @ truth[k] @ bias
+        g.add_node(k, g.pose(k - 1) @ meas)
+        g.add_between(k - 1, k, meas, odometry_information(meas, step, False, config), "odometry")
+        if prior == "tilt change":
+            g.add_relative_attitude(k - 1, k, UP, UP, meas, np.deg2rad(0.2))
+        elif prior == "level":
+            g.add_attitude(k, UP, UP, np.deg2rad(2.0))
+    g.update()
+    g.optimize_batch()
+    return np.array(truth), np.array([g.pose(k) for k in range(n)])
+
+
+def test_ground_attitude_prior_holds_a_pitching_odometry_level():
+    """Odometry whose every step pitches up 0.3 deg climbs on flat ground; the level-ground prior
+    (each anchor's ground normal points up) brings the chain back to the ground plane."""
+    heights = {prior: abs(_pitch_biased_chain(np.eye(4), 0.0, prior)[1][-1, 2, 3]) for prior in ("none", "level")}
+    assert heights["none"] > 20.0  # 468 m of driving, 0.3 deg more pitch each step
+    assert heights["level"] < 0.1 * heights["none"]
 
 
 def test_ground_tilt_change_prior_keeps_a_ramp_and_removes_the_pitch_bias():
-    """A drive up a constant 4 deg ramp, turning 5 deg at each anchor, with odometry that pitches
-    0.3 deg too far up at each step. Each anchor sees the ground straight below it (+z in its own
-    frame). The tilt-change prior between consecutive anchors removes the bias and keeps the ramp
-    and the turns; the level-ground prior would pull the ramp flat."""
+    """A drive up a constant 4 deg ramp, turning 5 deg at each anchor, with the pitch-biased
+    odometry above. The tilt-change prior between consecutive anchors removes the bias and keeps
+    the ramp and the turns; the level-ground prior would pull the ramp flat."""
     from submapslam.geometry import so3_exp
 
-    n, step = 40, 12.0
     ramp = np.eye(4)
     ramp[:3, :3] = so3_exp(np.deg2rad([0.0, -4.0, 0.0]))  # nose up: climbing
-    truth = [ramp]
-    for _ in range(n - 1):
-        T = np.eye(4)
-        T[:3, :3] = so3_exp(np.deg2rad([0.0, 0.0, 5.0]))
-        T[0, 3] = step
-        truth.append(truth[-1] @ T)
-    bias = np.eye(4)
-    bias[:3, :3] = so3_exp(np.deg2rad([0.0, -0.3, 0.0]))
-    up = np.array([0.0, 0.0, 1.0])
     errors, yaw_errors = {}, {}
     for prior in ("none", "tilt change", "level"):
-        config = BackendConfig(robust_kernel="none")
-        g = PoseGraph(config)
-        g.add_node(0, truth[0], np.diag([1e8] * 6))
-        for k in range(1, n):
-            meas = inverse(truth[k - 1]) @ truth[k] @ bias
-            g.add_node(k, g.pose(k - 1) @ meas)
-            g.add_between(k - 1, k, meas, odometry_information(meas, step, False, config), "odometry")
-            if prior == "tilt change":
-                g.add_relative_attitude(k - 1, k, up, up, meas, np.deg2rad(0.2))
-            elif prior == "level":
-                g.add_attitude(k, up, up, np.deg2rad(2.0))
-        g.update()
-        g.optimize_batch()
-        errors[prior] = max(np.linalg.norm(g.pose(k)[:3, 3] - truth[k][:3, 3]) for k in range(n))
-        relative = inverse(truth[n - 1]) @ g.pose(n - 1)
+        truth, est = _pitch_biased_chain(ramp, 5.0, prior)
+        errors[prior] = float(np.linalg.norm(est[:, :3, 3] - truth[:, :3, 3], axis=1).max())
+        relative = inverse(truth[-1]) @ est[-1]
         yaw_errors[prior] = abs(np.rad2deg(np.arctan2(relative[1, 0], relative[0, 0])))
     assert errors["none"] > 15.0  # 468 m of driving, 0.3 deg more pitch each step
     assert errors["tilt change"] < 0.3 * errors["none"]  # the odometry edge still pulls its way
