@@ -20,15 +20,16 @@ lookup counts the scans whose beam *ended* at the voxel (within the margin, eith
 static surface whose points fell into the neighbouring voxel in that scan. A voxel is voted
 when its free votes outnumber ``hit_weight`` times those hits: a wall's or a pole's edge voxel
 that a grazing beam passes once but later beams see occupied again is not something that left
-(what moved is seen through again and again and seldom hit). The decision is per cluster of
-neighbours seen at overlapping times (``cluster_fraction`` of its tested voxels voted, and at
-least ``min_free``: 1 lets a lone voxel, a far car hit by one ring, go). A moved cluster is then
-cut between neighbours whose sighting durations differ by more than ``split_ratio`` times (a car
-seen for two scans as it drove past a parked car seen for forty): a part with at least
-``split_min_tested`` tested voxels stays when it is not voted itself (the parked car, the pole
-a pedestrian walked by). The margin that grows with range keeps grazing beams over rough ground and along walls from
-voting (a beam through a ground voxel at range r ends within about ``r * roughness / sensor
-height`` of it).
+(what moved is seen through again and again and seldom hit; a hit weighs half a free vote
+because the margin is wide: a beam ending on the surface beside the voxel counts as one). The
+decision is per cluster of neighbours seen at overlapping times (``cluster_fraction`` of its
+tested voxels voted, and at least ``min_free``: 1 lets a lone voxel, a far car hit by one ring,
+go). A moved cluster is then cut between neighbours whose sighting durations differ by more than
+``split_ratio`` times (a car seen for two scans as it drove past a parked car seen for forty): a
+part with at least ``split_min_tested`` tested voxels stays when it is not voted itself (the
+parked car, the pole a pedestrian walked by). The margin that grows with range keeps grazing
+beams over rough ground and along walls from voting (a beam through a ground voxel at range r
+ends within about ``r * roughness / sensor height`` of it).
 
 The ground is never tested nor removed: the voxels within ``ground_band`` of the lowest voxel of
 their ``ground_cell`` column, and (``scan_ground``) the voxels seen by ``scan_ground_seen`` scans
