@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -19,8 +20,10 @@ from submapslam.mapping.dynamic_removal import (
     RemovalParams,
     VoxelAccumulator,
     co_observed_clusters,
+    dynamic_clusters,
     ground_voxels,
     remove_dynamic_points,
+    split_moved_clusters,
     voxel_keys,
 )
 
@@ -38,7 +41,7 @@ def test_range_image_frees_a_voxel_only_when_its_beam_ended_beyond_it():
     r, free, hit = image.passes(centres, 0.05, lambda r: np.maximum(0.3, 0.05 * r))
     assert np.allclose(r, [5.0, 9.9, np.hypot(5.0, 0.5), 5.0])
     assert free.tolist() == [True, False, False, False]
-    assert hit.tolist() == [False, True, False, True]
+    assert hit.tolist() == [False, True, False, False]
 
 
 def test_voxels_keep_first_and_last_sighting():
@@ -238,3 +241,46 @@ def test_a_mover_seen_as_one_voxel_in_one_scan_is_removed():
     old = remove_dynamic_points(lambda: iter(scans), T, params=RemovalParams(scan_ground=False, ground_band=-1.0,
                                                                             min_free=2))
     assert not old.dynamic.any()
+
+
+def test_a_voxel_seen_occupied_again_is_not_removed_by_one_grazing_beam():
+    # a pole 10 m ahead of a sensor standing still: scan 0's noisy return falls into the voxel in
+    # front of it (P), scans 1-9 return 0.25 m behind (Q, within the margin: they hit P, not pass
+    # it); scan 10, from 5 m to the left, grazes past the pole through P to a wall at 20 m. P has
+    # one free vote against nine hits: it stays. The earlier rule (any free vote) removed it.
+    P, Q = np.array([10.05, 0.05, 0.05]), np.array([10.30, 0.05, 0.05])
+    T = np.stack([np.eye(4)] * 11)
+    T[10, 1, 3] = 5.0
+    s10 = T[10, :3, 3]
+    wall = s10 + (P - s10) * (20.0 - s10[0]) / (P - s10)[0]
+    scans = [P[None]] + [Q[None]] * 9 + [(wall - s10)[None]]
+    params = RemovalParams(scan_ground=False, ground_band=-1.0)
+    res = remove_dynamic_points(lambda: iter(scans), T, params=params)
+    p = np.searchsorted(res.keys, voxel_keys(P[None], 0.1))[0]
+    assert res.free_votes[p] == 1 and res.hit_votes[p] == 9
+    assert not res.dynamic_mask(np.vstack([P, Q])).any()
+    old = remove_dynamic_points(lambda: iter(scans), T, params=replace(params, hit_weight=0.0))
+    assert old.dynamic_mask(np.vstack([P, Q])).tolist() == [True, False]
+
+
+def test_a_moved_cluster_parts_from_the_parked_car_its_mover_touched():
+    # a row of 30 voxels: a parked car (x 0-1.4 m) seen for scans 0-40, a car that drove past
+    # right beside it (x 1.5-2.9 m) seen once each around scan 20. Their sightings overlap, so they
+    # are one co-observed cluster, which the mover's votes carry; split by sighting duration, the
+    # parked car (tested, not voted) stays and the mover goes
+    pts = np.column_stack([np.arange(30) * 0.1 + 0.05, np.full(30, 0.05), np.full(30, 1.05)])
+    keys = voxel_keys(pts, 0.1)
+    assert np.all(np.diff(keys) > 0)
+    parked = np.arange(30) < 15
+    first = np.where(parked, 0, 20 + np.arange(30) % 2)
+    last = np.where(parked, 40, 20 + np.arange(30) % 2)
+    cluster = co_observed_clusters(keys, first, last, np.ones(30, dtype=bool), slack=2)
+    assert len(np.unique(cluster)) == 1
+    voted = np.where(parked, 0, 1).astype(np.int8)
+    moved = dynamic_clusters(cluster, voted, 0.3, 1)
+    assert moved.all()
+    kept = split_moved_clusters(keys, first, last, moved, voted, slack=2, ratio=4.0, min_tested=5, fraction=0.3)
+    assert kept.tolist() == (~parked).tolist()
+    # a part with too few tested voxels keeps its cluster's decision
+    few = np.where(parked & (np.arange(30) > 2), -1, voted).astype(np.int8)
+    assert split_moved_clusters(keys, first, last, moved, few, slack=2, ratio=4.0, min_tested=5, fraction=0.3).all()

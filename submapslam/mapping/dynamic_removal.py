@@ -15,12 +15,21 @@ Two passes over the scans (the DynamicMap benchmark's setting: scans plus one po
    voxel along every ray, so a 600-scan 16-ring drive takes seconds of numpy.
 
 A voxel with a free vote was seen through: something was there in one scan and another scan saw
-through it (a car that drove on, a pedestrian who walked away, a parked car that left). The
+through it (a car that drove on, a pedestrian who walked away, a parked car that left). The same
+lookup counts the scans whose beam *ended* at the voxel (within the margin, either side): a
+static surface whose points fell into the neighbouring voxel in that scan. A voxel is voted
+when its free votes outnumber ``hit_weight`` times those hits: a wall's or a pole's edge voxel
+that a grazing beam passes once but later beams see occupied again is not something that left
+(what moved is seen through again and again and seldom hit; a hit weighs half a free vote
+because the margin is wide: a beam ending on the surface beside the voxel counts as one). The
 decision is per cluster of neighbours seen at overlapping times (``cluster_fraction`` of its
 tested voxels voted, and at least ``min_free``: 1 lets a lone voxel, a far car hit by one ring,
-go). The margin that grows with range keeps grazing beams over rough ground and along walls from
-voting (a beam through a ground voxel at range r ends within about ``r * roughness / sensor
-height`` of it).
+go). A moved cluster is then cut between neighbours whose sighting durations differ by more than
+``split_ratio`` times (a car seen for two scans as it drove past a parked car seen for forty): a
+part with at least ``split_min_tested`` tested voxels stays when it is not voted itself (the
+parked car, the pole a pedestrian walked by). The margin that grows with range keeps grazing
+beams over rough ground and along walls from voting (a beam through a ground voxel at range r
+ends within about ``r * roughness / sensor height`` of it).
 
 The ground is never tested nor removed: the voxels within ``ground_band`` of the lowest voxel of
 their ``ground_cell`` column, and (``scan_ground``) the voxels seen by ``scan_ground_seen`` scans
@@ -166,6 +175,9 @@ class RemovalParams:
     margin: float = 0.3  # [m] a beam must end this far beyond a voxel to free it ...
     margin_per_m: float = 0.05  # ... or this fraction of the voxel's range, whichever is larger
     min_free: int = 1  # voxels with a free vote a cluster needs at least (1: a lone voxel seen once, far away, can go)
+    hit_weight: float = 0.5  # a voxel is voted when its free votes > this x the scans whose beam ended at it (0: any vote)
+    split_ratio: float = 4.0  # a moved cluster is cut between neighbours whose sighting durations differ more (0: off) ...
+    split_min_tested: int = 20  # ... and each part with this many tested voxels must be voted itself
     stride: int = 1  # evidence from every stride-th scan
     window: int = 100  # scans after a voxel's last sighting (and before its first) that test it
     tolerance: float = 0.5  # a beam passes a voxel within this fraction of the voxel of its centre
@@ -194,7 +206,8 @@ class RemovalResult:
     """Voxels of all scans and which of them moved.
 
     ``centroids`` ``(V, 3)`` world frame; ``counts`` ``(V,)`` points per voxel; ``free_votes``
-    ``(V,)`` scans that saw through the voxel; ``dynamic`` ``(V,)`` bool; ``keys`` ``(V,)`` sorted
+    ``(V,)`` scans that saw through the voxel (``hit_votes``: whose beam ended at it; both only
+    for the tested voxels); ``dynamic`` ``(V,)`` bool; ``keys`` ``(V,)`` sorted
     voxel keys (:func:`voxel_keys` at ``params.voxel``); ``seconds`` per pass.
     """
 
@@ -209,6 +222,7 @@ class RemovalResult:
     last: np.ndarray | None = None  # (V,) last such scan
     cluster: np.ndarray | None = None  # (V,) cluster id (-1: ground, never removed)
     ground: np.ndarray | None = None  # (V,) bool: ground voxels
+    hit_votes: np.ndarray | None = None  # (V,) scans whose beam ended at the voxel (within the margin)
 
     @property
     def points_kept(self) -> int:
@@ -283,7 +297,8 @@ class RangeImage:
         A beam *passes* a centre when its direction comes within ``tolerance`` [m] of it (the
         beams of the centre's pixel and the pixels above and below). ``free``: at least one beam
         passes and every passing beam ended more than ``margin(r)`` beyond the centre; ``hit``:
-        a passing beam ended within the margin of it.
+        a passing beam ended within ``margin(r)`` of it, before or beyond (a beam that ended
+        well short of it, on something in front, is neither).
         """
         r, el, az = _spherical(points_sensor)
         rows = np.floor((el - self.el_lo) / self.del_).astype(np.int64)
@@ -291,6 +306,7 @@ class RangeImage:
         m = margin(r)
         any_pass = np.zeros(len(r), dtype=bool)
         short = np.zeros(len(r), dtype=bool)
+        hit = np.zeros(len(r), dtype=bool)
         cos_el = np.cos(el)
         for dr in (-1, 0, 1):
             rr = rows + dr
@@ -302,7 +318,8 @@ class RangeImage:
                 & (d_az * cos_el * r < tolerance)
             any_pass |= passing
             short |= passing & (measured <= r + m)
-        return r, any_pass & ~short, short
+            hit |= passing & (np.abs(measured - r) <= m)
+        return r, any_pass & ~short, hit
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:
@@ -349,6 +366,7 @@ def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_bas
     keys, centroids, counts, first, last = acc.result()
     t1 = time.perf_counter()
     votes = np.zeros(len(keys), dtype=np.int32)
+    hits = np.zeros(len(keys), dtype=np.int32)
     # the ground is never removed, so never tested; the rest is tested by the scans up to `window`
     # after the last one that saw a point in it and up to `window` before the first (a free vote
     # while points still arrive is an edge effect). The decision is per cluster, by the fraction
@@ -389,22 +407,26 @@ def remove_dynamic_points(scans: Callable[[], Iterable[np.ndarray]], T_world_bas
         cand, local = cand[near], local[near]
         pts_sensor = transform(pts, T_sb)
         image = RangeImage(pts_sensor, params.el_bin_deg, params.az_bin_deg)
-        _, free, _ = image.passes(local, tolerance, margin)
+        _, free, ended = image.passes(local, tolerance, margin)
         votes[cand[free]] += 1
+        hits[cand[ended]] += 1
         if progress is not None:
             progress("evidence", k + 1)
     t2 = time.perf_counter()
-    hit = votes >= (params.planar_min_free if per_voxel else 1)
+    hit = (votes >= (params.planar_min_free if per_voxel else 1)) & (votes > params.hit_weight * hits)
     if params.protect:
         hit &= ~protected_by_static(keys, first, last, hit, params.protect_slack, params.protect_min_seen)
     voted = np.zeros(len(keys), dtype=np.int8) - 1  # -1: not tested
     voted[tested] = hit[tested]
     dynamic = dynamic_clusters(cluster, voted, params.cluster_fraction, 1 if per_voxel else params.min_free) & ~ground
+    if params.split_ratio > 0 and not per_voxel:
+        dynamic = split_moved_clusters(keys, first, last, dynamic, voted, params.grow_slack, params.split_ratio,
+                                       params.split_min_tested, params.cluster_fraction)
     t3 = time.perf_counter()
     return RemovalResult(keys, centroids, counts, votes, dynamic, params,
                          {"voxels": round(t1 - t0, 3), "clusters": round(t_cluster, 3),
                           "evidence": round(t2 - t1 - t_cluster, 3), "decision": round(t3 - t2, 3)},
-                         first, last, cluster, ground)
+                         first, last, cluster, ground, hits)
 
 
 _NEIGHBOURS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)])
@@ -464,10 +486,12 @@ def _ground_plane(xy: np.ndarray, z: np.ndarray, r: np.ndarray, rounds: int = 3)
 
 
 def co_observed_clusters(keys: np.ndarray, first: np.ndarray, last: np.ndarray, members: np.ndarray,
-                         slack: int) -> np.ndarray:
+                         slack: int, ratio: float = 0.0) -> np.ndarray:
     """Cluster id ``(V,)`` of every voxel (-1 for non-members): ``members`` joined with each
     26-neighbour member seen at overlapping times (sightings ``[first, last]`` +- ``slack`` scans).
-    One object seen at one time is one cluster; so is the smear a car leaves along its lane."""
+    One object seen at one time is one cluster; so is the smear a car leaves along its lane.
+    ``ratio`` > 0: only neighbours whose sighting durations (``last - first + 1 + slack`` scans)
+    differ by at most this factor are joined."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -475,8 +499,16 @@ def co_observed_clusters(keys: np.ndarray, first: np.ndarray, last: np.ndarray, 
     labels = np.full(len(keys), -1, dtype=np.int64)
     if not len(idx):
         return labels
-    src, nb = _neighbour_pairs(keys, idx, half=True, keep=lambda src, nb: members[nb] & (
-        first[nb] <= last[src] + slack) & (first[src] <= last[nb] + slack))
+    span = (last.astype(np.int64) - first + 1 + slack) if ratio > 0 else None
+
+    def keep(src: np.ndarray, nb: np.ndarray) -> np.ndarray:
+        ok = members[nb] & (first[nb] <= last[src] + slack) & (first[src] <= last[nb] + slack)
+        if span is not None:
+            a, b = span[src], span[nb]
+            ok &= np.maximum(a, b) <= ratio * np.minimum(a, b)
+        return ok
+
+    src, nb = _neighbour_pairs(keys, idx, half=True, keep=keep)
     n = len(keys)
     graph = coo_matrix((np.ones(len(src), dtype=np.int8), (src, nb)), shape=(n, n))
     _, comp = connected_components(graph, directed=False)
@@ -519,6 +551,29 @@ def dynamic_clusters(cluster: np.ndarray, voted: np.ndarray, fraction: float, mi
     good = (n_voted >= min_voted) & (n_voted >= fraction * size)
     out = np.zeros(len(cluster), dtype=bool)
     out[member] = good[idx]
+    return out
+
+
+def split_moved_clusters(keys: np.ndarray, first: np.ndarray, last: np.ndarray, dynamic: np.ndarray,
+                         voted: np.ndarray, slack: int, ratio: float, min_tested: int, fraction: float) -> np.ndarray:
+    """``(V,)`` bool: ``dynamic`` without the parts of moved clusters that were not voted themselves.
+
+    The moved voxels are clustered again with :func:`co_observed_clusters` at ``ratio``: a car
+    seen for two scans as it drove past a parked car or a pole seen for forty joined them in one
+    cluster (their sightings overlap) that its votes carried; here they part. A part with at
+    least ``min_tested`` tested voxels (``voted``: 1 voted, 0 not, -1 not tested) of which fewer
+    than ``fraction`` were voted stays; a smaller part keeps its cluster's decision.
+    """
+    part = co_observed_clusters(keys, first, last, dynamic, slack, ratio)
+    member = np.flatnonzero(part >= 0)
+    if not len(member):
+        return dynamic
+    _, idx = np.unique(part[member], return_inverse=True)
+    tested = np.bincount(idx, voted[member] >= 0)
+    n_voted = np.bincount(idx, voted[member] == 1)
+    stays = (tested >= min_tested) & (n_voted < fraction * tested)
+    out = dynamic.copy()
+    out[member[stays[idx]]] = False
     return out
 
 
