@@ -230,10 +230,9 @@ def batch_logs(
         try:
             verify_elsewhere = _ray_verifier(ray, int(ray.cluster_resources().get("CPU", 1)))
             task = ray.remote(num_cpus=1, max_retries=0)(front_end)
-            # the largest logs first: the longest front end is the critical path (the merge still
-            # takes the logs in the order given)
-            starts = sorted(range(len(args)), key=lambda k: -_log_bytes(Path(args[k][0])))
-            pending = {task.remote(*args[k]): k for k in starts}
+            # in the order given, as the merge takes them (the largest first was slower: the merge
+            # then waited for the small logs before the large one; 55.1 s against 48.1 s)
+            pending = {task.remote(*a): k for k, a in enumerate(args)}
             # the merge in a thread of its own, at a lower priority: the logs still running are the
             # critical path, the merge of those before them is not (it only has to keep up)
             with ThreadPoolExecutor(max_workers=1, initializer=_lower_thread_priority) as merging:
@@ -276,20 +275,6 @@ def batch_logs(
             if o.name in by_name:
                 o.placed, o.links = by_name[o.name].placed, by_name[o.name].links
     return BatchReport(outcomes, merged_dir, time.perf_counter() - t0, executor, merged, front_end_s)
-
-
-_COMPRESSED = {".bz2", ".gz", ".xz", ".zst", ".lz4"}
-_TEXT_LOG_COMPRESSION = 6.0  # a text log shrinks about this much (intel.clf: 16.4 MB, 2.3 MB as .bz2)
-
-
-def _log_bytes(path: Path) -> float:
-    """Rough size of a log [bytes] to start the largest first: the file (a compressed one counted
-    as it would be uncompressed, roughly), or every file under a folder; 0 when unreadable."""
-    try:
-        files = [p for p in path.rglob("*") if p.is_file()] if path.is_dir() else [path]
-        return sum(p.stat().st_size * (_TEXT_LOG_COMPRESSION if p.suffix in _COMPRESSED else 1.0) for p in files)
-    except OSError:
-        return 0.0
 
 
 def _lower_thread_priority(step: int = 10) -> None:

@@ -112,24 +112,3 @@ def test_batch_cli_prints_a_table_and_fails_on_a_missing_log(logs, tmp_path):
     assert "hall.a" in res.output and "sequential" in res.output
     assert (tmp_path / "o" / "merged" / "map" / "manifest.json").is_file()
 
-
-def test_batch_starts_the_largest_log_first_by_its_size_uncompressed(tmp_path):
-    """Ray starts the logs largest first (the longest front end is the critical path): a
-    compressed log counts about as large as it would be uncompressed, a folder as its files."""
-    import bz2
-
-    from submapslam.fleet_api import _log_bytes
-
-    text = ("FLASER 3 1.0 1.0 1.0 0 0 0 0 0 0 0 0 0 nohost 0\n" * 4000).encode()
-    plain = tmp_path / "plain.clf"
-    plain.write_bytes(text[: len(text) // 3])
-    packed = tmp_path / "packed.clf.bz2"
-    packed.write_bytes(bz2.compress(text))
-    folder = tmp_path / "scans"
-    folder.mkdir()
-    for k in range(3):
-        (folder / f"{k:06d}.ply").write_bytes(b"x" * 1000)
-    assert _log_bytes(folder) == 3000
-    assert _log_bytes(plain) == len(text) // 3
-    assert _log_bytes(packed) == 6.0 * packed.stat().st_size  # counted as if uncompressed, roughly
-    assert _log_bytes(tmp_path / "missing.clf") == 0.0
