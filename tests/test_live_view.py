@@ -50,9 +50,12 @@ def test_record_writes_an_rrd_the_sdk_reads_back(small_log, tmp_path):
     scans = sorted({i for c in chunks if c.entity_path == "/world/scan"
                     for i in c.to_record_batch().column("scan").to_pylist()})
     assert scans == list(range(summary["scans"]))  # every scan was streamed, in order
-    # the last trajectory sent holds one vertex per scan
-    last = [c.to_record_batch() for c in chunks if c.entity_path == "/world/trajectory"][-1]
-    strip = last.column("LineStrips3D:strips").to_pylist()[-1][0]
+    # the trajectory at the end of the timeline holds one vertex per scan (the chunks of the
+    # graph worker's thread and the main thread may come in either order: pick by time)
+    sent = [(t, strips[0]) for c in chunks if c.entity_path == "/world/trajectory"
+            for batch in [c.to_record_batch()]
+            for t, strips in zip(batch.column("scan").to_pylist(), batch.column("LineStrips3D:strips").to_pylist())]
+    _, strip = max(sent, key=lambda row: row[0])
     assert len(strip) == summary["scans"]
 
 
