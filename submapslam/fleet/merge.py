@@ -155,11 +155,14 @@ def _scan_poses_after(result: SlamResult, sessions: list[SessionInfo], new_ancho
     return out
 
 
-def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo], config: PipelineConfig) -> None:
+def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo], config: PipelineConfig,
+                          ground_ups: dict[int, np.ndarray | None]) -> None:
     """3D: the engine's soft priors on the ground under each anchor (as the graph builder adds
     them): level, in the up direction of the map frame for placed sessions and of its own frame
     for an unplaced one (without it the merged graph may tilt where the links are few), and
-    tilted like the ground under the session's previous anchor."""
+    tilted like the ground under the session's previous anchor. ``ground_ups``: each submap's
+    ground normal in its anchor frame (or None), filled in here where missing and kept by the
+    caller (a submap's points never change; the merge optimises many times)."""
     sigma = config.backend.ground_attitude_sigma_deg
     change = config.backend.ground_tilt_change_sigma_deg
     if result.planar or (sigma is None and change is None):
@@ -171,7 +174,9 @@ def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo]
         own_up = None
         up_before = None
         for k in s.submaps:
-            up = ground_normal(result.submap_points[k])
+            if k not in ground_ups:
+                ground_ups[k] = ground_normal(result.submap_points[k])
+            up = ground_ups[k]
             if up is not None and change is not None and up_before is not None:
                 T_guess = inverse(result.submap_poses[k - 1]) @ result.submap_poses[k]
                 graph.add_relative_attitude(k - 1, k, up_before, up, T_guess, np.deg2rad(change))
@@ -188,8 +193,10 @@ def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo]
             graph.add_attitude(k, up, target, np.deg2rad(sigma))
 
 
-def _optimise(result: SlamResult, sessions: list[SessionInfo], config: PipelineConfig) -> list[tuple[int, int, str]]:
-    """Optimise the merged graph in place: anchors, scans, covariances, edges kept.
+def _optimise(result: SlamResult, sessions: list[SessionInfo], config: PipelineConfig,
+              ground_ups: dict[int, np.ndarray | None]) -> list[tuple[int, int, str]]:
+    """Optimise the merged graph in place: anchors, scans, covariances, edges kept
+    (``ground_ups``: see :func:`_add_ground_attitudes`).
 
     Returns ``(i, j, why)`` of loop edges the optimiser rejected.
     """
@@ -207,7 +214,7 @@ def _optimise(result: SlamResult, sessions: list[SessionInfo], config: PipelineC
     for k, T in enumerate(result.submap_poses):
         prior = PRIOR_INFORMATION if k == 0 or k in own_frame else (weak if k in start else None)
         graph.add_node(k, T, prior)
-    _add_ground_attitudes(graph, result, sessions, config)
+    _add_ground_attitudes(graph, result, sessions, config, ground_ups)
     floor_m, floor_rad = config.backend.loop_sigma_floor_m, float(np.deg2rad(config.backend.loop_sigma_floor_deg))
     for i, j, T_i_j, info, kind in result.edges:
         graph.add_between(i, j, T_i_j, info, kind)
@@ -259,6 +266,7 @@ class SessionMerger:
         self.map = SessionMap(result, sessions, descriptors)
         self._n_base = base.n_sessions
         self._tried_at: dict[int, int] = {}  # session index -> sessions placed when it was last tried
+        self._ground_ups: dict[int, np.ndarray | None] = {}  # 3D: submap id -> ground normal (global ids)
         planar = base.result.planar
         cfg = self.config
         voxel = cfg.submaps.voxel_size or _submap_voxel(base.result)
@@ -296,7 +304,7 @@ class SessionMerger:
                 if not sessions[k].placed and self._tried_at.get(k) != placed_now:  # else: the same map again
                     progress |= self._try(k)
         if not any(s.placed for s in sessions[self._n_base:]) and len(sessions) > self._n_base:
-            _mark_rejected(result, _optimise(result, sessions, self.config))  # covariances of the joint graph
+            _mark_rejected(result, _optimise(result, sessions, self.config, self._ground_ups))  # covariances of the joint graph
         self._seconds += time.perf_counter() - t
         result.stage_seconds = {**result.stage_seconds, "merge": self._seconds}
         result.wall_time_s += self._seconds
@@ -323,7 +331,7 @@ class SessionMerger:
         s.placed, s.links = True, len(placement.links)
         for i in s.submaps:  # the session's anchors now lie in the map frame
             submaps[i].T_odom_anchor = result.submap_poses[i]
-        _mark_rejected(result, _optimise(result, sessions, config))
+        _mark_rejected(result, _optimise(result, sessions, config, self._ground_ups))
         added = 0
         for _ in range(config.sessions.densify_passes):  # more links where the optimised estimate puts it
             others = [i for m in sessions if m.placed and m is not s for i in m.submaps]
@@ -335,7 +343,7 @@ class SessionMerger:
             added += sum(r.accepted for r in dense)
             if not any(r.accepted for r in dense):
                 break
-            _mark_rejected(result, _optimise(result, sessions, config))
+            _mark_rejected(result, _optimise(result, sessions, config, self._ground_ups))
         if added:
             s.note += f"; {added} more link(s) near the optimised estimate"
         for i in range(result.n_submaps):

@@ -87,9 +87,7 @@ class VoxelAccumulator:
         keys = keys[order]
         idx, start = _groups(keys)
         m = len(start)
-        sums = np.empty((m, 3))
-        for j in range(3):
-            sums[:, j] = np.bincount(idx, p[order, j], m)
+        sums = _column_sums(idx, p[order], m)
         one = np.ones(m, dtype=np.int32)
         flags = np.zeros(m, dtype=np.int32) if flagged is None else \
             np.bincount(idx, np.asarray(flagged)[order], m).astype(np.int32)
@@ -140,6 +138,11 @@ def _groups(sorted_keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.cumsum(flag) - 1, np.flatnonzero(flag)
 
 
+def _column_sums(idx: np.ndarray, values: np.ndarray, m: int) -> np.ndarray:
+    """``(m, 3)`` sums of the rows of ``values`` ``(N, 3)`` by group index ``idx`` ``(N,)``."""
+    return np.stack([np.bincount(idx, values[:, j], m) for j in range(3)], axis=1)
+
+
 def _reduce(keys, sums, counts, first, last, seen, flags):
     """Group rows by key: sum ``sums`` ``(N, 3)``, ``counts``, ``seen`` and ``flags``, min of ``first``, max
     of ``last``."""
@@ -147,10 +150,7 @@ def _reduce(keys, sums, counts, first, last, seen, flags):
     keys = keys[order]
     idx, start = _groups(keys)
     m = len(start)
-    out = np.empty((m, 3))
-    for j in range(3):
-        out[:, j] = np.bincount(idx, sums[order, j], m)
-    return (keys[start], out, np.bincount(idx, counts[order], m).astype(np.int64),
+    return (keys[start], _column_sums(idx, sums[order], m), np.bincount(idx, counts[order], m).astype(np.int64),
             np.minimum.reduceat(first[order], start), np.maximum.reduceat(last[order], start),
             np.bincount(idx, seen[order], m).astype(np.int32), np.bincount(idx, flags[order], m).astype(np.int32))
 
