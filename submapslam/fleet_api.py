@@ -221,12 +221,12 @@ def batch_logs(
             on_done(o)
         finished.add(k)
 
+    shutting_down = None  # on Ray: the local instance's shutdown, beside the merged map's writing
     if ray is not None:
         executor = "ray"
         started_here = not ray.is_initialized()
         if started_here:
-            ray.init(address=address, num_cpus=None if address else num_cpus, include_dashboard=False,
-                     log_to_driver=False, configure_logging=False)
+            _init_ray_beside_imports(ray, address, num_cpus)
         try:
             verify_elsewhere = _ray_verifier(ray, int(ray.cluster_resources().get("CPU", 1)))
             task = ray.remote(num_cpus=1, max_retries=0)(front_end)
@@ -250,9 +250,13 @@ def batch_logs(
                     m.result()  # re-raises a merge's error
             if merger is not None:
                 merger.finish()  # its retries may test on the Ray actors
-        finally:
+        except BaseException:
             if started_here:
                 ray.shutdown()
+            raise
+        if started_here:  # 1.4 s of waiting for Ray's processes to end: beside the merged map's writing
+            shutting_down = ThreadPoolExecutor(max_workers=1)
+            shutting_down.submit(ray.shutdown)
     else:
         executor = "sequential"
         for k, a in enumerate(args):
@@ -266,15 +270,38 @@ def batch_logs(
             merger.finish()
     front_end_s = time.perf_counter() - t0
     merged = merged_dir = None
+    try:
+        if merger is not None:
+            merged = merger.map
+            merged_dir = out / "merged"
+            write_session_map(merged, merged_dir)
+    finally:
+        if shutting_down is not None:
+            shutting_down.shutdown(wait=True)
     if merger is not None:
-        merged = merger.map
-        merged_dir = out / "merged"
-        write_session_map(merged, merged_dir)
         by_name = {s.name: s for s in merged.sessions}
         for o in outcomes:
             if o.name in by_name:
                 o.placed, o.links = by_name[o.name].placed, by_name[o.name].links
     return BatchReport(outcomes, merged_dir, time.perf_counter() - t0, executor, merged, front_end_s)
+
+
+def _init_ray_beside_imports(ray, address: str | None, num_cpus: int | None) -> None:
+    """Start (or join, with ``address``) Ray, importing meanwhile, in a thread, what the merge and
+    the writing will need (about 1 s of imports hidden in Ray's 3 s start-up, which mostly waits
+    for its processes; ``ray.init`` itself stays in the calling thread, where it sets signal
+    handlers)."""
+    with ThreadPoolExecutor(max_workers=1) as importing:
+        imported = importing.submit(_import_merge_modules)
+        ray.init(address=address, num_cpus=None if address else num_cpus, include_dashboard=False,
+                 log_to_driver=False, configure_logging=False)
+        imported.result()
+
+
+def _import_merge_modules() -> None:
+    from .io import map_store, session_results  # noqa: F401
+    from .mapping import global_map  # noqa: F401
+    from .topology import loop_closure, session_placement  # noqa: F401
 
 
 def _lower_thread_priority(step: int = 10) -> None:
@@ -323,12 +350,15 @@ class _Verifier:
     of the last batch (fetched again when the driver put new ones)."""
 
     def __init__(self, closer_args: dict) -> None:
+        import threading
+
+        _lower_thread_priority()  # its start-up (imports, 1-2 s) too: the logs still running come first
+        self.niced: set[int] = {threading.get_native_id()}  # threads whose priority was lowered
         from .topology.loop_closure import LoopCloser
 
         self.closer = LoopCloser(**closer_args)
         self.key = None
         self.submaps: list = []
-        self.niced: set[int] = set()  # threads whose priority was lowered
 
     def verify(self, key: tuple, box: list, map_poses: dict, items: list) -> list:
         import threading
