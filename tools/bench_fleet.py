@@ -8,6 +8,8 @@ and, for comparison, one run over the whole log, and scores both against a refer
         --reference ../shared/data/carmen/corrected/intel-corrected.log.gz --out out/bench_fleet_intel
     python tools/bench_fleet.py folder out/kitti00 --cuts 600 --overlap 200 --reverse-last \\
         --reference out/kitti00/groundtruth_tum.txt --out out/bench_fleet_kitti
+    python tools/bench_fleet.py folder /work/bench_data/kitti00_16 --cuts 2270 --reverse-last \\
+        --reference /work/bench_data/kitti00_16/groundtruth_tum.txt --out out/bench_fleet_kitti_city
 
 ``--overlap N`` starts each later cloud-folder piece N scans before its cut (that session drives
 the stretch again). ``--reverse-last`` plays the last piece backwards (a cloud folder only: its scans renamed in
