@@ -98,7 +98,9 @@ def write_session_map(session_map: SessionMap, out_dir: str | Path) -> dict[str,
     from .io.session_results import write_session_results
     from .mapping.global_map import build_map_outputs
 
-    return write_session_results(session_map, out_dir, build_map_outputs(session_map.placed_result()))
+    several = sum(s.placed for s in session_map.sessions) > 1  # what one session left, a later one saw gone
+    return write_session_results(session_map, out_dir,
+                                 build_map_outputs(session_map.placed_result(), vacated_to_dynamic=several))
 
 
 # ---------------------------------------------------------------------- batch

@@ -245,3 +245,84 @@ def test_a_3d_session_driven_backwards_is_placed_and_as_accurate_as_one_run(tmp_
     merged_ate = ate(Trajectory(merged.result.timestamps[order], merged.result.poses[order]), truth)["rmse"]
     single_ate = ate(Trajectory(single.timestamps, single.poses), truth)["rmse"]
     assert merged_ate <= 1.2 * single_ate, (merged_ate, single_ate)
+
+
+def _box_surface(centre_xy: np.ndarray, half: float, height: float, step: float = 0.05) -> np.ndarray:
+    """``(N, 3)`` world points on the four sides and the top of an upright box standing on z=0."""
+    s = np.arange(-half, half + 1e-9, step)
+    z = np.arange(0.0, height + 1e-9, step)
+    a, h = (g.ravel() for g in np.meshgrid(s, z))
+    sides = [np.stack([a, np.full_like(a, sign * half), h], 1) for sign in (-1, 1)]
+    sides += [np.stack([np.full_like(a, sign * half), a, h], 1) for sign in (-1, 1)]
+    u, v = (g.ravel() for g in np.meshgrid(s, s))
+    top = np.stack([u, v, np.full_like(u, height)], 1)
+    return np.vstack([*sides, top]) + [centre_xy[0], centre_xy[1], 0.0]
+
+
+def _box_entry(origin: np.ndarray, points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """``(N,)`` where the segment ``origin -> point`` (world) first enters the box ``[lo, hi]``, as a
+    fraction of the segment (inf: it misses the box)."""
+    d = points - origin
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (lo - origin) / d, (hi - origin) / d
+    t_in = np.nanmax(np.minimum(t1, t2), axis=1)
+    t_out = np.nanmin(np.maximum(t1, t2), axis=1)
+    return np.where((t_in <= t_out) & (t_out > 0), t_in, np.inf)
+
+
+def _scan_with_box(scan, T_world_sensor: np.ndarray, box: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+    """The scan as if the box stood there: the box's faces the sensor sees added, what the box
+    hides behind it taken away."""
+    from dataclasses import replace
+
+    from submapslam.geometry import transform_points
+
+    origin = T_world_sensor[:3, 3]
+    world = transform_points(T_world_sensor, scan.points)
+    hidden = _box_entry(origin, world, lo, hi) < 1.0 - 1e-6
+    seen = box[_box_entry(origin, box, lo - 1e-6, hi + 1e-6) >= 1.0 - 1e-3]
+    return replace(scan, points=np.vstack([scan.points[~hidden],
+                                           transform_points(np.linalg.inv(T_world_sensor), seen)]))
+
+
+def test_a_3d_box_gone_in_the_later_session_leaves_the_merged_cloud(tmp_path):
+    """A box (a parked car) stands beside the road in the first lap only: the merged map of the
+    two laps as sessions moves its points to the dynamic cloud, where the grid saw the space
+    empty in the later session; the buildings and the ground stay."""
+    from submapslam.geometry import transform_points
+    from submapslam.mapping.global_map import build_map_outputs
+
+    log = generate("outdoor", tmp_path / "log", seed=0, laps=2, blocks=(1, 1))
+    scans = list(open_log(log))
+    truth = read_tum(log / "groundtruth_tum.txt").poses  # T_world_sensor (the sensor 1.7 m up)
+    lap = len(scans) // 2
+    # the box halfway from the road to a wall the second lap sees at 8-14 m, on the ground
+    k = lap + 40
+    pts = scans[k].points
+    rng = np.hypot(pts[:, 0], pts[:, 1])
+    band = np.flatnonzero((rng > 8) & (rng < 14) & (pts[:, 2] > -1.2) & (pts[:, 2] < 0.0))
+    wall = transform_points(truth[k], pts[band[len(band) // 2]][None])[0]
+    centre = (truth[k][:2, 3] + wall[:2]) / 2
+    box = _box_surface(centre, half=0.8, height=1.5)
+    lo, hi = np.array([*(centre - 0.8), -1.0]), np.array([*(centre + 0.8), 1.5])  # down into the ground
+    first = [_scan_with_box(scan, T, box, lo, hi) if np.hypot(*(T[:2, 3] - centre)) < 40 else scan
+             for scan, T in zip(scans[:lap], truth[:lap])]
+    cfg = PipelineConfig()
+    merged = merge_sessions(session_map_from_result(run(first, cfg, source=str(log)), "with_box"),
+                            [session_map_from_result(run(scans[lap:], cfg, source=str(log)), "without")], cfg)
+    assert all(s.placed for s in merged.sessions)
+    result = merged.placed_result()
+
+    def in_box(p: np.ndarray) -> np.ndarray:  # map-frame points (the map frame: the first scan's)
+        w = transform_points(truth[0], p)
+        return (np.abs(w[:, 0] - centre[0]) < 1.0) & (np.abs(w[:, 1] - centre[1]) < 1.0) & (w[:, 2] > 0.4) \
+            & (w[:, 2] < 1.7)
+
+    kept = build_map_outputs(result)
+    vacated = build_map_outputs(result, vacated_to_dynamic=True)
+    before = int(in_box(kept.points).sum())
+    assert before >= 20  # the box is in the map of the two sessions without the rule
+    assert int(in_box(vacated.points).sum()) <= 0.1 * before
+    assert int(in_box(vacated.dynamic_points).sum()) >= 0.8 * before
+    # what else left the cloud is a sliver of it: walls and ground stay
+    assert vacated.vacated_points - before <= 0.01 * len(kept.points), (vacated.vacated_points, before)

@@ -68,6 +68,8 @@ def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs,
     if maps.dynamic_points is not None:
         summary["map_points"] = len(maps.points)
         summary["map_dynamic_points"] = len(maps.dynamic_points)
+    if maps.vacated_points:
+        summary["map_vacated_points"] = maps.vacated_points  # of them, where a later session saw the space empty
     # this process's, and the odometry child's when it ran in one (process_stats.combined_peak_mb)
     peaks = (peak_memory_mb(), result.peak_while_odometry_mb, result.odometry_peak_memory_mb)
     summary["peak_memory_mb"] = round(combined_peak_mb(*peaks), 1)

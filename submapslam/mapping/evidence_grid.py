@@ -106,8 +106,10 @@ class EvidenceGrid:
         return np.reciprocal(prob, out=prob)
 
 
-def fuse_submap_grids(global_grid: EvidenceGrid, local: EvidenceGrid, T_global_local: np.ndarray) -> int:
-    """Fuse a local grid into the global grid; return how many occupied cells were cleared.
+def fuse_submap_grids(global_grid: EvidenceGrid, local: EvidenceGrid, T_global_local: np.ndarray,
+                      cleared_mask: np.ndarray | None = None) -> int:
+    """Fuse a local grid into the global grid; return how many occupied cells were cleared (and
+    set them in ``cleared_mask``, a bool array of the global grid's shape, when given).
 
     Local cells are mapped through ``T_global_local`` by their centres. Confidently free local
     cells reset occupied global cells to the local (free) value; cells the local grid saw free
@@ -138,6 +140,8 @@ def fuse_submap_grids(global_grid: EvidenceGrid, local: EvidenceGrid, T_global_l
         recent = runs[rows, cols][inside] >= p.recent_free_observations
     clear = (confident_free | recent) & (g[r, c] > p.occupied_threshold)
     g[r[clear], c[clear]] = values[clear]
+    if cleared_mask is not None:
+        cleared_mask[r[clear], c[clear]] = True
     rest = ~clear
     np.add.at(g, (r[rest], c[rest]), values[rest])
     g[r[recent], c[recent]] = np.minimum(g[r[recent], c[recent]], p.free_confidence)  # free now, whatever the sum

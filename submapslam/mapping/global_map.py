@@ -48,8 +48,10 @@ def _local_extent(T_anchor_scans: np.ndarray, scan_points: list[np.ndarray]) -> 
     return np.stack([lo, hi]) if seen else None
 
 
-def build_global_grid(result: SlamResult, params: GridParams | None = None) -> tuple[EvidenceGrid, int]:
-    """Fuse every submap's local grid in time order; return the grid and cells cleared as dynamic.
+def build_global_grid(result: SlamResult, params: GridParams | None = None,
+                      cleared_mask: list[np.ndarray] | None = None) -> tuple[EvidenceGrid, int]:
+    """Fuse every submap's local grid in time order; return the grid and cells cleared as dynamic
+    (``cleared_mask``: an empty list receives the grid-shaped bool mask of those cells).
 
     Two passes over the submaps: the first finds the extent, the second builds each local grid
     and fuses it at once, so memory holds the global grid and one local grid, not all of them
@@ -68,13 +70,57 @@ def build_global_grid(result: SlamResult, params: GridParams | None = None) -> t
     if not corners:
         raise ValueError("no scans to build a grid from")
     global_grid = EvidenceGrid.covering(np.vstack(corners), params, margin=1.5, track_free_runs=False)
+    mask = None
+    if cleared_mask is not None:
+        mask = np.zeros(global_grid.logodds.shape, dtype=bool)
+        cleared_mask.append(mask)
     cleared = 0
     for T_world_anchor, poses, points in zip(result.submap_poses, result.submap_scan_poses,
                                              result.submap_scan_points):
         grid = local_grid(poses, points, params)
         if grid is not None:
-            cleared += fuse_submap_grids(global_grid, grid, T_world_anchor)
+            cleared += fuse_submap_grids(global_grid, grid, T_world_anchor, mask)
     return global_grid, cleared
+
+
+def vacated_cells(cleared: np.ndarray, logodds: np.ndarray) -> np.ndarray:
+    """Cells where something left: the cleared cells and those around them (a thing's edge
+    cells, hit too rarely to count as occupied, are not cleared themselves) that the grid now
+    holds more free than occupied — not a wall beside them, nor a cell occupied again later."""
+    from scipy.ndimage import binary_dilation
+
+    return binary_dilation(cleared, structure=np.ones((3, 3), dtype=bool)) & (logodds < 0)
+
+
+def points_in_vacated_cells(points: np.ndarray, grid: EvidenceGrid, vacated: np.ndarray,
+                            min_height: float, max_height: float) -> np.ndarray:
+    """``(N,)`` bool: the world points ``(N, 3)`` standing where the grid saw something leave —
+    in a ``vacated`` cell (cleared, and not occupied again since) and between ``min_height`` and
+    ``max_height`` [m] above the ground there (the lowest point of the cell and its 8 neighbours:
+    a later session sees the ground where a car stood). The grid only knows that band, so
+    nothing above it (a roof, a canopy) or on the ground is taken."""
+    out = np.zeros(len(points), dtype=bool)
+    if not len(points) or not vacated.any():
+        return out
+    from scipy.ndimage import minimum_filter
+
+    rows, cols = np.nonzero(vacated)  # work in the box around the vacated cells (a city grid is 10 M cells)
+    r0, c0 = max(rows.min() - 1, 0), max(cols.min() - 1, 0)
+    box = (slice(r0, rows.max() + 2), slice(c0, cols.max() + 2))
+    vac = vacated[box]
+    r, c, inside = grid.cells(np.asarray(points[:, :2], dtype=np.float64))
+    r, c = r - r0, c - c0
+    inside &= (r >= 0) & (c >= 0) & (r < vac.shape[0]) & (c < vac.shape[1])
+    take = np.flatnonzero(inside)
+    floor = np.full(vac.shape, np.inf, dtype=np.float32)  # the lowest point of each cell
+    np.minimum.at(floor, (r[take], c[take]), points[take, 2])
+    cand = take[vac[r[take], c[take]]]
+    if not len(cand):
+        return out
+    ground = minimum_filter(floor, size=3)[r[cand], c[cand]]
+    height = points[cand, 2] - ground
+    out[cand[(height >= min_height) & (height <= max_height)]] = True
+    return out
 
 
 _KEY_BITS = 21  # per axis: +-2^20 voxels (419 km at 0.4 m, 52 km at 5 cm)
@@ -148,17 +194,33 @@ class MapOutputs:
     cleared_cells: int = 0
     seconds: float = 0.0
     dynamic_points: np.ndarray | None = None
+    vacated_points: int = 0  # of ``points``, moved to ``dynamic_points`` where the grid saw something leave
 
 
-def build_map_outputs(result: SlamResult) -> MapOutputs:
-    """Fuse the map cloud and, when the run keeps grid scans, the occupancy grid."""
+def build_map_outputs(result: SlamResult, vacated_to_dynamic: bool = False) -> MapOutputs:
+    """Fuse the map cloud and, when the run keeps grid scans, the occupancy grid.
+
+    ``vacated_to_dynamic`` (3D, with a grid): the cloud's points where the grid saw something
+    leave (:func:`points_in_vacated_cells`) go to the dynamic cloud — for a map of several
+    sessions, a car parked in one and gone in a later one."""
     t0 = time.perf_counter()
     out = MapOutputs(points=fused_map(result))
     if result.submap_dynamic_points is not None:
         out.dynamic_points = fuse_clouds(((T, p) for T, p in zip(result.submap_poses, result.submap_dynamic_points)
                                           if p is not None), result.map_voxel_size)
     if result.config.mapping.write_grid and any(len(p) for scans in result.submap_scan_points for p in scans):
-        grid, out.cleared_cells = build_global_grid(result)
+        vacate = vacated_to_dynamic and not result.planar
+        cleared: list[np.ndarray] = []
+        grid, out.cleared_cells = build_global_grid(result, cleared_mask=cleared if vacate else None)
+        if vacate:
+            mapping = result.config.mapping
+            vacated = vacated_cells(cleared[0], grid.logodds)
+            moved = points_in_vacated_cells(out.points, grid, vacated, mapping.grid_min_height, mapping.grid_max_height)
+            if moved.any():
+                gone = out.points[moved]
+                out.dynamic_points = gone if out.dynamic_points is None else np.vstack([out.dynamic_points, gone])
+                out.points = out.points[~moved]
+            out.vacated_points = int(moved.sum())
         out.occupancy, out.origin, out.resolution = grid.probabilities(), grid.origin, grid.params.resolution
     out.seconds = time.perf_counter() - t0
     return out
