@@ -98,9 +98,10 @@ def write_session_map(session_map: SessionMap, out_dir: str | Path) -> dict[str,
     from .io.session_results import write_session_results
     from .mapping.global_map import build_map_outputs
 
-    several = sum(s.placed for s in session_map.sessions) > 1  # what one session left, a later one saw gone
+    counts = [s.submap_end - s.submap_start for s in session_map.sessions if s.placed]
+    starts = [int(k) for k in np.cumsum([0, *counts[:-1]])]  # in the placed sessions' result
     return write_session_results(session_map, out_dir,
-                                 build_map_outputs(session_map.placed_result(), vacated_to_dynamic=several))
+                                 build_map_outputs(session_map.placed_result(), session_starts=starts))
 
 
 # ---------------------------------------------------------------------- batch

@@ -319,7 +319,7 @@ def test_a_3d_box_gone_in_the_later_session_leaves_the_merged_cloud(tmp_path):
             & (w[:, 2] < 1.7)
 
     kept = build_map_outputs(result)
-    vacated = build_map_outputs(result, vacated_to_dynamic=True)
+    vacated = build_map_outputs(result, session_starts=[0, merged.sessions[1].submap_start])
     before = int(in_box(kept.points).sum())
     assert before >= 20  # the box is in the map of the two sessions without the rule
     assert int(in_box(vacated.points).sum()) <= 0.1 * before

@@ -49,9 +49,14 @@ def _local_extent(T_anchor_scans: np.ndarray, scan_points: list[np.ndarray]) -> 
 
 
 def build_global_grid(result: SlamResult, params: GridParams | None = None,
-                      cleared_mask: list[np.ndarray] | None = None) -> tuple[EvidenceGrid, int]:
-    """Fuse every submap's local grid in time order; return the grid and cells cleared as dynamic
-    (``cleared_mask``: an empty list receives the grid-shaped bool mask of those cells).
+                      session_starts: list[int] | None = None,
+                      left_between_sessions: list[np.ndarray] | None = None) -> tuple[EvidenceGrid, int]:
+    """Fuse every submap's local grid in time order; return the grid and cells cleared as dynamic.
+
+    ``session_starts``: the first submap of each session (ascending); with it the empty list
+    ``left_between_sessions`` receives the grid-shaped bool mask of the cells a session cleared
+    that were occupied when it began (what an earlier session saw and a later one saw gone; not
+    what a session saw come and go itself).
 
     Two passes over the submaps: the first finds the extent, the second builds each local grid
     and fuses it at once, so memory holds the global grid and one local grid, not all of them
@@ -70,16 +75,25 @@ def build_global_grid(result: SlamResult, params: GridParams | None = None,
     if not corners:
         raise ValueError("no scans to build a grid from")
     global_grid = EvidenceGrid.covering(np.vstack(corners), params, margin=1.5, track_free_runs=False)
-    mask = None
-    if cleared_mask is not None:
-        mask = np.zeros(global_grid.logodds.shape, dtype=bool)
-        cleared_mask.append(mask)
+    starts = set(session_starts or []) - {0}
+    track = left_between_sessions is not None and bool(starts)
+    left = np.zeros(global_grid.logodds.shape, dtype=bool) if track else None
+    occupied_at_start = this_session = None  # while a later session fuses: its clears, and what was occupied
     cleared = 0
-    for T_world_anchor, poses, points in zip(result.submap_poses, result.submap_scan_poses,
-                                             result.submap_scan_points):
+    for k, (T_world_anchor, poses, points) in enumerate(zip(result.submap_poses, result.submap_scan_poses,
+                                                            result.submap_scan_points)):
+        if track and k in starts:
+            if this_session is not None:
+                left |= this_session & occupied_at_start
+            occupied_at_start = global_grid.logodds > params.occupied_threshold
+            this_session = np.zeros_like(left)
         grid = local_grid(poses, points, params)
         if grid is not None:
-            cleared += fuse_submap_grids(global_grid, grid, T_world_anchor, mask)
+            cleared += fuse_submap_grids(global_grid, grid, T_world_anchor, this_session)
+    if track:
+        if this_session is not None:
+            left |= this_session & occupied_at_start
+        left_between_sessions.append(left)
     return global_grid, cleared
 
 
@@ -197,24 +211,26 @@ class MapOutputs:
     vacated_points: int = 0  # of ``points``, moved to ``dynamic_points`` where the grid saw something leave
 
 
-def build_map_outputs(result: SlamResult, vacated_to_dynamic: bool = False) -> MapOutputs:
+def build_map_outputs(result: SlamResult, session_starts: list[int] | None = None) -> MapOutputs:
     """Fuse the map cloud and, when the run keeps grid scans, the occupancy grid.
 
-    ``vacated_to_dynamic`` (3D, with a grid): the cloud's points where the grid saw something
-    leave (:func:`points_in_vacated_cells`) go to the dynamic cloud — for a map of several
-    sessions, a car parked in one and gone in a later one."""
+    ``session_starts`` (a map of several sessions: each one's first submap; 3D, with a grid): the
+    cloud's points where the grid saw something leave between sessions
+    (:func:`points_in_vacated_cells`) go to the dynamic cloud — a car parked in one session and
+    gone in a later one."""
     t0 = time.perf_counter()
     out = MapOutputs(points=fused_map(result))
     if result.submap_dynamic_points is not None:
         out.dynamic_points = fuse_clouds(((T, p) for T, p in zip(result.submap_poses, result.submap_dynamic_points)
                                           if p is not None), result.map_voxel_size)
     if result.config.mapping.write_grid and any(len(p) for scans in result.submap_scan_points for p in scans):
-        vacate = vacated_to_dynamic and not result.planar
-        cleared: list[np.ndarray] = []
-        grid, out.cleared_cells = build_global_grid(result, cleared_mask=cleared if vacate else None)
+        vacate = bool(session_starts) and len(session_starts) > 1 and not result.planar
+        left: list[np.ndarray] = []
+        grid, out.cleared_cells = build_global_grid(result, session_starts=session_starts if vacate else None,
+                                                    left_between_sessions=left if vacate else None)
         if vacate:
             mapping = result.config.mapping
-            vacated = vacated_cells(cleared[0], grid.logodds)
+            vacated = vacated_cells(left[0], grid.logodds)
             moved = points_in_vacated_cells(out.points, grid, vacated, mapping.grid_min_height, mapping.grid_max_height)
             if moved.any():
                 gone = out.points[moved]
