@@ -76,7 +76,7 @@ def build_global_grid(result: SlamResult, params: GridParams | None = None,
         raise ValueError("no scans to build a grid from")
     global_grid = EvidenceGrid.covering(np.vstack(corners), params, margin=1.5, track_free_runs=False)
     starts = set(session_starts or []) - {0}
-    track = left_between_sessions is not None and bool(starts)
+    track = left_between_sessions is not None
     left = np.zeros(global_grid.logodds.shape, dtype=bool) if track else None
     occupied_at_start = this_session = None  # while a later session fuses: its clears, and what was occupied
     cleared = 0
@@ -98,9 +98,10 @@ def build_global_grid(result: SlamResult, params: GridParams | None = None,
 
 
 def vacated_cells(cleared: np.ndarray, logodds: np.ndarray) -> np.ndarray:
-    """Cells where something left: the cleared cells and those around them (a thing's edge
-    cells, hit too rarely to count as occupied, are not cleared themselves) that the grid now
-    holds more free than occupied — not a wall beside them, nor a cell occupied again later."""
+    """Cells where something left: the ``cleared`` cells (e.g. :func:`build_global_grid`'s
+    ``left_between_sessions``) and those around them (a thing's edge cells, hit too rarely to
+    count as occupied, are not cleared themselves) that the grid's ``logodds`` now hold more free
+    than occupied — not a wall beside them, nor a cell occupied again later."""
     from scipy.ndimage import binary_dilation
 
     return binary_dilation(cleared, structure=np.ones((3, 3), dtype=bool)) & (logodds < 0)
@@ -109,7 +110,7 @@ def vacated_cells(cleared: np.ndarray, logodds: np.ndarray) -> np.ndarray:
 def points_in_vacated_cells(points: np.ndarray, grid: EvidenceGrid, vacated: np.ndarray,
                             min_height: float, max_height: float) -> np.ndarray:
     """``(N,)`` bool: the world points ``(N, 3)`` standing where the grid saw something leave —
-    in a ``vacated`` cell (cleared, and not occupied again since) and between ``min_height`` and
+    in a ``vacated`` cell (:func:`vacated_cells`) and between ``min_height`` and
     ``max_height`` [m] above the ground there (the lowest point of the cell and its 8 neighbours:
     a later session sees the ground where a car stood). The grid only knows that band, so
     nothing above it (a roof, a canopy) or on the ground is taken."""
