@@ -11,7 +11,6 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -20,6 +19,7 @@ import numpy as np
 
 from .config import PipelineConfig, load_config
 from .errors import SubmapSlamError
+from .fleet_ray import ray_module
 from .session_map import SessionMap
 
 if TYPE_CHECKING:
@@ -147,14 +147,6 @@ def front_end(log_path: str, name: str, out_dir: str, config: PipelineConfig, fo
             "seconds": time.perf_counter() - t0, "input_error": result.input_error}
 
 
-def _ray_module():
-    try:
-        import ray
-    except ImportError:
-        return None
-    return ray
-
-
 def batch_logs(
     logs: list[str | Path],
     out_dir: str | Path,
@@ -185,7 +177,7 @@ def batch_logs(
     out = Path(out_dir)
     names = session_names(logs)
     outcomes = [LogOutcome(str(p), n) for p, n in zip(logs, names)]
-    ray = _ray_module() if use_ray is not False else None
+    ray = ray_module() if use_ray is not False else None
     if (use_ray or address) and ray is None:
         raise SubmapSlamError("Ray is not installed: pip install 'submapslam[ray]' (or run without --address)")
     args = [(str(p), n, str(out / n), cfg, format, max_scans) for p, n in zip(logs, names)]
@@ -224,42 +216,18 @@ def batch_logs(
             on_done(o)
         finished.add(k)
 
-    shutting_down = None  # on Ray: the local instance's shutdown, beside the merged map's writing
+    wait_for_ray: Callable[[], None] | None = None  # on Ray: its shutdown, beside the merged map's writing
     if ray is not None:
+        from .fleet_ray import run_on_ray
+
+        def use_verifier(verify: Callable[[dict], VerifyMany]) -> None:
+            nonlocal verify_elsewhere
+            verify_elsewhere = verify
+
         executor = "ray"
-        started_here = not ray.is_initialized()
-        if started_here:
-            _init_ray_beside_imports(ray, address, num_cpus)
-        try:
-            verify_elsewhere = _ray_verifier(ray, int(ray.cluster_resources().get("CPU", 1)))
-            task = ray.remote(num_cpus=1, max_retries=0)(front_end)
-            # in the order given, as the merge takes them (the largest first was slower: the merge
-            # then waited for the small logs before the large one; 55.1 s against 48.1 s)
-            pending = {task.remote(*a): k for k, a in enumerate(args)}
-            # the merge in a thread of its own, at a lower priority: the logs still running are the
-            # critical path, the merge of those before them is not (it only has to keep up)
-            with ThreadPoolExecutor(max_workers=1, initializer=_lower_thread_priority) as merging:
-                merges = []
-                while pending:
-                    done, _ = ray.wait(list(pending), num_returns=1)
-                    k = pending.pop(done[0])
-                    try:
-                        value, error = ray.get(done[0]), None
-                    except Exception as exc:  # a failed log is reported; the others go on
-                        value, error = None, exc
-                    record(k, value, error)
-                    merges.append(merging.submit(merge_ready))
-                for m in merges:
-                    m.result()  # re-raises a merge's error
-            if merger is not None:
-                merger.finish()  # its retries may test on the Ray actors
-        except BaseException:
-            if started_here:
-                ray.shutdown()
-            raise
-        if started_here:  # 1.4 s of waiting for Ray's processes to end: beside the merged map's writing
-            shutting_down = ThreadPoolExecutor(max_workers=1)
-            shutting_down.submit(ray.shutdown)
+        wait_for_ray = run_on_ray(ray, front_end, args, record=record, merge_ready=merge_ready,
+                                  use_verifier=use_verifier, finish=lambda: merger is not None and merger.finish(),
+                                  address=address, num_cpus=num_cpus)
     else:
         executor = "sequential"
         for k, a in enumerate(args):
@@ -279,103 +247,14 @@ def batch_logs(
             merged_dir = out / "merged"
             write_session_map(merged, merged_dir)
     finally:
-        if shutting_down is not None:
-            shutting_down.shutdown(wait=True)
+        if wait_for_ray is not None:
+            wait_for_ray()
     if merger is not None:
         by_name = {s.name: s for s in merged.sessions}
         for o in outcomes:
             if o.name in by_name:
                 o.placed, o.links = by_name[o.name].placed, by_name[o.name].links
     return BatchReport(outcomes, merged_dir, time.perf_counter() - t0, executor, merged, front_end_s)
-
-
-def _init_ray_beside_imports(ray, address: str | None, num_cpus: int | None) -> None:
-    """Start (or join, with ``address``) Ray, importing meanwhile, in a thread, what the merge and
-    the writing will need (about 1 s of imports hidden in Ray's 3 s start-up, which mostly waits
-    for its processes; ``ray.init`` itself stays in the calling thread, where it sets signal
-    handlers)."""
-    with ThreadPoolExecutor(max_workers=1) as importing:
-        imported = importing.submit(_import_merge_modules)
-        ray.init(address=address, num_cpus=None if address else num_cpus, include_dashboard=False,
-                 log_to_driver=False, configure_logging=False)
-        imported.result()
-
-
-def _import_merge_modules() -> None:
-    from .io import map_store, session_results  # noqa: F401
-    from .mapping import global_map  # noqa: F401
-    from .topology import loop_closure, session_placement  # noqa: F401
-
-
-def _lower_thread_priority(step: int = 10) -> None:
-    """Raise the calling thread's nice value by ``step`` (Linux, where it is per thread; nothing
-    elsewhere or when not allowed)."""
-    import os
-    import sys
-    import threading
-
-    if sys.platform.startswith("linux"):
-        try:
-            tid = threading.get_native_id()
-            os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + step))
-        except OSError:
-            pass
-
-
-def _ray_verifier(ray, workers: int) -> Callable[[dict], VerifyMany]:
-    """For :class:`~submapslam.fleet.SessionMerger`: runs a batch of placement tests on ``workers``
-    Ray actors (:class:`_Verifier`), results in order. The actors take no CPU slot of their own:
-    while logs still run they share the cores with them, afterwards they use them all. Each
-    keeps its loop closer and the submaps between batches (put again only when submaps were
-    added), so its prepared clouds stay warm."""
-    actor_class = ray.remote(num_cpus=0, max_restarts=0)(_Verifier)
-
-    def bind(closer_args: dict) -> VerifyMany:
-        actors = [actor_class.remote(closer_args) for _ in range(max(1, workers))]
-        shared: dict = {}  # the submaps as last put: key (list identity, length) and reference
-
-        def verify_many(items, submaps, map_poses):
-            key = (id(submaps), len(submaps))
-            if shared.get("key") != key:  # the merge appends submaps and never changes their points
-                shared.update(key=key, box=[ray.put(submaps)])  # in a list: passed as a reference
-            bounds = np.linspace(0, len(items), min(len(actors), len(items)) + 1).astype(int)
-            futures = [a.verify.remote(key, shared["box"], map_poses, items[lo:hi])
-                       for a, lo, hi in zip(actors, bounds[:-1], bounds[1:])]
-            return [rec for f in futures for rec in ray.get(f)]
-
-        return verify_many
-
-    return bind
-
-
-class _Verifier:
-    """A Ray actor for placement tests: a loop closer made from ``closer_args`` and the submaps
-    of the last batch (fetched again when the driver put new ones)."""
-
-    def __init__(self, closer_args: dict) -> None:
-        import threading
-
-        _lower_thread_priority()  # its start-up (imports, 1-2 s) too: the logs still running come first
-        self.niced: set[int] = {threading.get_native_id()}  # threads whose priority was lowered
-        from .topology.loop_closure import LoopCloser
-
-        self.closer = LoopCloser(**closer_args)
-        self.key = None
-        self.submaps: list = []
-
-    def verify(self, key: tuple, box: list, map_poses: dict, items: list) -> list:
-        import threading
-
-        import ray
-
-        from .topology.session_placement import verify_items
-
-        if threading.get_native_id() not in self.niced:  # the logs still running come first
-            _lower_thread_priority()
-            self.niced.add(threading.get_native_id())
-        if key != self.key:
-            self.key, self.submaps = key, ray.get(box[0])
-        return verify_items(self.closer, items, self.submaps, map_poses)
 
 
 def _one_line(exc: BaseException) -> str:
