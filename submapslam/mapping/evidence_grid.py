@@ -107,9 +107,10 @@ class EvidenceGrid:
 
 
 def fuse_submap_grids(global_grid: EvidenceGrid, local: EvidenceGrid, T_global_local: np.ndarray,
-                      cleared_mask: np.ndarray | None = None) -> int:
+                      cleared_mask: np.ndarray | None = None, mark_where: np.ndarray | None = None) -> int:
     """Fuse a local grid into the global grid; return how many occupied cells were cleared (and
-    set them in ``cleared_mask``, a bool array of the global grid's shape, when given).
+    set them in ``cleared_mask``, a bool array of the global grid's shape, when given; only
+    those also set in ``mark_where`` when that is given).
 
     Local cells are mapped through ``T_global_local`` by their centres. Confidently free local
     cells reset occupied global cells to the local (free) value; cells the local grid saw free
@@ -141,7 +142,8 @@ def fuse_submap_grids(global_grid: EvidenceGrid, local: EvidenceGrid, T_global_l
     clear = (confident_free | recent) & (g[r, c] > p.occupied_threshold)
     g[r[clear], c[clear]] = values[clear]
     if cleared_mask is not None:
-        cleared_mask[r[clear], c[clear]] = True
+        mark = clear if mark_where is None else clear & mark_where[r, c]
+        cleared_mask[r[mark], c[mark]] = True
     rest = ~clear
     np.add.at(g, (r[rest], c[rest]), values[rest])
     g[r[recent], c[recent]] = np.minimum(g[r[recent], c[recent]], p.free_confidence)  # free now, whatever the sum

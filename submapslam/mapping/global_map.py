@@ -78,21 +78,17 @@ def build_global_grid(result: SlamResult, params: GridParams | None = None,
     starts = set(session_starts or []) - {0}
     track = left_between_sessions is not None
     left = np.zeros(global_grid.logodds.shape, dtype=bool) if track else None
-    occupied_at_start = this_session = None  # while a later session fuses: its clears, and what was occupied
+    occupied_at_start = None  # while a later session fuses: what was occupied when it began
     cleared = 0
     for k, (T_world_anchor, poses, points) in enumerate(zip(result.submap_poses, result.submap_scan_poses,
                                                             result.submap_scan_points)):
         if track and k in starts:
-            if this_session is not None:
-                left |= this_session & occupied_at_start
             occupied_at_start = global_grid.logodds > params.occupied_threshold
-            this_session = np.zeros_like(left)
         grid = local_grid(poses, points, params)
         if grid is not None:
-            cleared += fuse_submap_grids(global_grid, grid, T_world_anchor, this_session)
+            cleared += fuse_submap_grids(global_grid, grid, T_world_anchor,
+                                         left if occupied_at_start is not None else None, occupied_at_start)
     if track:
-        if this_session is not None:
-            left |= this_session & occupied_at_start
         left_between_sessions.append(left)
     return global_grid, cleared
 
@@ -117,22 +113,34 @@ def points_in_vacated_cells(points: np.ndarray, grid: EvidenceGrid, vacated: np.
     out = np.zeros(len(points), dtype=bool)
     if not len(points) or not vacated.any():
         return out
-    from scipy.ndimage import minimum_filter
+    from scipy.ndimage import binary_dilation
 
-    rows, cols = np.nonzero(vacated)  # work in the box around the vacated cells (a city grid is 10 M cells)
-    r0, c0 = max(rows.min() - 1, 0), max(cols.min() - 1, 0)
-    box = (slice(r0, rows.max() + 2), slice(c0, cols.max() + 2))
-    vac = vacated[box]
     r, c, inside = grid.cells(np.asarray(points[:, :2], dtype=np.float64))
-    r, c = r - r0, c - c0
-    inside &= (r >= 0) & (c >= 0) & (r < vac.shape[0]) & (c < vac.shape[1])
     take = np.flatnonzero(inside)
-    floor = np.full(vac.shape, np.inf, dtype=np.float32)  # the lowest point of each cell
-    np.minimum.at(floor, (r[take], c[take]), points[take, 2])
-    cand = take[vac[r[take], c[take]]]
+    rows, cols = vacated.shape
+    # only the points in and around vacated cells, keyed by cell: memory as their number, not
+    # the grid's (a city grid is 10 M cells)
+    rows_v, cols_v = np.nonzero(vacated)
+    r0, c0 = max(int(rows_v.min()) - 1, 0), max(int(cols_v.min()) - 1, 0)
+    r1, c1 = min(int(rows_v.max()) + 2, rows), min(int(cols_v.max()) + 2, cols)
+    near_box = binary_dilation(vacated[r0:r1, c0:c1], structure=np.ones((3, 3), dtype=bool))
+    in_box = (r[take] >= r0) & (r[take] < r1) & (c[take] >= c0) & (c[take] < c1)
+    take = take[in_box]
+    take = take[near_box[r[take] - r0, c[take] - c0]]
+    cand = take[vacated[r[take], c[take]]]
     if not len(cand):
         return out
-    ground = minimum_filter(floor, size=3)[r[cand], c[cand]]
+    key = r[take] * cols + c[take]
+    cells, inverse = np.unique(key, return_inverse=True)
+    floor = np.full(len(cells), np.inf)  # the lowest point of each such cell
+    np.minimum.at(floor, inverse, points[take, 2])
+    cand_key = r[cand] * cols + c[cand]
+    ground = np.full(len(cand), np.inf)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            q = cand_key + dr * cols + dc
+            pos = np.minimum(np.searchsorted(cells, q), len(cells) - 1)
+            ground = np.where(cells[pos] == q, np.minimum(ground, floor[pos]), ground)
     height = points[cand, 2] - ground
     out[cand[(height >= min_height) & (height <= max_height)]] = True
     return out
