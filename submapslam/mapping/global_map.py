@@ -104,7 +104,7 @@ def vacated_cells(cleared: np.ndarray, logodds: np.ndarray) -> np.ndarray:
 
 
 def points_in_vacated_cells(points: np.ndarray, grid: EvidenceGrid, vacated: np.ndarray,
-                            min_height: float, max_height: float) -> np.ndarray:
+                            min_height: float, max_height: float, chunk_points: int = 200_000) -> np.ndarray:
     """``(N,)`` bool: the world points ``(N, 3)`` standing where the grid saw something leave —
     in a ``vacated`` cell (:func:`vacated_cells`) and between ``min_height`` and
     ``max_height`` [m] above the ground there (the lowest point of the cell and its 8 neighbours:
@@ -115,30 +115,34 @@ def points_in_vacated_cells(points: np.ndarray, grid: EvidenceGrid, vacated: np.
         return out
     from scipy.ndimage import binary_dilation
 
-    r, c, inside = grid.cells(np.asarray(points[:, :2], dtype=np.float64))
-    take = np.flatnonzero(inside)
     rows, cols = vacated.shape
-    # only the points in and around vacated cells, keyed by cell: memory as their number, not
-    # the grid's (a city grid is 10 M cells)
+    # only the points in and around vacated cells, keyed by cell, found a chunk of points at a
+    # time: memory as their number, not the grid's (a city grid is 10 M cells) nor the map's
     rows_v, cols_v = np.nonzero(vacated)
     r0, c0 = max(int(rows_v.min()) - 1, 0), max(int(cols_v.min()) - 1, 0)
     r1, c1 = min(int(rows_v.max()) + 2, rows), min(int(cols_v.max()) + 2, cols)
     near_box = binary_dilation(vacated[r0:r1, c0:c1], structure=np.ones((3, 3), dtype=bool))
-    in_box = (r[take] >= r0) & (r[take] < r1) & (c[take] >= c0) & (c[take] < c1)
-    take = take[in_box]
-    take = take[near_box[r[take] - r0, c[take] - c0]]
-    cand = take[vacated[r[take], c[take]]]
-    if not len(cand):
+    found = []
+    for lo in range(0, len(points), chunk_points):
+        r, c, inside = grid.cells(np.asarray(points[lo:lo + chunk_points, :2], dtype=np.float64))
+        inside &= (r >= r0) & (r < r1) & (c >= c0) & (c < c1)
+        k = np.flatnonzero(inside)
+        k = k[near_box[r[k] - r0, c[k] - c0]]
+        found.append((lo + k, r[k], c[k]))
+    take, r_take, c_take = (np.concatenate(a) for a in zip(*found))
+    is_cand = vacated[r_take, c_take]
+    if not is_cand.any():
         return out
-    key = r[take] * cols + c[take]
+    stride = cols + 2  # a key per cell; a neighbour across the grid's edge matches no cell
+    key = r_take * stride + c_take + 1
     cells, inverse = np.unique(key, return_inverse=True)
     floor = np.full(len(cells), np.inf)  # the lowest point of each such cell
     np.minimum.at(floor, inverse, points[take, 2])
-    cand_key = r[cand] * cols + c[cand]
+    cand, cand_key = take[is_cand], key[is_cand]
     ground = np.full(len(cand), np.inf)
     for dr in (-1, 0, 1):
         for dc in (-1, 0, 1):
-            q = cand_key + dr * cols + dc
+            q = cand_key + dr * stride + dc
             pos = np.minimum(np.searchsorted(cells, q), len(cells) - 1)
             ground = np.where(cells[pos] == q, np.minimum(ground, floor[pos]), ground)
     height = points[cand, 2] - ground
