@@ -111,4 +111,3 @@ def test_batch_cli_prints_a_table_and_fails_on_a_missing_log(logs, tmp_path):
     assert res.exit_code == 0, res.output
     assert "hall.a" in res.output and "sequential" in res.output
     assert (tmp_path / "o" / "merged" / "map" / "manifest.json").is_file()
-

@@ -223,14 +223,20 @@ def test_a_3d_session_does_not_join_a_2d_map_in_one_clear_line(sessions):
     assert merger.finish().n_sessions == 1  # the map is as it was
 
 
-def test_a_3d_session_driven_backwards_is_placed_and_as_accurate_as_one_run(tmp_path):
+@pytest.fixture(scope="module")
+def two_lap_lidar(tmp_path_factory):
+    """A two-lap 3D LiDAR drive (city blocks; generated once for the tests below)."""
+    return generate("outdoor", tmp_path_factory.mktemp("lidar") / "log", seed=0, laps=2, blocks=(1, 1))
+
+
+def test_a_3d_session_driven_backwards_is_placed_and_as_accurate_as_one_run(two_lap_lidar):
     """The 3D target on a small drive: a two-lap LiDAR log cut at the lap, the second lap played
     backwards from its own origin (each scan with its own timestamp and wheel-odometry pose);
     both sessions placed, the merged trajectory's ATE at most 1.2x a single run over the log."""
     from submapslam.evaluation.metrics import ate
     from submapslam.io.trajectory import Trajectory
 
-    log = generate("outdoor", tmp_path / "log", seed=0, laps=2, blocks=(1, 1))
+    log = two_lap_lidar
     scans = list(open_log(log))
     lap = len(scans) // 2
     cfg = PipelineConfig()
@@ -285,14 +291,14 @@ def _scan_with_box(scan, T_world_sensor: np.ndarray, box: np.ndarray, lo: np.nda
                                            transform_points(np.linalg.inv(T_world_sensor), seen)]))
 
 
-def test_a_3d_box_gone_in_the_later_session_leaves_the_merged_cloud(tmp_path):
+def test_a_3d_box_gone_in_the_later_session_leaves_the_merged_cloud(two_lap_lidar):
     """A box (a parked car) stands beside the road in the first lap only: the merged map of the
     two laps as sessions moves its points to the dynamic cloud, where the grid saw the space
     empty in the later session; the buildings and the ground stay."""
     from submapslam.geometry import transform_points
     from submapslam.mapping.global_map import build_map_outputs
 
-    log = generate("outdoor", tmp_path / "log", seed=0, laps=2, blocks=(1, 1))
+    log = two_lap_lidar
     scans = list(open_log(log))
     truth = read_tum(log / "groundtruth_tum.txt").poses  # T_world_sensor (the sensor 1.7 m up)
     lap = len(scans) // 2
