@@ -51,6 +51,7 @@ def run_log(
     observer: RunObserver | None = None,
     save_map: bool = True,
     session_name: str | None = None,
+    on_progress: Callable[[int, int | None], None] | None = None,
 ) -> tuple[SlamResult, dict[str, Path]]:
     """Open ``log_path``, run the pipeline, write results to ``out_dir`` (if given).
 
@@ -69,6 +70,8 @@ def run_log(
 
     ``save_map``: also write the run as a map that can be extended (``OUT/map/``, a one-session
     map named ``session_name``, default the log's file name without extensions).
+    ``on_progress(scans done, scans in the log or None)`` is called after each scan (instead of
+    ``progress``' bar; e.g. ``batch``'s live view of every log).
 
     Returns the result and the written paths. Input errors found mid-log keep what was
     computed: results are written and ``result.input_error`` says what stopped the reading.
@@ -131,6 +134,8 @@ def run_log(
         with progress_bar(total) as bar:
             task = bar.add_task("run", total=total)
             result = run(reader, cfg, progress=lambda n: bar.update(task, completed=n), **options)
+    elif on_progress is not None:
+        result = run(reader, cfg, progress=lambda n: on_progress(n, total), **options)
     else:
         result = run(reader, cfg, **options)
     if hint_pairs:

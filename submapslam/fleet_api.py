@@ -12,6 +12,7 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -119,6 +120,7 @@ class LogOutcome:
     seconds: float = 0.0
     placed: bool | None = None  # in the merged map (None: not merged)
     links: int = 0
+    note: str = ""  # how the merge placed it, or why not
 
 
 @dataclass
@@ -135,14 +137,15 @@ class BatchReport:
 
 
 def front_end(log_path: str, name: str, out_dir: str, config: PipelineConfig, format: str | None = None,
-              max_scans: int | None = None) -> dict:
+              max_scans: int | None = None, on_progress: Callable[[int, int | None], None] | None = None) -> dict:
     """One log's task: run it, write its results and its one-session map into ``out_dir``;
-    return a small summary dict (what travels back from a Ray worker)."""
+    return a small summary dict (what travels back from a Ray worker). ``on_progress(scans
+    done, scans in the log or None)`` after each scan."""
     from .api import run_log
 
     t0 = time.perf_counter()
     result, _ = run_log(log_path, out_dir, config=config, format=format, max_scans=max_scans, session_name=name,
-                        overwrite=True)
+                        overwrite=True, on_progress=on_progress)
     return {"scans": result.n_scans, "submaps": result.n_submaps, "loops_accepted": result.loops_accepted,
             "seconds": time.perf_counter() - t0, "input_error": result.input_error}
 
@@ -158,6 +161,8 @@ def batch_logs(
     max_scans: int | None = None,
     on_done: Callable[[LogOutcome], None] | None = None,
     num_cpus: int | None = None,
+    on_progress: Callable[[LogOutcome, int, int | None], None] | None = None,
+    on_merged: Callable[[LogOutcome], None] | None = None,
 ) -> BatchReport:
     """Run every log's front end (a Ray task each, or one after another) and merge them.
 
@@ -166,8 +171,11 @@ def batch_logs(
     False, ``error``) and left out of the merge; the others are kept. ``use_ray``: None = Ray
     when installed (or when ``address`` is given), False = sequential; ``address``: an existing
     Ray cluster (default: a local instance with ``num_cpus``). ``on_done`` is called as each log
-    finishes. The merge takes the logs in the order given, each as soon as it and the logs before
-    it are done (beside the logs still running on Ray), so both executors give the same map.
+    finishes, ``on_progress(outcome, scans done, scans in the log or None)`` while it runs (from
+    Ray: about twice a second), ``on_merged`` as each log joins the merged map (``placed`` and
+    ``note`` then say how; a later session can still place one left in its own frame). The merge
+    takes the logs in the order given, each as soon as it and the logs before it are done (beside
+    the logs still running on Ray), so both executors give the same map.
     """
     from .fleet import SessionMerger, session_names
     from .io.map_store import load_map
@@ -197,11 +205,16 @@ def batch_logs(
             session = load_map(out / o.name / "map")
             if merger is None:
                 merger = SessionMerger(session, cfg, verify_elsewhere)
-                continue
-            try:
-                merger.add(session)
-            except SubmapSlamError as exc:  # e.g. a 2D log among 3D ones: its own results stay
-                o.error = f"not merged: {exc}"
+            else:
+                try:
+                    merger.add(session)
+                except SubmapSlamError as exc:  # e.g. a 2D log among 3D ones: its own results stay
+                    o.error = f"not merged: {exc}"
+                    continue
+            if on_merged is not None:
+                merged_as = merger.map.sessions[-1]
+                o.placed, o.links, o.note = merged_as.placed, merged_as.links, merged_as.note
+                on_merged(o)
 
     def record(k: int, value: dict | None, error: BaseException | None) -> None:
         o = outcomes[k]
@@ -227,12 +240,15 @@ def batch_logs(
         executor = "ray"
         wait_for_ray = run_on_ray(ray, front_end, args, record=record, merge_ready=merge_ready,
                                   use_verifier=use_verifier, finish=lambda: merger is not None and merger.finish(),
-                                  address=address, num_cpus=num_cpus)
+                                  address=address, num_cpus=num_cpus,
+                                  progress=None if on_progress is None
+                                  else lambda k, done, total: on_progress(outcomes[k], done, total))
     else:
         executor = "sequential"
         for k, a in enumerate(args):
+            step = None if on_progress is None else partial(on_progress, outcomes[k])
             try:
-                value, error = front_end(*a), None
+                value, error = front_end(*a, on_progress=step), None
             except Exception as exc:  # a failed log is reported; the others go on
                 value, error = None, exc
             record(k, value, error)
@@ -253,7 +269,7 @@ def batch_logs(
         by_name = {s.name: s for s in merged.sessions}
         for o in outcomes:
             if o.name in by_name:
-                o.placed, o.links = by_name[o.name].placed, by_name[o.name].links
+                o.placed, o.links, o.note = by_name[o.name].placed, by_name[o.name].links, by_name[o.name].note
     return BatchReport(outcomes, merged_dir, time.perf_counter() - t0, executor, merged, front_end_s)
 
 

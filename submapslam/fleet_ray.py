@@ -7,7 +7,7 @@ Ray is optional (``pip install 'submapslam[ray]'``): :func:`ray_module` is None 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from typing import TYPE_CHECKING
 
@@ -30,11 +30,14 @@ def run_on_ray(ray, front_end: Callable[..., dict], args: list[tuple], *,
                record: Callable[[int, dict | None, BaseException | None], None],
                merge_ready: Callable[[], None], use_verifier: Callable[[Callable[[dict], VerifyMany]], None],
                finish: Callable[[], object], address: str | None = None,
-               num_cpus: int | None = None) -> Callable[[], None]:
+               num_cpus: int | None = None,
+               progress: Callable[[int, int, int | None], None] | None = None) -> Callable[[], None]:
     """Run ``front_end(*a)`` for each ``a`` of ``args`` as a Ray task (started in the order
     given), ``record(k, value, error)`` each as it ends and ``merge_ready()`` after it in a
     lower-priority thread; then ``finish()`` (the merge's last retries). ``use_verifier`` receives
-    the placement-test runner on Ray actors before any task starts.
+    the placement-test runner on Ray actors before any task starts. With ``progress``, each task
+    streams ``progress(k, scans done, scans in the log or None)`` while it runs
+    (:func:`front_end_with_progress`, a Ray generator task).
 
     Starts a local Ray (``num_cpus``) or joins the cluster at ``address`` unless Ray is already
     running. Returns a function that waits for the shutdown of a Ray started here, which runs in
@@ -45,21 +48,32 @@ def run_on_ray(ray, front_end: Callable[..., dict], args: list[tuple], *,
         _init_ray_beside_imports(ray, address, num_cpus)
     try:
         use_verifier(_ray_verifier(ray, int(ray.cluster_resources().get("CPU", 1))))
-        task = ray.remote(num_cpus=1, max_retries=0)(front_end)
+        if progress is None:
+            task = ray.remote(num_cpus=1, max_retries=0)(front_end)
+            started = [task.remote(*a) for a in args]
+        else:
+            task = ray.remote(num_cpus=1, max_retries=0)(front_end_with_progress)
+            started = [task.remote(front_end, a) for a in args]
         # in the order given, as the merge takes them (the largest first was slower: the merge
         # then waited for the small logs before the large one; 55.1 s against 48.1 s)
-        pending = {task.remote(*a): k for k, a in enumerate(args)}
+        pending = {ref: k for k, ref in enumerate(started)}
         # the merge in a thread of its own, at a lower priority: the logs still running are the
         # critical path, the merge of those before them is not (it only has to keep up)
         with ThreadPoolExecutor(max_workers=1, initializer=lower_thread_priority) as merging:
             merges = []
             while pending:
-                done, _ = ray.wait(list(pending), num_returns=1)
-                k = pending.pop(done[0])
+                ready, _ = ray.wait(list(pending), num_returns=1)
+                k = pending[ready[0]]
                 try:
-                    value, error = ray.get(done[0]), None
+                    value, error = ray.get(next(ready[0]) if progress is not None else ready[0]), None
+                    if progress is not None:
+                        if value[0] == "progress":
+                            progress(k, *value[1:])
+                            continue
+                        value = value[1]
                 except Exception as exc:  # a failed log is reported; the others go on
                     value, error = None, exc
+                del pending[ready[0]]
                 record(k, value, error)
                 merges.append(merging.submit(merge_ready))
             for m in merges:
@@ -74,6 +88,40 @@ def run_on_ray(ray, front_end: Callable[..., dict], args: list[tuple], *,
     shutting_down = ThreadPoolExecutor(max_workers=1)
     shutting_down.submit(ray.shutdown)
     return lambda: shutting_down.shutdown(wait=True)
+
+
+def front_end_with_progress(front_end: Callable[..., dict], args: tuple, every_s: float = 0.5) -> Iterator[tuple]:
+    """``front_end(*args, on_progress=...)`` as a generator (a Ray generator task): yields
+    ``("progress", scans done, scans in the log or None)`` at most every ``every_s`` seconds
+    while it runs and the last count at its end, then ``("done", its value)``; its error is
+    raised here."""
+    import threading
+
+    outcome: dict = {"progress": None}  # the newest (scans done, scans in the log) and the end
+    finished = threading.Event()
+
+    def run() -> None:
+        try:
+            outcome["value"] = front_end(*args, on_progress=lambda done, total: outcome.update(progress=(done, total)))
+        except BaseException as exc:  # raised again in the generator, where Ray reports it
+            outcome["error"] = exc
+        finally:
+            finished.set()
+
+    worker = threading.Thread(target=run, name="front end", daemon=True)
+    worker.start()
+    sent = None
+    while not finished.wait(every_s):
+        now = outcome["progress"]
+        if now is not None and now != sent:
+            sent = now
+            yield ("progress", *now)
+    worker.join()
+    if outcome["progress"] not in (None, sent):  # the last count, however short the run
+        yield ("progress", *outcome["progress"])
+    if "error" in outcome:
+        raise outcome["error"]
+    yield ("done", outcome["value"])
 
 
 def _init_ray_beside_imports(ray, address: str | None, num_cpus: int | None) -> None:

@@ -67,13 +67,15 @@ def test_run_never_overwrites_the_map_it_extends(logs, tmp_path):
 def sequential(logs, tmp_path_factory):
     _, a, b, bad = logs
     out = tmp_path_factory.mktemp("seq")
-    seen = []
-    report = batch_logs([a, bad, b], out, use_ray=False, on_done=seen.append, max_scans=BATCH_SCANS)
-    return out, report, seen
+    seen, progress, merged = [], [], []
+    report = batch_logs([a, bad, b], out, use_ray=False, on_done=seen.append, max_scans=BATCH_SCANS,
+                        on_progress=lambda o, done, total: progress.append((o.name, done)),
+                        on_merged=lambda o: merged.append((o.name, o.placed, o.note)))
+    return out, report, seen, progress, merged
 
 
 def test_batch_reports_a_failed_log_and_merges_the_others(sequential):
-    out, report, seen = sequential
+    out, report, seen, _, _ = sequential
     assert report.executor == "sequential"
     assert [o.name for o in report.logs] == ["hall.a", "broken", "hall.b"]
     assert [o.ok for o in report.logs] == [True, False, True]
@@ -87,14 +89,34 @@ def test_batch_reports_a_failed_log_and_merges_the_others(sequential):
     assert not (out / "broken" / "poses_tum.txt").exists()
 
 
+def test_batch_reports_each_log_as_it_runs_and_as_it_joins_the_map(sequential):
+    _, report, _, progress, merged = sequential
+    for o in (report.logs[0], report.logs[2]):
+        counts = [done for name, done in progress if name == o.name]
+        assert counts == list(range(1, o.scans + 1))  # after every scan
+    assert not [done for name, done in progress if name == "broken"]  # its first line is broken: no scan
+    # in the order given, the failed log left out; the first defines the frame
+    assert [m[0] for m in merged] == ["hall.a", "hall.b"]
+    assert merged[0][1] is True and "map frame" in merged[0][2]
+    # 60 scans of the second hall give too few submaps to place it: said as it joins, and the same at the end
+    assert merged[1][1] is False and merged[1][2].startswith("not placed")
+    assert (report.logs[2].placed, report.logs[2].note) == merged[1][1:]
+
+
 def test_batch_on_ray_gives_the_same_trajectories(logs, sequential, tmp_path):
     pytest.importorskip("ray")
     _, a, b, bad = logs
-    seq_out, seq, _ = sequential
+    seq_out, seq, _, _, _ = sequential
     # the same logs, the broken one among them: each log's task, then the merge in the order given
     # (each log as soon as it and those before it are done), whatever order the tasks end in
-    par = batch_logs([a, bad, b], tmp_path / "ray", use_ray=True, num_cpus=2, max_scans=BATCH_SCANS)
+    progress = []
+    par = batch_logs([a, bad, b], tmp_path / "ray", use_ray=True, num_cpus=2, max_scans=BATCH_SCANS,
+                     on_progress=lambda o, done, total: progress.append((o.name, done)))
     assert par.executor == "ray" and [o.ok for o in par.logs] == [True, False, True]
+    # each task streamed its scans done as it ran, the last count being all of them
+    for o in (par.logs[0], par.logs[2]):
+        counts = [done for name, done in progress if name == o.name]
+        assert counts and counts == sorted(counts) and counts[-1] == o.scans == BATCH_SCANS
     assert "broken.clf" in par.logs[1].error
     for name in ("hall.a", "hall.b"):
         assert (tmp_path / "ray" / name / "poses_tum.txt").read_bytes() == (seq_out / name / "poses_tum.txt").read_bytes()

@@ -12,6 +12,16 @@ from ..errors import SubmapSlamError
 from ._common import OutFolder, console, fail
 
 
+def live_progress():
+    """A rich progress view, a row per running log (scans done; of how many when the reader
+    knows). On the results' console, so that the lines printed meanwhile stay above it;
+    transient, and quiet when that is not a terminal."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("scans"),
+                    TimeElapsedColumn(), console=console, transient=True)
+
+
 def register(app: typer.Typer) -> None:
     """Add ``batch`` to ``app``."""
 
@@ -38,18 +48,34 @@ def register(app: typer.Typer) -> None:
         if missing:
             raise fail(f"no such log: {', '.join(missing)}")
 
-        def done(o) -> None:
-            if o.ok:
-                console.print(f"[green]done[/green] {o.name}: {o.scans} scans, {o.submaps} submaps, "
-                              f"{o.loops_accepted} loops, {o.seconds:.1f} s", highlight=False, markup=True)
-            else:
-                console.print(f"[red]failed[/red] {escape(o.name)}: {escape(o.error)}", highlight=False, markup=True)
+        with live_progress() as view:  # a row per log: scans done as it runs (on a terminal)
+            rows: dict[str, int] = {}
 
-        try:
-            report = batch_logs(logs, out, address=address, use_ray=False if no_ray else None, config=config,
-                                format=format, max_scans=max_scans, on_done=done, num_cpus=num_cpus)
-        except SubmapSlamError as exc:
-            raise fail(exc) from None
+            def row(name: str) -> int:
+                if name not in rows:
+                    rows[name] = view.add_task(name, total=None)
+                return rows[name]
+
+            def running(o, scans: int, total: int | None) -> None:
+                view.update(row(o.name), completed=scans, total=total)
+
+            def done(o) -> None:
+                view.update(row(o.name), visible=False)
+                if o.ok:
+                    console.print(f"[green]done[/green] {o.name}: {o.scans} scans, {o.submaps} submaps, "
+                                  f"{o.loops_accepted} loops, {o.seconds:.1f} s", highlight=False, markup=True)
+                else:
+                    console.print(f"[red]failed[/red] {escape(o.name)}: {escape(o.error)}", highlight=False, markup=True)
+
+            def merged(o) -> None:
+                console.print(f"[cyan]merged[/cyan] {escape(o.name)}: {escape(o.note)}", highlight=False, markup=True)
+
+            try:
+                report = batch_logs(logs, out, address=address, use_ray=False if no_ray else None, config=config,
+                                    format=format, max_scans=max_scans, on_done=done, num_cpus=num_cpus,
+                                    on_progress=running, on_merged=merged)
+            except SubmapSlamError as exc:
+                raise fail(exc) from None
         table = Table(title=f"batch: {len(logs)} logs ({report.executor}), {report.wall_time_s:.1f} s "
                             f"(front ends {report.front_end_s:.1f} s, merge and writing the rest)")
         for col in ("log", "status", "scans", "submaps", "loops", "seconds", "merged", "results"):
