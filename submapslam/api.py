@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -152,16 +153,23 @@ def run_log(
 
         with staged_folder(out_dir, "run", overwrite=overwrite, inputs=inputs) as staging:
             written: dict[str, Path] = {}
-            if save_map:  # OUT/map/: what `run --map OUT` extends (io/map_store.py); before the maps
-                # are built, so that its copies of the clouds and the city-sized grid never coexist
-                from .fleet import session_map_from_result, session_names
-                from .io.map_store import save_map as save_session_map
+            with ThreadPoolExecutor(max_workers=1) as beside:
+                saving = None
+                if save_map:  # OUT/map/: what `run --map OUT` extends (io/map_store.py)
+                    from .fleet import session_map_from_result, session_names
+                    from .io.map_store import save_map as save_session_map
 
-                name = session_name or session_names([log_path])[0]
-                written.update({f"map/{k}": v for k, v in save_session_map(
-                    session_map_from_result(result, name), staging / "map").items()})
-            release_free_memory()  # the run's freed temporaries out of the map fusion's peak
-            maps = build_map_outputs(result)
+                    name = session_name or session_names([log_path])[0]
+                    session = session_map_from_result(result, name)
+                    # 2D: written (mostly compression, off the GIL) while the maps are built; 3D
+                    # before, so that its copies of the clouds and the city-sized grid never coexist
+                    saving = beside.submit(save_session_map, session, staging / "map")
+                    if not result.planar:
+                        saving.result()
+                release_free_memory()  # the run's freed temporaries out of the map fusion's peak
+                maps = build_map_outputs(result)
+                if saving is not None:
+                    written.update({f"map/{k}": v for k, v in saving.result().items()})
             written.update(write_results(result, staging, maps, run_started=t_start))
             written["input.json"] = write_provenance(staging, input_provenance(log_path, result.timestamps))
         paths = {name: Path(out_dir) / name for name in written}

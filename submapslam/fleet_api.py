@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -24,7 +25,9 @@ from .fleet_ray import ray_module
 from .session_map import SessionMap
 
 if TYPE_CHECKING:
-    from .topology.session_placement import VerifyMany
+    from .config import GridParams
+    from .mapping.evidence_grid import EvidenceGrid
+    from .mapping.global_map import LocalGridJob
 
 log = logging.getLogger(__name__)
 
@@ -93,16 +96,33 @@ def run_sessions(
     return merged, {name: Path(out_dir) / name for name in written}
 
 
-def write_session_map(session_map: SessionMap, out_dir: str | Path) -> dict[str, Path]:
+def write_session_map(session_map: SessionMap, out_dir: str | Path,
+                      local_grids: Callable[[list[LocalGridJob], GridParams], Iterable[EvidenceGrid | None]] | None = None,
+                      on_fused: Callable[[], None] | None = None) -> dict[str, Path]:
     """Fuse the placed sessions' maps and write everything (:func:`~submapslam.io.session_results.
-    write_session_results`)."""
+    write_session_results`). ``local_grids(jobs, params)``: the placed submaps' local grids made
+    elsewhere, in order (``batch`` on Ray); ``on_fused`` is called once the maps are fused."""
+    from .io.map_store import save_map
     from .io.session_results import write_session_results
-    from .mapping.global_map import build_map_outputs
+    from .mapping.global_map import build_map_outputs, grid_params
 
     counts = [s.submap_end - s.submap_start for s in session_map.sessions if s.placed]
     starts = [int(k) for k in np.cumsum([0, *counts[:-1]])]  # in the placed sessions' result
-    return write_session_results(session_map, out_dir,
-                                 build_map_outputs(session_map.placed_result(), session_starts=starts))
+    placed = session_map.placed_result()
+    made = None
+    if local_grids is not None:  # a generator: nothing is asked for unless the grid is built
+        r = session_map.result
+        made = local_grids([(i, r.submap_scan_poses[i], r.submap_scan_points[i]) for s in session_map.sessions
+                            if s.placed for i in s.submaps], grid_params(placed))
+    with ThreadPoolExecutor(max_workers=1) as beside:
+        # a 2D map is small: its map/ folder is written (mostly compression, off the GIL) while the
+        # grid is fused; a 3D one after it, so that its copies and the grid never coexist
+        saving = beside.submit(save_map, session_map, Path(out_dir) / "map") if session_map.result.planar else None
+        maps = build_map_outputs(placed, session_starts=starts, local_grids=made)
+        if on_fused is not None:
+            on_fused()
+        map_paths = saving.result() if saving is not None else None
+    return write_session_results(session_map, out_dir, maps, map_paths)
 
 
 # ---------------------------------------------------------------------- batch
@@ -211,8 +231,14 @@ def batch_logs(
                 except SubmapSlamError as exc:  # e.g. a 2D log among 3D ones: its own results stay
                     o.error = f"not merged: {exc}"
                     continue
+            merged_as = merger.map.sessions[-1]
+            if side is not None and merged_as.placed:  # its local grids made on idle cores meanwhile
+                from .mapping.global_map import grid_params
+
+                r = merger.map.result
+                side.make_grids_ahead([(i, r.submap_scan_poses[i], r.submap_scan_points[i])
+                                       for i in merged_as.submaps], grid_params(r))
             if on_merged is not None:
-                merged_as = merger.map.sessions[-1]
                 o.placed, o.links, o.note = merged_as.placed, merged_as.links, merged_as.note
                 on_merged(o)
 
@@ -229,48 +255,45 @@ def batch_logs(
             on_done(o)
         finished.add(k)
 
-    wait_for_ray: Callable[[], None] | None = None  # on Ray: its shutdown, beside the merged map's writing
+    side = None  # on Ray: the instance, its actors and tasks (fleet_ray.RayBatch)
     if ray is not None:
-        from .fleet_ray import run_on_ray
+        from .fleet_ray import RayBatch
 
-        def use_verifier(verify: Callable[[dict], VerifyMany]) -> None:
-            nonlocal verify_elsewhere
-            verify_elsewhere = verify
-
-        executor = "ray"
-        wait_for_ray = run_on_ray(ray, front_end, args, record=record, merge_ready=merge_ready,
-                                  use_verifier=use_verifier, finish=lambda: merger is not None and merger.finish(),
-                                  address=address, num_cpus=num_cpus,
-                                  progress=None if on_progress is None
-                                  else lambda k, done, total: on_progress(outcomes[k], done, total))
-    else:
-        executor = "sequential"
-        for k, a in enumerate(args):
-            step = None if on_progress is None else partial(on_progress, outcomes[k])
-            try:
-                value, error = front_end(*a, on_progress=step), None
-            except Exception as exc:  # a failed log is reported; the others go on
-                value, error = None, exc
-            record(k, value, error)
-            merge_ready()
-        if merger is not None:
-            merger.finish()
-    front_end_s = time.perf_counter() - t0
+        side = RayBatch(ray, address, num_cpus)
     merged = merged_dir = None
     try:
+        if side is not None:
+            verify_elsewhere = side.verifier()
+            side.run(front_end, args, record=record, merge_ready=merge_ready,
+                     progress=None if on_progress is None else lambda k, done, total: on_progress(outcomes[k], done, total))
+        else:
+            for k, a in enumerate(args):
+                step = None if on_progress is None else partial(on_progress, outcomes[k])
+                try:
+                    value, error = front_end(*a, on_progress=step), None
+                except Exception as exc:  # a failed log is reported; the others go on
+                    value, error = None, exc
+                record(k, value, error)
+                merge_ready()
+        if merger is not None:
+            merger.finish()  # its retries may test on the Ray actors
+        front_end_s = time.perf_counter() - t0
         if merger is not None:
             merged = merger.map
             merged_dir = out / "merged"
-            write_session_map(merged, merged_dir)
+            # on Ray: the local grids made ahead, then Ray's shutdown beside the files' writing
+            write_session_map(merged, merged_dir, local_grids=None if side is None else side.local_grids,
+                              on_fused=None if side is None else side.release)
     finally:
-        if wait_for_ray is not None:
-            wait_for_ray()
+        if side is not None:
+            side.close()
     if merger is not None:
         by_name = {s.name: s for s in merged.sessions}
         for o in outcomes:
             if o.name in by_name:
                 o.placed, o.links, o.note = by_name[o.name].placed, by_name[o.name].links, by_name[o.name].note
-    return BatchReport(outcomes, merged_dir, time.perf_counter() - t0, executor, merged, front_end_s)
+    return BatchReport(outcomes, merged_dir, time.perf_counter() - t0, "sequential" if side is None else "ray",
+                       merged, front_end_s)
 
 
 def _one_line(exc: BaseException) -> str:

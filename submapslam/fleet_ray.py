@@ -14,6 +14,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
+    from .config import GridParams
+    from .mapping.evidence_grid import EvidenceGrid
+    from .mapping.global_map import LocalGridJob
     from .topology.session_placement import VerifyMany
 
 
@@ -26,28 +29,43 @@ def ray_module():
     return ray
 
 
-def run_on_ray(ray, front_end: Callable[..., dict], args: list[tuple], *,
-               record: Callable[[int, dict | None, BaseException | None], None],
-               merge_ready: Callable[[], None], use_verifier: Callable[[Callable[[dict], VerifyMany]], None],
-               finish: Callable[[], object], address: str | None = None,
-               num_cpus: int | None = None,
-               progress: Callable[[int, int, int | None], None] | None = None) -> Callable[[], None]:
-    """Run ``front_end(*a)`` for each ``a`` of ``args`` as a Ray task (started in the order
-    given), ``record(k, value, error)`` each as it ends and ``merge_ready()`` after it in a
-    lower-priority thread; then ``finish()`` (the merge's last retries). ``use_verifier`` receives
-    the placement-test runner on Ray actors before any task starts. With ``progress``, each task
-    streams ``progress(k, scans done, scans in the log or None)`` while it runs
-    (:func:`front_end_with_progress`, a Ray generator task).
+class RayBatch:
+    """``batch``'s Ray side: a local Ray instance (``num_cpus``) or the cluster at ``address``,
+    started (unless Ray already runs) when made; :meth:`close` shuts down what was started here.
 
-    Starts a local Ray (``num_cpus``) or joins the cluster at ``address`` unless Ray is already
-    running. Returns a function that waits for the shutdown of a Ray started here, which runs in
-    the background meanwhile (1.4 s of waiting for its processes, beside the merged map's writing).
+    :meth:`verifier` runs the merge's placement tests on actors; :meth:`run` runs the logs' front
+    ends as tasks with the merge beside them; :meth:`make_grids_ahead` makes the merged map's
+    local grids on idle cores while the last logs still run, and :meth:`local_grids` hands them
+    to the fusion; :meth:`release` starts the shutdown in the background (beside the writing).
     """
-    started_here = not ray.is_initialized()
-    if started_here:
-        _init_ray_beside_imports(ray, address, num_cpus)
-    try:
-        use_verifier(_ray_verifier(ray, int(ray.cluster_resources().get("CPU", 1))))
+
+    def __init__(self, ray, address: str | None = None, num_cpus: int | None = None,
+                 grids_budget_bytes: int = 256 * 2**20) -> None:
+        """``grids_budget_bytes``: the local grids made ahead are kept on the actors up to about
+        this size; the others are made when the fusion asks for them."""
+        self.ray = ray
+        self.started_here = not ray.is_initialized()
+        if self.started_here:
+            _init_ray_beside_imports(ray, address, num_cpus)
+        self.workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
+        self._grid_makers: list = []
+        self._made_ahead: dict[int, tuple] = {}  # submap key -> (grid maker holding its local grid, its make's ref)
+        self._budget = grids_budget_bytes
+        self._shutting_down: ThreadPoolExecutor | None = None
+
+    def verifier(self) -> Callable[[dict], VerifyMany]:
+        """For :class:`~submapslam.fleet.SessionMerger`: its placement tests on Ray actors."""
+        return _ray_verifier(self.ray, self.workers)
+
+    def run(self, front_end: Callable[..., dict], args: list[tuple], *,
+            record: Callable[[int, dict | None, BaseException | None], None], merge_ready: Callable[[], None],
+            progress: Callable[[int, int, int | None], None] | None = None) -> None:
+        """Run ``front_end(*a)`` for each ``a`` of ``args`` as a Ray task (started in the order
+        given), ``record(k, value, error)`` each as it ends and ``merge_ready()`` after it in a
+        lower-priority thread. With ``progress``, each task streams ``progress(k, scans done,
+        scans in the log or None)`` while it runs (:func:`front_end_with_progress`, a Ray
+        generator task)."""
+        ray = self.ray
         if progress is None:
             task = ray.remote(num_cpus=1, max_retries=0)(front_end)
             started = [task.remote(*a) for a in args]
@@ -78,16 +96,64 @@ def run_on_ray(ray, front_end: Callable[..., dict], args: list[tuple], *,
                 merges.append(merging.submit(merge_ready))
             for m in merges:
                 m.result()  # re-raises a merge's error
-        finish()  # its retries may test on the Ray actors
-    except BaseException:
-        if started_here:
-            ray.shutdown()
-        raise
-    if not started_here:
-        return lambda: None
-    shutting_down = ThreadPoolExecutor(max_workers=1)
-    shutting_down.submit(ray.shutdown)
-    return lambda: shutting_down.shutdown(wait=True)
+
+    def make_grids_ahead(self, jobs: list[LocalGridJob], params: GridParams) -> None:
+        """Start making the local grids of ``jobs`` (submaps already in the merged map) on
+        actors at the lowest priority: they use the cores the logs and the merge leave idle.
+        Beyond the budget (estimated from each submap's extent) they are left for later."""
+        from .mapping.global_map import local_extent
+
+        self._start_grid_makers()
+        chosen = []
+        for job in jobs:
+            extent = local_extent(job[1], job[2])
+            cells = 0 if extent is None else float(np.prod((extent[1] - extent[0]) / params.resolution + 3))
+            if cells * 5 > self._budget:  # float32 log-odds and a uint8 free run a cell
+                break
+            self._budget -= int(cells * 5)
+            chosen.append(job)
+        params_ref = self.ray.put(params)
+        for job in chosen:
+            k = len(self._made_ahead) % len(self._grid_makers)
+            self._made_ahead[job[0]] = (k, self._grid_makers[k].make.remote(job, params_ref))
+
+    def local_grids(self, jobs: list[LocalGridJob], params: GridParams, window: int = 8) -> Iterator[EvidenceGrid | None]:
+        """The local grids of ``jobs`` in their order: those made ahead from their actor, the
+        others made now on the actors (``window`` requests ahead)."""
+        self._start_grid_makers()
+        params_ref = self.ray.put(params)
+
+        def request(n: int, job: LocalGridJob):
+            held = self._made_ahead.pop(job[0], None)
+            if held is None:
+                return self._grid_makers[n % len(self._grid_makers)].take.remote(job[0], job, params_ref)
+            k, made = held  # the made grid's reference as an argument: taken once it is made
+            return self._grid_makers[k].take.remote(job[0], None, params_ref, made)
+
+        asked = [request(n, job) for n, job in enumerate(jobs[:window])]
+        for n in range(len(jobs)):
+            if n + window < len(jobs):
+                asked.append(request(n + window, jobs[n + window]))
+            yield self.ray.get(asked[n])
+            asked[n] = None
+
+    def _start_grid_makers(self) -> None:
+        if not self._grid_makers:
+            maker = self.ray.remote(num_cpus=0, max_restarts=0)(_GridMaker)
+            self._grid_makers = [maker.remote() for _ in range(self.workers)]
+
+    def release(self) -> None:
+        """Start shutting down a Ray started here, in the background (1.4 s of waiting for its
+        processes: beside the merged map's writing)."""
+        if self.started_here and self._shutting_down is None:
+            self._shutting_down = ThreadPoolExecutor(max_workers=1)
+            self._shutting_down.submit(self.ray.shutdown)
+
+    def close(self) -> None:
+        """Shut down a Ray started here and wait for it."""
+        self.release()
+        if self._shutting_down is not None:
+            self._shutting_down.shutdown(wait=True)
 
 
 def front_end_with_progress(front_end: Callable[..., dict], args: tuple, every_s: float = 0.5) -> Iterator[tuple]:
@@ -181,6 +247,30 @@ def _ray_verifier(ray, workers: int) -> Callable[[dict], VerifyMany]:
         return verify_many
 
     return bind
+
+
+class _GridMaker:
+    """A Ray actor making local grids (:func:`~submapslam.mapping.global_map.local_grid`) at the
+    lowest priority, keeping each until it is taken."""
+
+    def __init__(self) -> None:
+        lower_thread_priority(19)
+        self.grids: dict[int, EvidenceGrid | None] = {}
+
+    def make(self, job: LocalGridJob, params: GridParams) -> None:
+        from .mapping.global_map import local_grid
+
+        key, poses, points = job
+        self.grids[key] = local_grid(poses, points, params)
+
+    def take(self, key: int, job: LocalGridJob | None, params: GridParams, made: None = None) -> EvidenceGrid | None:
+        """The grid made ahead for ``key`` (``made``: that :meth:`make`'s result, so that Ray runs
+        this after it), or ``job``'s made now."""
+        if job is None:
+            return self.grids.pop(key)
+        from .mapping.global_map import local_grid
+
+        return local_grid(job[1], job[2], params)
 
 
 class _Verifier:

@@ -120,8 +120,8 @@ def test_batch_on_ray_gives_the_same_trajectories(logs, sequential, tmp_path):
     assert "broken.clf" in par.logs[1].error
     for name in ("hall.a", "hall.b"):
         assert (tmp_path / "ray" / name / "poses_tum.txt").read_bytes() == (seq_out / name / "poses_tum.txt").read_bytes()
-    assert (tmp_path / "ray" / "merged" / "poses_tum.txt").read_bytes() == \
-        (seq_out / "merged" / "poses_tum.txt").read_bytes()
+    for name in ("poses_tum.txt", "map.pgm", "map.ply"):  # the grid from local grids made on the Ray actors too
+        assert (tmp_path / "ray" / "merged" / name).read_bytes() == (seq_out / "merged" / name).read_bytes(), name
 
 
 def test_batch_cli_prints_a_table_and_fails_on_a_missing_log(logs, tmp_path):
@@ -133,3 +133,29 @@ def test_batch_cli_prints_a_table_and_fails_on_a_missing_log(logs, tmp_path):
     assert res.exit_code == 0, res.output
     assert "hall.a" in res.output and "sequential" in res.output
     assert (tmp_path / "o" / "merged" / "map" / "manifest.json").is_file()
+
+
+def test_ray_local_grids_made_ahead_or_on_demand_equal_those_made_here(sequential):
+    pytest.importorskip("ray")
+    import numpy as np
+
+    from submapslam.fleet_ray import RayBatch, ray_module
+    from submapslam.io.map_store import load_map
+    from submapslam.mapping.global_map import grid_params, local_grid
+
+    out, _, _, _, _ = sequential
+    result = load_map(out / "hall.a" / "map").result
+    params = grid_params(result)
+    jobs = [(k, poses, points) for k, (poses, points) in enumerate(zip(result.submap_scan_poses,
+                                                                       result.submap_scan_points))]
+    assert len(jobs) >= 2
+    side = RayBatch(ray_module(), num_cpus=2)
+    try:
+        side.make_grids_ahead(jobs[1::2], params)  # every other one ahead, the rest when asked for
+        made = list(side.local_grids(jobs, params, window=2))
+    finally:
+        side.close()
+    for (_, poses, points), grid in zip(jobs, made, strict=True):
+        here = local_grid(poses, points, params)
+        assert np.array_equal(grid.logodds, here.logodds) and np.array_equal(grid.origin, here.origin)
+        assert np.array_equal(grid.free_run, here.free_run)

@@ -25,8 +25,10 @@ from .results import write_results
 from .trajectory import Trajectory, write_tum
 
 
-def write_session_results(session_map: SessionMap, out_dir: str | Path, maps: MapOutputs) -> dict[str, Path]:
-    """Write the map of ``session_map`` (``maps``: fused from its placed sessions) into ``out_dir``."""
+def write_session_results(session_map: SessionMap, out_dir: str | Path, maps: MapOutputs,
+                          map_paths: dict[str, Path] | None = None) -> dict[str, Path]:
+    """Write the map of ``session_map`` (``maps``: fused from its placed sessions) into ``out_dir``;
+    ``map_paths``: :func:`~.map_store.save_map`'s return when ``out_dir/map/`` is already written."""
     out = Path(out_dir)
     placed = session_map.placed_result()
     paths = write_results(placed, out, maps)
@@ -51,5 +53,5 @@ def write_session_results(session_map: SessionMap, out_dir: str | Path, maps: Ma
     if "merge" in r.stage_seconds:
         summary["wall_time_s"]["merge"] = round(r.stage_seconds["merge"], 3)
     paths["summary.json"].write_text(json.dumps(summary, indent=2) + "\n")
-    paths.update({f"map/{k}": v for k, v in save_map(session_map, out / "map").items()})
+    paths.update({f"map/{k}": v for k, v in (map_paths or save_map(session_map, out / "map")).items()})
     return paths

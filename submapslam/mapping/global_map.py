@@ -13,6 +13,9 @@ from ..geometry import transform_points
 from ..result import SlamResult
 from .evidence_grid import EvidenceGrid, GridParams, fuse_submap_grids
 
+LocalGridJob = tuple[int, np.ndarray, list[np.ndarray]]
+# one submap's local grid to make elsewhere: (key, T_anchor_scans (K, 4, 4), scan points [(n_k, 3)])
+
 
 def local_grid(T_anchor_scans: np.ndarray, scan_points: list[np.ndarray], params: GridParams) -> EvidenceGrid | None:
     """Evidence grid of one submap in its anchor frame from its scans (``(n_k, 3)`` sensor frame)."""
@@ -36,7 +39,7 @@ def grid_params(result: SlamResult) -> GridParams:
                                            "max_free_range": mapping.grid_max_free_range_3d})
 
 
-def _local_extent(T_anchor_scans: np.ndarray, scan_points: list[np.ndarray]) -> np.ndarray | None:
+def local_extent(T_anchor_scans: np.ndarray, scan_points: list[np.ndarray]) -> np.ndarray | None:
     """``(2, 2)`` min/max corners (anchor frame, x y) of a submap's scans and their poses."""
     lo, hi = T_anchor_scans[:, :2, 3].min(axis=0), T_anchor_scans[:, :2, 3].max(axis=0)
     seen = False
@@ -50,13 +53,16 @@ def _local_extent(T_anchor_scans: np.ndarray, scan_points: list[np.ndarray]) -> 
 
 def build_global_grid(result: SlamResult, params: GridParams | None = None,
                       session_starts: list[int] | None = None,
-                      left_between_sessions: list[np.ndarray] | None = None) -> tuple[EvidenceGrid, int]:
+                      left_between_sessions: list[np.ndarray] | None = None,
+                      local_grids: Iterable[EvidenceGrid | None] | None = None) -> tuple[EvidenceGrid, int]:
     """Fuse every submap's local grid in time order; return the grid and cells cleared as dynamic.
 
     ``session_starts``: the first submap of each session (ascending); with it the empty list
     ``left_between_sessions`` receives the grid-shaped bool mask of the cells a session cleared
     that were occupied when it began (what an earlier session saw and a later one saw gone; not
-    what a session saw come and go itself).
+    what a session saw come and go itself). ``local_grids``: every submap's :func:`local_grid`
+    at ``params``, in submap order, made elsewhere (``batch`` on Ray: ahead, on idle cores);
+    None: made here.
 
     Two passes over the submaps: the first finds the extent, the second builds each local grid
     and fuses it at once, so memory holds the global grid and one local grid, not all of them
@@ -66,7 +72,7 @@ def build_global_grid(result: SlamResult, params: GridParams | None = None,
     corners = []
     for T_world_anchor, poses, points in zip(result.submap_poses, result.submap_scan_poses,
                                              result.submap_scan_points):
-        extent = _local_extent(poses, points)
+        extent = local_extent(poses, points)
         if extent is None:
             continue
         (x0, y0), (x1, y1) = extent - [[params.resolution] * 2, [-params.resolution] * 2]
@@ -80,11 +86,12 @@ def build_global_grid(result: SlamResult, params: GridParams | None = None,
     left = np.zeros(global_grid.logodds.shape, dtype=bool) if track else None
     occupied_at_start = None  # while a later session fuses: what was occupied when it began
     cleared = 0
+    made = iter(local_grids) if local_grids is not None else None
     for k, (T_world_anchor, poses, points) in enumerate(zip(result.submap_poses, result.submap_scan_poses,
                                                             result.submap_scan_points)):
         if track and k in starts:
             occupied_at_start = global_grid.logodds > params.occupied_threshold
-        grid = local_grid(poses, points, params)
+        grid = next(made) if made is not None else local_grid(poses, points, params)
         if grid is not None:
             cleared += fuse_submap_grids(global_grid, grid, T_world_anchor,
                                          left if occupied_at_start is not None else None, occupied_at_start)
@@ -224,13 +231,15 @@ class MapOutputs:
     vacated_points: int = 0  # of ``points``, moved to ``dynamic_points`` where the grid saw something leave
 
 
-def build_map_outputs(result: SlamResult, session_starts: list[int] | None = None) -> MapOutputs:
+def build_map_outputs(result: SlamResult, session_starts: list[int] | None = None,
+                      local_grids: Iterable[EvidenceGrid | None] | None = None) -> MapOutputs:
     """Fuse the map cloud and, when the run keeps grid scans, the occupancy grid.
 
     ``session_starts`` (a map of several sessions: each one's first submap; 3D, with a grid): the
     cloud's points where the grid saw something leave between sessions
     (:func:`points_in_vacated_cells`) go to the dynamic cloud — a car parked in one session and
-    gone in a later one."""
+    gone in a later one. ``local_grids``: the submaps' local grids made elsewhere
+    (:func:`build_global_grid`)."""
     t0 = time.perf_counter()
     out = MapOutputs(points=fused_map(result))
     if result.submap_dynamic_points is not None:
@@ -240,7 +249,8 @@ def build_map_outputs(result: SlamResult, session_starts: list[int] | None = Non
         vacate = bool(session_starts) and len(session_starts) > 1 and not result.planar
         left: list[np.ndarray] = []
         grid, out.cleared_cells = build_global_grid(result, session_starts=session_starts if vacate else None,
-                                                    left_between_sessions=left if vacate else None)
+                                                    left_between_sessions=left if vacate else None,
+                                                    local_grids=local_grids)
         if vacate:
             mapping = result.config.mapping
             vacated = vacated_cells(left[0], grid.logodds)
