@@ -1,6 +1,7 @@
 """The Ray side of ``batch`` (:func:`~submapslam.fleet_api.batch_logs`): a local Ray instance
-or a cluster, each log's front end a task, the merge's independent placement tests on actors,
-the merge itself in a thread of this process at a lower priority.
+or a cluster (:class:`RayBatch`), each log's front end a task streaming its progress, the
+merge's independent placement tests on actors, the merge itself in a thread of this process at a
+lower priority, the merged grid's local grids made ahead on actors at the lowest priority.
 
 Ray is optional (``pip install 'submapslam[ray]'``): :func:`ray_module` is None without it.
 """
