@@ -53,10 +53,13 @@ class RayBatch:
         self._made_ahead: dict[int, tuple] = {}  # submap key -> (grid maker holding its local grid, its make's ref)
         self._budget = grids_budget_bytes
         self._shutting_down: ThreadPoolExecutor | None = None
+        # every Ray object reference and actor handle kept between calls, dropped before the
+        # shutdown (one let go while Ray shuts down in the background ends the process)
+        self._holding: list[dict | list] = [self._made_ahead, self._grid_makers]
 
     def verifier(self) -> Callable[[dict], VerifyMany]:
         """For :class:`~submapslam.fleet.SessionMerger`: its placement tests on Ray actors."""
-        return _ray_verifier(self.ray, self.workers)
+        return _ray_verifier(self.ray, self.workers, self._holding)
 
     def run(self, front_end: Callable[..., dict], args: list[tuple], *,
             record: Callable[[int, dict | None, BaseException | None], None], merge_ready: Callable[[], None],
@@ -122,30 +125,37 @@ class RayBatch:
         """The local grids of ``jobs`` in their order: those made ahead from their actor, the
         others made now on the actors (``window`` requests ahead)."""
         self._start_grid_makers()
-        params_ref = self.ray.put(params)
+        refs: dict = {"params": self.ray.put(params)}  # n -> the request for jobs[n]; held as the others
+        self._holding.append(refs)
 
-        def request(n: int, job: LocalGridJob):
-            held = self._made_ahead.pop(job[0], None)
+        def request(n: int) -> None:
+            key = jobs[n][0]
+            held = self._made_ahead.pop(key, None)
             if held is None:
-                return self._grid_makers[n % len(self._grid_makers)].take.remote(job[0], job, params_ref)
-            k, made = held  # the made grid's reference as an argument: taken once it is made
-            return self._grid_makers[k].take.remote(job[0], None, params_ref, made)
+                refs[n] = self._grid_makers[n % len(self._grid_makers)].take.remote(key, jobs[n], refs["params"])
+            else:  # the made grid's reference as an argument: taken once it is made
+                refs[n] = self._grid_makers[held[0]].take.remote(key, None, refs["params"], held[1])
 
-        asked = [request(n, job) for n, job in enumerate(jobs[:window])]
+        for n in range(min(window, len(jobs))):
+            request(n)
         for n in range(len(jobs)):
             if n + window < len(jobs):
-                asked.append(request(n + window, jobs[n + window]))
-            yield self.ray.get(asked[n])
-            asked[n] = None
+                request(n + window)
+            grid = self.ray.get(refs.pop(n))
+            if n == len(jobs) - 1:
+                refs.clear()
+            yield grid
 
     def _start_grid_makers(self) -> None:
         if not self._grid_makers:
             maker = self.ray.remote(num_cpus=0, max_restarts=0)(_GridMaker)
-            self._grid_makers = [maker.remote() for _ in range(self.workers)]
+            self._grid_makers.extend(maker.remote() for _ in range(self.workers))
 
     def release(self) -> None:
         """Start shutting down a Ray started here, in the background (1.4 s of waiting for its
         processes: beside the merged map's writing)."""
+        for held in self._holding:
+            held.clear()
         if self.started_here and self._shutting_down is None:
             self._shutting_down = ThreadPoolExecutor(max_workers=1)
             self._shutting_down.submit(self.ray.shutdown)
@@ -224,19 +234,22 @@ def lower_thread_priority(step: int = 10) -> None:
             pass
 
 
-def _ray_verifier(ray, workers: int) -> Callable[[dict], VerifyMany]:
+def _ray_verifier(ray, workers: int, holding: list[dict | list]) -> Callable[[dict], VerifyMany]:
     """For :class:`~submapslam.fleet.SessionMerger`: runs a batch of placement tests on ``workers``
     Ray actors (:class:`_Verifier`), results in order. The actors take no CPU slot of their own:
     while logs still run they share the cores with them, afterwards they use them all. Each
     keeps its loop closer and the submaps between batches (put again only when submaps were
-    added), so its prepared clouds stay warm."""
+    added), so its prepared clouds stay warm. The actors and the submaps put are held in a dict
+    appended to ``holding`` (cleared before Ray shuts down)."""
     actor_class = ray.remote(num_cpus=0, max_restarts=0)(_Verifier)
 
     def bind(closer_args: dict) -> VerifyMany:
-        actors = [actor_class.remote(closer_args) for _ in range(max(1, workers))]
-        shared: dict = {}  # the submaps as last put: key (list identity, length) and reference
+        # the actors, and the submaps as last put: key (list identity, length) and reference
+        shared: dict = {"actors": [actor_class.remote(closer_args) for _ in range(max(1, workers))]}
+        holding.append(shared)
 
         def verify_many(items, submaps, map_poses):
+            actors = shared["actors"]
             key = (id(submaps), len(submaps))
             if shared.get("key") != key:  # the merge appends submaps and never changes their points
                 shared.update(key=key, box=[ray.put(submaps)])  # in a list: passed as a reference
