@@ -183,6 +183,7 @@ def batch_logs(
     num_cpus: int | None = None,
     on_progress: Callable[[LogOutcome, int, int | None], None] | None = None,
     on_merged: Callable[[LogOutcome], None] | None = None,
+    cpus_per_log: float = 1.0,
 ) -> BatchReport:
     """Run every log's front end (a Ray task each, or one after another) and merge them.
 
@@ -190,7 +191,9 @@ def batch_logs(
     extensions), the merged map to ``out_dir/merged/``. A log that fails is reported (``ok``
     False, ``error``) and left out of the merge; the others are kept. ``use_ray``: None = Ray
     when installed (or when ``address`` is given), False = sequential; ``address``: an existing
-    Ray cluster (default: a local instance with ``num_cpus``). ``on_done`` is called as each log
+    Ray cluster (default: a local instance with ``num_cpus``); ``cpus_per_log``: the CPUs each
+    log's task asks Ray for (2 lets two 3D logs share a 2-core node one at a time, or a 4-core
+    node two at a time, instead of crowding it). ``on_done`` is called as each log
     finishes, ``on_progress(outcome, scans done, scans in the log or None)`` while it runs (from
     Ray: about twice a second), ``on_merged`` as each log joins the merged map (``placed`` and
     ``note`` then say how; a later session can still place one left in its own frame). The merge
@@ -205,6 +208,8 @@ def batch_logs(
     out = Path(out_dir)
     names = session_names(logs)
     outcomes = [LogOutcome(str(p), n) for p, n in zip(logs, names)]
+    if not cpus_per_log > 0:
+        raise SubmapSlamError(f"CPUs per log must be more than 0, not {cpus_per_log:g}")
     ray = ray_module() if use_ray is not False else None
     if (use_ray or address) and ray is None:
         raise SubmapSlamError("Ray is not installed: pip install 'submapslam[ray]' (or run without --address)")
@@ -264,7 +269,7 @@ def batch_logs(
     try:
         if side is not None:
             verify_elsewhere = side.verifier()
-            side.run(front_end, args, record=record, merge_ready=merge_ready,
+            side.run(front_end, args, record=record, merge_ready=merge_ready, cpus_per_task=cpus_per_log,
                      progress=None if on_progress is None else lambda k, done, total: on_progress(outcomes[k], done, total))
         else:
             for k, a in enumerate(args):

@@ -9,6 +9,7 @@ from typer.testing import CliRunner
 
 from datasets_synth import generate
 from submapslam.cli import app
+from submapslam.errors import SubmapSlamError
 from submapslam.fleet_api import batch_logs
 
 runner = CliRunner()
@@ -184,3 +185,16 @@ def _ray_handles(value, depth: int = 0) -> list:
     else:
         return []
     return [h for item in items for h in _ray_handles(item, depth + 1)]
+
+
+def test_batch_cpus_per_log_beyond_any_node_is_one_line(logs, tmp_path):
+    _, a, b, _ = logs
+    with pytest.raises(SubmapSlamError, match="more than 0"):
+        batch_logs([a, b], tmp_path / "zero", use_ray=False, cpus_per_log=0)
+    pytest.importorskip("ray")
+    # Ray would wait forever for a node with 3 CPUs: refused before any task starts
+    res = runner.invoke(app, ["batch", str(a), str(b), "--out", str(tmp_path / "o"), "--num-cpus", "2",
+                              "--cpus-per-log", "3"])
+    assert res.exit_code == 1 and "the largest Ray node has 2" in res.output, res.output
+    assert "Traceback" not in res.output
+    assert not (tmp_path / "o" / "hall.a" / "poses_tum.txt").exists()

@@ -36,6 +36,8 @@ def register(app: typer.Typer) -> None:
         format: Annotated[str | None, typer.Option("--format", "-f", help="Force the log format.")] = None,
         max_scans: Annotated[int | None, typer.Option("--max-scans", help="Stop each log after N scans.")] = None,
         num_cpus: Annotated[int | None, typer.Option("--num-cpus", help="CPUs of the local Ray instance.")] = None,
+        cpus_per_log: Annotated[float, typer.Option(
+            "--cpus-per-log", help="CPUs each log's task asks Ray for (a 3D log keeps about 1.6 busy).")] = 1.0,
     ) -> None:
         """Run every LOG (a Ray task each; without Ray one after another), then merge them into one map.
 
@@ -73,6 +75,7 @@ def register(app: typer.Typer) -> None:
             try:
                 report = batch_logs(logs, out, address=address, use_ray=False if no_ray else None, config=config,
                                     format=format, max_scans=max_scans, on_done=done, num_cpus=num_cpus,
+                                    cpus_per_log=cpus_per_log,
                                     on_progress=running, on_merged=merged)
             except SubmapSlamError as exc:
                 raise fail(exc) from None
