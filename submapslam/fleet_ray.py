@@ -154,10 +154,11 @@ class RayBatch:
                 refs.clear()
             yield grid
 
-    def _start_grid_makers(self) -> None:
+    def _start_grid_makers(self, most: int = 4) -> None:
+        """One grid maker a CPU, at most ``most`` (the fusion, in one thread, takes no more)."""
         if not self._grid_makers:
             maker = self.ray.remote(num_cpus=0, max_restarts=0)(_GridMaker)
-            self._grid_makers.extend(maker.remote() for _ in range(self.workers))
+            self._grid_makers.extend(maker.remote() for _ in range(min(self.workers, most)))
 
     def release(self) -> None:
         """Start shutting down a Ray started here, in the background (1.4 s of waiting for its
