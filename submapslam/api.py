@@ -21,7 +21,9 @@ if TYPE_CHECKING:
     from .ekf.stochastic_map import CredibilityParams
     from .landmark_log import LandmarkLog
     from .localization import LocalizationConfig, LocalizationResult
+    from .mapping.global_map import MapOutputs
     from .observer import RunObserver
+    from .session_map import SessionMap
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +35,23 @@ def progress_bar(total: int | None):
 
     return Progress(TextColumn("[bold]scans"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                     console=Console(stderr=True), transient=True)
+
+
+def fuse_beside_map_store(session_map: SessionMap, map_folder: Path,
+                          fuse: Callable[[], MapOutputs]) -> tuple[MapOutputs, dict[str, Path]]:
+    """Save ``session_map`` into ``map_folder`` (:func:`~submapslam.io.map_store.save_map`) and
+    return ``fuse()``'s maps with the saved paths. A 2D map is small: saved in a thread while it
+    fuses (the writing is mostly compression, off the GIL); a 3D one first, so that the map
+    store's copies of the clouds and the city-sized grid never coexist."""
+    from .io.map_store import save_map
+
+    if not session_map.result.planar:
+        paths = save_map(session_map, map_folder)
+        return fuse(), paths
+    with ThreadPoolExecutor(max_workers=1) as beside:
+        saving = beside.submit(save_map, session_map, map_folder)
+        maps = fuse()
+        return maps, saving.result()
 
 
 def run_log(
@@ -153,23 +172,19 @@ def run_log(
 
         with staged_folder(out_dir, "run", overwrite=overwrite, inputs=inputs) as staging:
             written: dict[str, Path] = {}
-            with ThreadPoolExecutor(max_workers=1) as beside:
-                saving = None
-                if save_map:  # OUT/map/: what `run --map OUT` extends (io/map_store.py)
-                    from .fleet import session_map_from_result, session_names
-                    from .io.map_store import save_map as save_session_map
 
-                    name = session_name or session_names([log_path])[0]
-                    session = session_map_from_result(result, name)
-                    # 2D: written (mostly compression, off the GIL) while the maps are built; 3D
-                    # before, so that its copies of the clouds and the city-sized grid never coexist
-                    saving = beside.submit(save_session_map, session, staging / "map")
-                    if not result.planar:
-                        saving.result()
+            def fuse() -> MapOutputs:
                 release_free_memory()  # the run's freed temporaries out of the map fusion's peak
-                maps = build_map_outputs(result)
-                if saving is not None:
-                    written.update({f"map/{k}": v for k, v in saving.result().items()})
+                return build_map_outputs(result)
+
+            if save_map:  # OUT/map/: what `run --map OUT` extends (io/map_store.py)
+                from .fleet import session_map_from_result, session_names
+
+                name = session_name or session_names([log_path])[0]
+                maps, map_paths = fuse_beside_map_store(session_map_from_result(result, name), staging / "map", fuse)
+                written.update({f"map/{k}": v for k, v in map_paths.items()})
+            else:
+                maps = fuse()
             written.update(write_results(result, staging, maps, run_started=t_start))
             written["input.json"] = write_provenance(staging, input_provenance(log_path, result.timestamps))
         paths = {name: Path(out_dir) / name for name in written}

@@ -11,7 +11,6 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -102,26 +101,25 @@ def write_session_map(session_map: SessionMap, out_dir: str | Path,
     """Fuse the placed sessions' maps and write everything (:func:`~submapslam.io.session_results.
     write_session_results`). ``local_grids(jobs, params)``: the placed submaps' local grids made
     elsewhere, in order (``batch`` on Ray); ``on_fused`` is called once the maps are fused."""
-    from .io.map_store import save_map
+    from .api import fuse_beside_map_store
     from .io.session_results import write_session_results
-    from .mapping.global_map import build_map_outputs, grid_params
+    from .mapping.global_map import build_map_outputs, grid_params, local_grid_jobs
 
     counts = [s.submap_end - s.submap_start for s in session_map.sessions if s.placed]
     starts = [int(k) for k in np.cumsum([0, *counts[:-1]])]  # in the placed sessions' result
     placed = session_map.placed_result()
-    made = None
-    if local_grids is not None:  # a generator: nothing is asked for unless the grid is built
-        r = session_map.result
-        made = local_grids([(i, r.submap_scan_poses[i], r.submap_scan_points[i]) for s in session_map.sessions
-                            if s.placed for i in s.submaps], grid_params(placed))
-    with ThreadPoolExecutor(max_workers=1) as beside:
-        # a 2D map is small: its map/ folder is written (mostly compression, off the GIL) while the
-        # grid is fused; a 3D one after it, so that its copies and the grid never coexist
-        saving = beside.submit(save_map, session_map, Path(out_dir) / "map") if session_map.result.planar else None
+
+    def fuse():
+        made = None
+        if local_grids is not None:  # a generator: nothing is asked for unless the grid is built
+            ids = [i for s in session_map.sessions if s.placed for i in s.submaps]
+            made = local_grids(local_grid_jobs(session_map.result, ids), grid_params(placed))
         maps = build_map_outputs(placed, session_starts=starts, local_grids=made)
         if on_fused is not None:
             on_fused()
-        map_paths = saving.result() if saving is not None else None
+        return maps
+
+    maps, map_paths = fuse_beside_map_store(session_map, Path(out_dir) / "map", fuse)
     return write_session_results(session_map, out_dir, maps, map_paths)
 
 
@@ -238,11 +236,10 @@ def batch_logs(
                     continue
             merged_as = merger.map.sessions[-1]
             if side is not None and merged_as.placed:  # its local grids made on idle cores meanwhile
-                from .mapping.global_map import grid_params
+                from .mapping.global_map import grid_params, local_grid_jobs
 
                 r = merger.map.result
-                side.make_grids_ahead([(i, r.submap_scan_poses[i], r.submap_scan_points[i])
-                                       for i in merged_as.submaps], grid_params(r))
+                side.make_grids_ahead(local_grid_jobs(r, merged_as.submaps), grid_params(r))
             if on_merged is not None:
                 o.placed, o.links, o.note = merged_as.placed, merged_as.links, merged_as.note
                 on_merged(o)

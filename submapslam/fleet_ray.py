@@ -68,9 +68,9 @@ class RayBatch:
             progress: Callable[[int, int, int | None], None] | None = None, cpus_per_task: float = 1.0) -> None:
         """Run ``front_end(*a)`` for each ``a`` of ``args`` as a Ray task (started in the order
         given), ``record(k, value, error)`` each as it ends and ``merge_ready()`` after it in a
-        lower-priority thread. With ``progress``, each task streams ``progress(k, scans done,
-        scans in the log or None)`` while it runs (:func:`front_end_with_progress`, a Ray
-        generator task). Each task asks Ray for ``cpus_per_task`` CPUs (a 3D front end keeps
+        lower-priority thread. Each task streams its progress (:func:`front_end_with_progress`, a
+        Ray generator task), passed on as ``progress(k, scans done, scans in the log or None)``
+        when given. Each task asks Ray for ``cpus_per_task`` CPUs (a 3D front end keeps
         about 1.6 busy); more than the largest node has is refused here, before any task starts
         (Ray would wait for such a node forever)."""
         ray = self.ray
@@ -78,12 +78,8 @@ class RayBatch:
         if cpus_per_task > largest:
             raise SubmapSlamError(f"each log asks for {cpus_per_task:g} CPUs, but the largest Ray node has "
                                   f"{largest:g}: give fewer CPUs per log")
-        if progress is None:
-            task = ray.remote(num_cpus=cpus_per_task, max_retries=0)(front_end)
-            started = [task.remote(*a) for a in args]
-        else:
-            task = ray.remote(num_cpus=cpus_per_task, max_retries=0)(front_end_with_progress)
-            started = [task.remote(front_end, a) for a in args]
+        task = ray.remote(num_cpus=cpus_per_task, max_retries=0)(front_end_with_progress)
+        started = [task.remote(front_end, a) for a in args]
         # in the order given, as the merge takes them (the largest first was slower: the merge
         # then waited for the small logs before the large one; 55.1 s against 48.1 s)
         pending = {ref: k for k, ref in enumerate(started)}
@@ -95,12 +91,12 @@ class RayBatch:
                 ready, _ = ray.wait(list(pending), num_returns=1)
                 k = pending[ready[0]]
                 try:
-                    value, error = ray.get(next(ready[0]) if progress is not None else ready[0]), None
-                    if progress is not None:
-                        if value[0] == "progress":
-                            progress(k, *value[1:])
-                            continue
-                        value = value[1]
+                    kind, *value = ray.get(next(ready[0]))
+                    if kind == "progress":
+                        if progress is not None:
+                            progress(k, *value)
+                        continue
+                    value, error = value[0], None
                 except Exception as exc:  # a failed log is reported; the others go on
                     value, error = None, exc
                 del pending[ready[0]]

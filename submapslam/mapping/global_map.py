@@ -17,6 +17,11 @@ LocalGridJob = tuple[int, np.ndarray, list[np.ndarray]]
 # one submap's local grid to make elsewhere: (key, T_anchor_scans (K, 4, 4), scan points [(n_k, 3)])
 
 
+def local_grid_jobs(result: SlamResult, ids: Iterable[int]) -> list[LocalGridJob]:
+    """The jobs for the local grids of ``result``'s submaps ``ids`` (keyed by id)."""
+    return [(i, result.submap_scan_poses[i], result.submap_scan_points[i]) for i in ids]
+
+
 def local_grid(T_anchor_scans: np.ndarray, scan_points: list[np.ndarray], params: GridParams) -> EvidenceGrid | None:
     """Evidence grid of one submap in its anchor frame from its scans (``(n_k, 3)`` sensor frame)."""
     world = [transform_points(T, p)[:, :2] for T, p in zip(T_anchor_scans, scan_points) if len(p)]
