@@ -139,6 +139,7 @@ class LogOutcome:
     placed: bool | None = None  # in the merged map (None: not merged)
     links: int = 0
     note: str = ""  # how the merge placed it, or why not
+    kept: bool = False  # its results were kept from an earlier batch (``resume``), not made again
 
 
 @dataclass
@@ -182,6 +183,8 @@ def batch_logs(
     on_progress: Callable[[LogOutcome, int, int | None], None] | None = None,
     on_merged: Callable[[LogOutcome], None] | None = None,
     cpus_per_log: float = 1.0,
+    overwrite: bool = False,
+    resume: bool = False,
 ) -> BatchReport:
     """Run every log's front end (a Ray task each, or one after another) and merge them.
 
@@ -197,9 +200,22 @@ def batch_logs(
     ``note`` then say how; a later session can still place one left in its own frame). The merge
     takes the logs in the order given, each as soon as it and the logs before it are done (beside
     the logs still running on Ray), so both executors give the same map.
+
+    ``out_dir`` is checked before any work (:mod:`.io.batch_folder`): new or empty, or an
+    earlier batch's, replaced with ``overwrite`` or continued with ``resume`` (a log whose
+    results are there, ended well, from the same bytes and settings, is kept and merged
+    again, ``kept``; the others run). ``out_dir/batch.json`` records each log as it ends.
     """
     from .fleet import SessionMerger, session_names
+    from .io.batch_folder import (
+        batch_settings,
+        prepare_batch_folder,
+        recorded_fingerprint,
+        reusable,
+        write_record,
+    )
     from .io.map_store import load_map
+    from .io.output_folder import staged_folder
 
     t0 = time.perf_counter()
     cfg = _config(config)
@@ -211,6 +227,9 @@ def batch_logs(
     ray = ray_module() if use_ray is not False else None
     if (use_ray or address) and ray is None:
         raise SubmapSlamError("Ray is not installed: pip install 'submapslam[ray]' (or run without --address)")
+    settings = batch_settings(cfg.model_dump_json(), format, max_scans)
+    batch_record = prepare_batch_folder(out, names, settings, overwrite=overwrite, resume=resume, inputs=[
+        *logs, config if not isinstance(config, PipelineConfig) else None])
     args = [(str(p), n, str(out / n), cfg, format, max_scans) for p, n in zip(logs, names)]
     merger: SessionMerger | None = None
     verify_elsewhere = None  # on Ray: the merge's independent placement tests on the workers too
@@ -253,12 +272,30 @@ def batch_logs(
             o.scans, o.submaps, o.loops_accepted, o.seconds = (value["scans"], value["submaps"],
                                                                value["loops_accepted"], value["seconds"])
             o.error = value.get("input_error") or ""
+        batch_record["logs"][o.name] = {"log": o.log, "fingerprint": recorded_fingerprint(out / o.name) if o.ok else {},
+                                        "ok": o.ok, "error": o.error, "scans": o.scans, "submaps": o.submaps,
+                                        "loops_accepted": o.loops_accepted, "seconds": round(o.seconds, 3)}
+        write_record(out, batch_record)  # after each log: an interrupted batch can be resumed
+        if on_done is not None:
+            on_done(o)
+        finished.add(k)
+
+    todo = []  # the logs to run (with ``resume``, those whose results cannot be kept)
+    for k, o in enumerate(outcomes):
+        entry = reusable(batch_record, o.name, logs[k], out) if resume else None
+        if entry is None:
+            todo.append(k)
+            continue
+        o.ok, o.kept = True, True
+        o.scans, o.submaps, o.loops_accepted, o.seconds = (entry["scans"], entry["submaps"], entry["loops_accepted"],
+                                                           entry["seconds"])
+        o.error = entry.get("error", "")
         if on_done is not None:
             on_done(o)
         finished.add(k)
 
     side = None  # on Ray: the instance, its actors and tasks (fleet_ray.RayBatch)
-    if ray is not None:
+    if ray is not None and todo:
         from .fleet_ray import RayBatch
 
         side = RayBatch(ray, address, num_cpus)
@@ -266,17 +303,20 @@ def batch_logs(
     try:
         if side is not None:
             verify_elsewhere = side.verifier()
-            side.run(front_end, args, record=record, merge_ready=merge_ready, cpus_per_task=cpus_per_log,
-                     progress=None if on_progress is None else lambda k, done, total: on_progress(outcomes[k], done, total))
+            side.run(front_end, [args[k] for k in todo], record=lambda j, value, error: record(todo[j], value, error),
+                     merge_ready=merge_ready, cpus_per_task=cpus_per_log,
+                     progress=None if on_progress is None else
+                     lambda j, done, total: on_progress(outcomes[todo[j]], done, total))
         else:
-            for k, a in enumerate(args):
+            for k in todo:
                 step = None if on_progress is None else partial(on_progress, outcomes[k])
                 try:
-                    value, error = front_end(*a, on_progress=step), None
+                    value, error = front_end(*args[k], on_progress=step), None
                 except Exception as exc:  # a failed log is reported; the others go on
                     value, error = None, exc
                 record(k, value, error)
                 merge_ready()
+        merge_ready()  # the kept logs, when none ran after them
         if merger is not None:
             merger.finish()  # its retries may test on the Ray actors
         front_end_s = time.perf_counter() - t0
@@ -284,8 +324,9 @@ def batch_logs(
             merged = merger.map
             merged_dir = out / "merged"
             # on Ray: the local grids made ahead, then Ray's shutdown beside the files' writing
-            write_session_map(merged, merged_dir, local_grids=None if side is None else side.local_grids,
-                              on_fused=None if side is None else side.release)
+            with staged_folder(merged_dir, "batch", overwrite=True) as staging:
+                write_session_map(merged, staging, local_grids=None if side is None else side.local_grids,
+                                  on_fused=None if side is None else side.release)
     finally:
         if side is not None:
             side.close()

@@ -198,3 +198,83 @@ def test_batch_cpus_per_log_beyond_any_node_is_one_line(logs, tmp_path):
     assert res.exit_code == 1 and "the largest Ray node has 2" in res.output, res.output
     assert "Traceback" not in res.output
     assert not (tmp_path / "o" / "hall.a" / "poses_tum.txt").exists()
+
+
+def test_batch_never_writes_into_a_folder_of_yours(logs, tmp_path):
+    _, a, b, _ = logs
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    with pytest.raises(SubmapSlamError, match="files of yours"):
+        batch_logs([a, b], mine, use_ray=False, max_scans=BATCH_SCANS)
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"]  # refused before any work
+    # a batch's folder, but with a folder of the user's where a log's results would go
+    out = tmp_path / "out"
+    assert batch_logs([a], out, use_ray=False, max_scans=BATCH_SCANS).logs[0].ok
+    (out / "hall.b").mkdir()
+    (out / "hall.b" / "poses_tum.txt").write_text("my poses")
+    before = {p: p.stat().st_mtime_ns for p in out.rglob("*")}
+    res = runner.invoke(app, ["batch", str(a), str(b), "--out", str(out), "--no-ray", "--resume"])
+    assert res.exit_code == 1 and "holds files of yours where batch writes the results of log hall.b" in res.output
+    assert "Traceback" not in res.output
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == before  # nothing touched
+
+
+def test_batch_resume_keeps_the_logs_it_finished_and_runs_the_others(logs, sequential, tmp_path):
+    import json
+    import shutil
+
+    _, a, b, bad = logs
+    seq_out, _, _, _, _ = sequential
+    out = tmp_path / "o"
+    shutil.copytree(seq_out, out)
+    record = json.loads((out / "batch.json").read_text())
+    assert {n: e["ok"] for n, e in record["logs"].items()} == {"hall.a": True, "broken": False, "hall.b": True}
+    stamp = {n: (out / n / "poses_tum.txt").stat().st_mtime_ns for n in ("hall.a", "hall.b")}
+    merged_before = (out / "merged" / "poses_tum.txt").read_bytes()
+    # again into the same folder: the earlier results are not replaced unless asked
+    with pytest.raises(SubmapSlamError, match="earlier batch: pass --resume"):
+        batch_logs([a, bad, b], out, use_ray=False, max_scans=BATCH_SCANS)
+    with pytest.raises(SubmapSlamError, match="give one of them"):
+        batch_logs([a, bad, b], out, use_ray=False, max_scans=BATCH_SCANS, resume=True, overwrite=True)
+    # resumed: the two finished logs are kept (not written again), the failed one runs again
+    ran = []
+    report = batch_logs([a, bad, b], out, use_ray=False, max_scans=BATCH_SCANS, resume=True,
+                        on_progress=lambda o, done, total: ran.append(o.name))
+    assert [(o.ok, o.kept) for o in report.logs] == [(True, True), (False, False), (True, True)]
+    assert not ran  # the broken log fails before its first scan; no other ran
+    assert {n: (out / n / "poses_tum.txt").stat().st_mtime_ns for n in stamp} == stamp
+    assert report.logs[0].scans == BATCH_SCANS and "broken.clf" in report.logs[1].error
+    assert (out / "merged" / "poses_tum.txt").read_bytes() == merged_before  # merged again, the same map
+    # other settings: nothing can be kept
+    report = batch_logs([a, b], out, use_ray=False, max_scans=BATCH_SCANS // 2, resume=True)
+    assert [o.kept for o in report.logs] == [False, False]
+    assert len((out / "hall.a" / "poses_tum.txt").read_text().splitlines()) == BATCH_SCANS // 2
+    # replaced: the logs of the earlier batch that are not in this one go
+    res = runner.invoke(app, ["batch", str(a), "--out", str(out), "--no-ray", "--overwrite", "--max-scans",
+                              str(BATCH_SCANS)])
+    assert res.exit_code == 0, res.output
+    assert not (out / "hall.b").exists() and (out / "hall.a" / "poses_tum.txt").is_file()
+    res = runner.invoke(app, ["batch", str(a), "--out", str(out), "--no-ray", "--resume", "--max-scans",
+                              str(BATCH_SCANS)])
+    assert res.exit_code == 0 and "kept hall.a" in res.output, res.output
+
+
+def test_batch_resume_on_ray_runs_only_the_logs_not_kept(logs, sequential, tmp_path):
+    pytest.importorskip("ray")
+    import shutil
+
+    _, a, b, bad = logs
+    seq_out, _, _, _, _ = sequential
+    out = tmp_path / "o"
+    shutil.copytree(seq_out, out)
+    shutil.rmtree(out / "hall.b" / "map")  # its map gone: it runs again, as a Ray task
+    progress = []
+    report = batch_logs([a, bad, b], out, use_ray=True, num_cpus=2, max_scans=BATCH_SCANS, resume=True,
+                        on_progress=lambda o, done, total: progress.append(o.name))
+    assert report.executor == "ray"
+    assert [(o.ok, o.kept) for o in report.logs] == [(True, True), (False, False), (True, False)]
+    assert set(progress) == {"hall.b"}  # the progress of the task reaches the right log
+    assert (out / "hall.b" / "map" / "manifest.json").is_file()
+    for name in ("hall.b/poses_tum.txt", "merged/poses_tum.txt"):
+        assert (out / name).read_bytes() == (seq_out / name).read_bytes(), name

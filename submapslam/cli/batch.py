@@ -38,10 +38,16 @@ def register(app: typer.Typer) -> None:
         num_cpus: Annotated[int | None, typer.Option("--num-cpus", help="CPUs of the local Ray instance.")] = None,
         cpus_per_log: Annotated[float, typer.Option(
             "--cpus-per-log", help="CPUs each log's task asks Ray for (a 3D log keeps about 1.6 busy).")] = 1.0,
+        overwrite: Annotated[bool, typer.Option(
+            "--overwrite", help="Replace an earlier batch's results in OUT.")] = False,
+        resume: Annotated[bool, typer.Option(
+            "--resume", help="Continue the batch in OUT: keep each log it finished (same log bytes and "
+                             "settings), run the others (failed, new, changed), merge them all again.")] = False,
     ) -> None:
         """Run every LOG (a Ray task each; without Ray one after another), then merge them into one map.
 
-        Each log's results go to OUT/<log name without extensions>/, the merged map to OUT/merged/."""
+        Each log's results go to OUT/<log name without extensions>/, the merged map to OUT/merged/,
+        and OUT/batch.json records each log as it ends (what --resume reads)."""
         from rich.table import Table
 
         from ..fleet_api import batch_logs
@@ -63,7 +69,10 @@ def register(app: typer.Typer) -> None:
 
             def done(o) -> None:
                 view.update(row(o.name), visible=False)
-                if o.ok:
+                if o.kept:
+                    console.print(f"[green]kept[/green] {o.name}: {o.scans} scans, {o.submaps} submaps, "
+                                  f"{o.loops_accepted} loops (from the earlier batch)", highlight=False, markup=True)
+                elif o.ok:
                     console.print(f"[green]done[/green] {o.name}: {o.scans} scans, {o.submaps} submaps, "
                                   f"{o.loops_accepted} loops, {o.seconds:.1f} s", highlight=False, markup=True)
                 else:
@@ -75,7 +84,7 @@ def register(app: typer.Typer) -> None:
             try:
                 report = batch_logs(logs, out, address=address, use_ray=False if no_ray else None, config=config,
                                     format=format, max_scans=max_scans, on_done=done, num_cpus=num_cpus,
-                                    cpus_per_log=cpus_per_log,
+                                    cpus_per_log=cpus_per_log, overwrite=overwrite, resume=resume,
                                     on_progress=running, on_merged=merged)
             except SubmapSlamError as exc:
                 raise fail(exc) from None
@@ -85,7 +94,7 @@ def register(app: typer.Typer) -> None:
             table.add_column(col)
         for o in report.logs:
             merged = "-" if o.placed is None else ("placed" if o.placed else "own frame")
-            table.add_row(o.name, "ok" if o.ok else f"failed: {o.error}", str(o.scans), str(o.submaps),
+            table.add_row(o.name, ("kept" if o.kept else "ok") if o.ok else f"failed: {o.error}", str(o.scans), str(o.submaps),
                           str(o.loops_accepted), f"{o.seconds:.1f}", merged, str(Path(out) / o.name))
         console.print(table)
         if report.merged_dir is not None:

@@ -23,8 +23,8 @@ def _sha256_file(path: Path) -> str:
     return h.hexdigest()
 
 
-def input_provenance(log_path: str | Path, timestamps: np.ndarray) -> dict:
-    """Provenance of the log at ``log_path`` and the ``(N,)`` timestamps of the scans read from it.
+def log_fingerprint(log_path: str | Path) -> dict:
+    """What identifies the log at ``log_path``: its path, kind, size and SHA-256.
 
     A file is hashed whole (SHA-256 of its bytes); a folder (cloud folder, ROS 2 bag) by its
     listing, names and sizes of every file in it (``hash_of: "listing"``), since hashing
@@ -39,6 +39,13 @@ def input_provenance(log_path: str | Path, timestamps: np.ndarray) -> dict:
         listing = "\n".join(f"{p.relative_to(path).as_posix()}\t{p.stat().st_size}" for p in files)
         doc.update(kind="folder", files=len(files), size_bytes=sum(p.stat().st_size for p in files),
                    sha256=hashlib.sha256(listing.encode()).hexdigest(), hash_of="listing")
+    return doc
+
+
+def input_provenance(log_path: str | Path, timestamps: np.ndarray) -> dict:
+    """Provenance of the log at ``log_path`` (:func:`log_fingerprint`) and the ``(N,)``
+    timestamps of the scans read from it."""
+    doc = log_fingerprint(log_path)
     stamps = np.asarray(timestamps, dtype=np.float64)
     doc["scans"] = int(len(stamps))
     if len(stamps):
