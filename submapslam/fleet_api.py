@@ -48,15 +48,17 @@ def run_sessions(
     reader_options: dict | None = None,
     hints: str | Path | None = None,
     overwrite: bool = False,
+    freeze_map: bool = False,
 ) -> tuple[SessionMap, dict[str, Path]]:
     """Build one map from ``logs`` (added to the map at ``map_dir`` when given) into ``out_dir``.
 
     Each log is one session with its own timestamps, run from its own origin, then placed against
     the sessions already in the map frame (:func:`~submapslam.fleet.merge_sessions`). A map given
     by ``map_dir`` is read first, so a bad one fails before any log is run. ``hints`` apply to a
-    single log only. ``out_dir`` is checked before any work and written through a staging folder
-    (:mod:`.io.output_folder`; ``overwrite`` replaces an earlier result). Returns the merged map
-    and the written paths.
+    single log only. ``freeze_map``: the map at ``map_dir`` does not move (its sessions' poses
+    come out exactly as they were; the logs are placed and optimised against it). ``out_dir`` is
+    checked before any work and written through a staging folder (:mod:`.io.output_folder`;
+    ``overwrite`` replaces an earlier result). Returns the merged map and the written paths.
     """
     from .api import run_log
     from .fleet import merge_sessions, session_map_from_result, session_names
@@ -65,6 +67,8 @@ def run_sessions(
 
     if not logs:
         raise SubmapSlamError("no log given")
+    if freeze_map and map_dir is None:
+        raise SubmapSlamError("--freeze-map holds the map given by --map where it is: give --map MAP")
     inputs = [*logs, map_dir, hints, config if not isinstance(config, PipelineConfig) else None]
     check_out_folder(out_dir, inputs=inputs, overwrite=overwrite)
     base = None
@@ -89,7 +93,7 @@ def run_sessions(
         runs.append(session_map_from_result(result, name))
     if base is None:
         base, runs = runs[0], runs[1:]
-    merged = merge_sessions(base, runs, cfg) if runs else base
+    merged = merge_sessions(base, runs, cfg, freeze_base=freeze_map) if runs else base
     with staged_folder(out_dir, "run", overwrite=overwrite, inputs=inputs) as staging:
         written = write_session_map(merged, staging)
     return merged, {name: Path(out_dir) / name for name in written}

@@ -45,6 +45,24 @@ def test_run_adds_a_session_to_a_saved_map(logs, tmp_path):
     assert (tmp_path / "two" / "poses_tum_hall.a_2.txt").is_file()
 
 
+def test_run_freeze_map_keeps_the_maps_poses_line_for_line(logs, tmp_path):
+    _, a, b, _ = logs
+    assert runner.invoke(app, ["run", str(a), "--out", str(tmp_path / "one")]).exit_code == 0
+    res = runner.invoke(app, ["run", str(b), "--map", str(tmp_path / "one"), "--freeze-map",
+                              "--out", str(tmp_path / "two")])
+    assert res.exit_code == 0, res.output
+    assert "kept their poses (--freeze-map): hall.a" in res.output
+    rows = list(csv.DictReader(open(tmp_path / "two" / "sessions.csv")))
+    assert rows[1]["placed"] == "1", rows[1]["note"]
+    one = (tmp_path / "one" / "poses_tum.txt").read_text().splitlines()
+    assert (tmp_path / "two" / "poses_tum_hall.a.txt").read_text().splitlines() == one
+    assert (tmp_path / "two" / "poses_tum.txt").read_text().splitlines()[:len(one)] == one
+    # without --map there is no map to hold: one red line, nothing written
+    res = runner.invoke(app, ["run", str(b), "--freeze-map", "--out", str(tmp_path / "three")])
+    assert res.exit_code == 1 and "give --map MAP" in res.output and "Traceback" not in res.output
+    assert not (tmp_path / "three").exists()
+
+
 def test_run_with_a_folder_that_is_not_a_map_is_one_red_line(logs, tmp_path):
     _, a, _, _ = logs
     res = runner.invoke(app, ["run", str(a), "--map", str(a), "--out", str(tmp_path / "x")])

@@ -66,6 +66,29 @@ def test_second_session_is_placed_in_the_first_ones_frame(sessions):
     assert np.linalg.norm(est_a[:, :3, 3] - truth_a[:, :3, 3], axis=1).mean() < 0.15
 
 
+def test_a_frozen_map_does_not_move_and_the_new_session_is_placed_against_it(sessions):
+    map_a, res_b = sessions["map_a"], sessions["res_b"]
+    frozen = merge_sessions(map_a, [session_map_from_result(res_b, "b")], sessions["cfg"], freeze_base=True)
+    a, b = frozen.sessions
+    r, ra = frozen.result, map_a.result
+    # the map comes out exactly as it went in: scan poses, anchors, covariances, its own edges
+    assert np.array_equal(r.poses[a.scans], ra.poses)
+    assert np.array_equal(r.submap_poses[a.submaps], ra.submap_poses)
+    assert np.array_equal(r.submap_covariances[a.submaps], ra.submap_covariances)
+    own = [e for e in r.edges if e[0] in a.submaps and e[1] in a.submaps]
+    assert [(i, j, kind) for i, j, _, _, kind in own] == [(i, j, kind) for i, j, _, _, kind in ra.edges]
+    assert all(np.array_equal(e[2], f[2]) for e, f in zip(own, ra.edges))
+    # without freezing, the joint optimisation moves the first session (so the check above can fail)
+    assert not np.array_equal(sessions["merged"].result.poses[a.scans], ra.poses)
+    # B is placed against the held map as well as in the joint optimisation
+    assert b.placed and b.links >= 2, b.note
+    T0 = inverse(sessions["truth_a"][0])
+    err = np.linalg.norm(r.poses[b.scans][:, :3, 3] - (T0 @ sessions["truth_b"])[:, :3, 3], axis=1)
+    assert err.mean() < 0.15, err.mean()
+    cross = [e for e in r.edges if (e[0] in a.submaps) != (e[1] in a.submaps)]
+    assert cross and all(e[4] == "loop" for e in cross)  # B is tied to the map by its links
+
+
 def test_poles_seen_only_in_the_first_session_leave_the_merged_grid(sessions):
     merged = sessions["merged"]
     from datasets_synth.worlds import rectangle

@@ -26,6 +26,9 @@ def register(app: typer.Typer) -> None:
         out: Annotated[Path | None, typer.Option("--out", "-o", help="Output folder.")] = None,
         map_dir: Annotated[Path | None, typer.Option(
             "--map", help="Add the log(s) as new sessions to this map (a run's output folder).")] = None,
+        freeze_map: Annotated[bool, typer.Option(
+            "--freeze-map", help="With --map: the map does not move (its poses come out exactly as they "
+            "were); the new sessions are placed and optimised against it.")] = False,
         resume: Annotated[Path | None, typer.Option(
             "--resume", help="Continue the interrupted run that writes into this folder, from its checkpoint "
             "(same log, options and config), to the result an uninterrupted run gives.")] = None,
@@ -68,18 +71,21 @@ def register(app: typer.Typer) -> None:
             given = [name for name, value in (("LOG", logs or None), ("--map", map_dir), ("--config", config),
                                               ("--hints", hints), ("--max-scans", max_scans), ("--format", format))
                      if value is not None]
-            if given or no_loops:
-                raise fail(f"{', '.join(given + (['--no-loops'] if no_loops else []))} cannot change a resumed run: "
+            given += [flag for flag, on in (("--no-loops", no_loops), ("--freeze-map", freeze_map)) if on]
+            if given:
+                raise fail(f"{', '.join(given)} cannot change a resumed run: "
                            "it continues with the options it was started with")
             out = resume
         elif out is None:
             raise fail("--out is needed: the folder the results go into")
         elif not logs:
             raise fail("LOG is needed (or --resume OUT to continue an interrupted run)")
+        elif freeze_map and map_dir is None:
+            raise fail("--freeze-map holds the map given by --map where it is: give --map MAP")
         if len(logs) > 1 or map_dir is not None:
             from ._sessions import run_many
 
-            return run_many(logs, out, map_dir=map_dir, config=config, format=format, hints=hints,
+            return run_many(logs, out, map_dir=map_dir, freeze_map=freeze_map, config=config, format=format, hints=hints,
                             max_scans=max_scans, loops=not no_loops, overwrite=overwrite,
                             reader_options={"topic": topic, "odometry_topic": odometry_topic, "base_frame": base_frame,
                                             "laser": laser, "skip_bad": True if skip_bad else None})

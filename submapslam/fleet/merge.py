@@ -5,6 +5,12 @@ own edges (odometry and its loops), and the cross-session links that placed a se
 loop edges, checked again by GNC and the final check). Session 0's first anchor is the map
 frame (a hard prior); each later session's first anchor has a weak prior only, so a session
 that was never placed keeps its own frame instead of making the system singular.
+
+A *frozen* base map (``freeze_base``; Cartographer's frozen trajectories) does not move: every
+anchor of it is held by a hard prior, its own edges are carried over without being judged again,
+and its scan poses, anchors and covariances come out exactly as they went in. The new sessions
+are placed and optimised against it, so whatever was drawn or annotated in the map's frame
+stays where it was.
 """
 
 from __future__ import annotations
@@ -194,14 +200,16 @@ def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo]
 
 
 def _optimise(result: SlamResult, sessions: list[SessionInfo], config: PipelineConfig,
-              ground_ups: dict[int, np.ndarray | None]) -> list[tuple[int, int, str]]:
+              ground_ups: dict[int, np.ndarray | None], frozen: tuple[int, int] = (0, 0)) -> list[tuple[int, int, str]]:
     """Optimise the merged graph in place: anchors, scans, covariances, edges kept
-    (``ground_ups``: see :func:`_add_ground_attitudes`).
+    (``ground_ups``: see :func:`_add_ground_attitudes`). ``frozen``: (scans, submaps) at the
+    start of the result that belong to a frozen base map: held, and returned exactly as they were.
 
     Returns ``(i, j, why)`` of loop edges the optimiser rejected.
     """
     from ..backend.pose_graph import PoseGraph, floor_information
 
+    fixed_scans, fixed = frozen
     graph = PoseGraph(config.backend)
     start = {s.submap_start for s in sessions if s.placed}
     own_frame = {s.submap_start for s in sessions if not s.placed}  # held where they are
@@ -212,12 +220,14 @@ def _optimise(result: SlamResult, sessions: list[SessionInfo], config: PipelineC
         sigma[[0, 1, 5]] = 1e-4
     weak = np.diag(1.0 / sigma**2)
     for k, T in enumerate(result.submap_poses):
-        prior = PRIOR_INFORMATION if k == 0 or k in own_frame else (weak if k in start else None)
+        prior = PRIOR_INFORMATION if k < fixed or k == 0 or k in own_frame else (weak if k in start else None)
         graph.add_node(k, T, prior)
     _add_ground_attitudes(graph, result, sessions, config, ground_ups)
     floor_m, floor_rad = config.backend.loop_sigma_floor_m, float(np.deg2rad(config.backend.loop_sigma_floor_deg))
+    frozen_edges = [e for e in result.edges if e[0] < fixed and e[1] < fixed]  # between held anchors: kept as they are
     for i, j, T_i_j, info, kind in result.edges:
-        graph.add_between(i, j, T_i_j, info, kind)
+        if not (i < fixed and j < fixed):
+            graph.add_between(i, j, T_i_j, info, kind)
     for rec in result.loops:  # cross-session links not yet edges
         if rec.accepted and rec.source == "session" and not any(e[0] == rec.i and e[1] == rec.j for e in result.edges):
             graph.add_between(rec.i, rec.j, rec.T_i_j, floor_information(rec.information, floor_m, floor_rad), "loop")
@@ -234,10 +244,14 @@ def _optimise(result: SlamResult, sessions: list[SessionInfo], config: PipelineC
     covs = graph.all_marginal_covariances()
     n = result.n_submaps
     new_poses = np.array([graph.pose(k) for k in range(n)]).reshape(-1, 4, 4)
-    result.poses = _scan_poses_after(result, sessions, new_poses)
+    new_poses[:fixed] = result.submap_poses[:fixed]  # a frozen map: exactly where it was
+    scan_poses = _scan_poses_after(result, sessions, new_poses)
+    scan_poses[:fixed_scans] = result.poses[:fixed_scans]
+    result.poses = scan_poses
     result.submap_poses = new_poses
-    result.submap_covariances = np.array([covs[k] for k in range(n)]).reshape(-1, 6, 6)
-    result.edges = [(e.i, e.j, e.T_i_j, e.information, e.kind) for e in graph.active_edges()]
+    result.submap_covariances = np.array([result.submap_covariances[k] if k < fixed else covs[k]
+                                          for k in range(n)]).reshape(-1, 6, 6)
+    result.edges = frozen_edges + [(e.i, e.j, e.T_i_j, e.information, e.kind) for e in graph.active_edges()]
     return rejected
 
 
@@ -253,9 +267,11 @@ class SessionMerger:
     """
 
     def __init__(self, base: SessionMap, config: PipelineConfig | None = None,
-                 verify_elsewhere: Callable[[dict], VerifyMany] | None = None) -> None:
+                 verify_elsewhere: Callable[[dict], VerifyMany] | None = None, freeze_base: bool = False) -> None:
         """``verify_elsewhere``: given the loop closer's constructor arguments, a function that runs
-        batches of independent placement tests elsewhere (``batch`` on Ray: on its workers)."""
+        batches of independent placement tests elsewhere (``batch`` on Ray: on its workers).
+        ``freeze_base``: ``base`` does not move (its poses, covariances and edges come out as they
+        went in); the sessions added are placed and optimised against it."""
         from ..topology.loop_closure import LoopCloser
         from ..topology.session_placement import SessionPlacer
 
@@ -265,6 +281,7 @@ class SessionMerger:
         result.poses, result.submap_poses = result.poses.copy(), result.submap_poses.copy()
         self.map = SessionMap(result, sessions, descriptors)
         self._n_base = base.n_sessions
+        self._frozen = (result.n_scans, result.n_submaps) if freeze_base else (0, 0)  # held scans, submaps
         self._tried_at: dict[int, int] = {}  # session index -> sessions placed when it was last tried
         self._ground_ups: dict[int, np.ndarray | None] = {}  # 3D: submap id -> ground normal (global ids)
         planar = base.result.planar
@@ -304,7 +321,7 @@ class SessionMerger:
                 if not sessions[k].placed and self._tried_at.get(k) != placed_now:  # else: the same map again
                     progress |= self._try(k)
         if not any(s.placed for s in sessions[self._n_base:]) and len(sessions) > self._n_base:
-            _mark_rejected(result, _optimise(result, sessions, self.config, self._ground_ups))  # covariances of the joint graph
+            _mark_rejected(result, _optimise(result, sessions, self.config, self._ground_ups, self._frozen))  # covariances of the joint graph
         self._seconds += time.perf_counter() - t
         result.stage_seconds = {**result.stage_seconds, "merge": self._seconds}
         result.wall_time_s += self._seconds
@@ -331,7 +348,7 @@ class SessionMerger:
         s.placed, s.links = True, len(placement.links)
         for i in s.submaps:  # the session's anchors now lie in the map frame
             submaps[i].T_odom_anchor = result.submap_poses[i]
-        _mark_rejected(result, _optimise(result, sessions, config, self._ground_ups))
+        _mark_rejected(result, _optimise(result, sessions, config, self._ground_ups, self._frozen))
         added = 0
         for _ in range(config.sessions.densify_passes):  # more links where the optimised estimate puts it
             others = [i for m in sessions if m.placed and m is not s for i in m.submaps]
@@ -343,7 +360,7 @@ class SessionMerger:
             added += sum(r.accepted for r in dense)
             if not any(r.accepted for r in dense):
                 break
-            _mark_rejected(result, _optimise(result, sessions, config, self._ground_ups))
+            _mark_rejected(result, _optimise(result, sessions, config, self._ground_ups, self._frozen))
         if added:
             s.note += f"; {added} more link(s) near the optimised estimate"
         for i in range(result.n_submaps):
@@ -353,17 +370,18 @@ class SessionMerger:
 
 
 def merge_sessions(base: SessionMap, additions: list[SessionMap],
-                   config: PipelineConfig | None = None) -> SessionMap:
+                   config: PipelineConfig | None = None, *, freeze_base: bool = False) -> SessionMap:
     """Add the sessions of ``additions`` to the map ``base`` (:class:`SessionMerger`): each is
     placed against the sessions already in the map frame as it is added, the unplaced ones are
-    tried again after every later success, and the merged graph is optimised.
+    tried again after every later success, and the merged graph is optimised (with
+    ``freeze_base``, around ``base`` held as it is: its poses come out unchanged).
 
     Returns the merged map (``base`` and ``additions`` are not changed); a session that found no
     consistent overlap is kept with ``placed`` False, in its own frame, with the reason in ``note``.
     """
     for addition in additions:  # before any work
         _check_kind(base, addition)
-    merger = SessionMerger(base, config)
+    merger = SessionMerger(base, config, freeze_base=freeze_base)
     for addition in additions:
         merger.add(addition)
     return merger.finish()
