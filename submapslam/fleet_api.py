@@ -189,6 +189,8 @@ def batch_logs(
     cpus_per_log: float = 1.0,
     overwrite: bool = False,
     resume: bool = False,
+    map_dir: str | Path | None = None,
+    freeze_map: bool = False,
 ) -> BatchReport:
     """Run every log's front end (a Ray task each, or one after another) and merge them.
 
@@ -203,7 +205,10 @@ def batch_logs(
     Ray: about twice a second), ``on_merged`` as each log joins the merged map (``placed`` and
     ``note`` then say how; a later session can still place one left in its own frame). The merge
     takes the logs in the order given, each as soon as it and the logs before it are done (beside
-    the logs still running on Ray), so both executors give the same map.
+    the logs still running on Ray), so both executors give the same map. With ``map_dir`` (a
+    map, as ``run --map`` takes) the logs are added to that map instead, each placed against it
+    (the map itself is read before any work and never written); ``freeze_map`` holds it where it
+    is (:class:`~submapslam.fleet.SessionMerger`'s ``freeze_base``).
 
     ``out_dir`` is checked before any work (:mod:`.io.batch_folder`): new or empty, or an
     earlier batch's, replaced with ``overwrite`` or continued with ``resume`` (a log whose
@@ -218,13 +223,19 @@ def batch_logs(
         reusable,
         write_record,
     )
-    from .io.map_store import load_map
+    from .io.map_store import load_map, read_manifest
     from .io.output_folder import staged_folder
 
     t0 = time.perf_counter()
-    cfg = _config(config)
+    if freeze_map and map_dir is None:
+        raise SubmapSlamError("--freeze-map holds the map given by --map where it is: give --map MAP")
+    base = None  # the map the logs are added to (``map_dir``), read before any work
+    if map_dir is not None:
+        read_manifest(map_dir)  # one clear line for a folder that is not a map
+        base = load_map(map_dir)
+    cfg = _config(config) if config is not None or base is None else base.result.config
     out = Path(out_dir)
-    names = session_names(logs)
+    names = session_names(logs, [] if base is None else [s.name for s in base.sessions])
     outcomes = [LogOutcome(str(p), n) for p, n in zip(logs, names)]
     if not cpus_per_log > 0:
         raise SubmapSlamError(f"CPUs per log must be more than 0, not {cpus_per_log:g}")
@@ -233,7 +244,7 @@ def batch_logs(
         raise SubmapSlamError("Ray is not installed: pip install 'submapslam[ray]' (or run without --address)")
     settings = batch_settings(cfg.model_dump_json(), format, max_scans)
     batch_record = prepare_batch_folder(out, names, settings, overwrite=overwrite, resume=resume, inputs=[
-        *logs, config if not isinstance(config, PipelineConfig) else None])
+        *logs, config if not isinstance(config, PipelineConfig) else None, map_dir])
     args = [(str(p), n, str(out / n), cfg, format, max_scans) for p, n in zip(logs, names)]
     merger: SessionMerger | None = None
     verify_elsewhere = None  # on Ray: the merge's independent placement tests on the workers too
@@ -249,6 +260,9 @@ def batch_logs(
             if not o.ok:
                 continue
             session = load_map(out / o.name / "map")
+            if merger is None and base is not None:
+                merger = SessionMerger(base, cfg, verify_elsewhere, freeze_base=freeze_map)
+                make_grids_ahead([s for s in merger.map.sessions if s.placed])
             if merger is None:
                 merger = SessionMerger(session, cfg, verify_elsewhere)
             else:
@@ -258,14 +272,19 @@ def batch_logs(
                     o.error = f"not merged: {exc}"
                     continue
             merged_as = merger.map.sessions[-1]
-            if side is not None and merged_as.placed:  # its local grids made on idle cores meanwhile
-                from .mapping.global_map import grid_params, local_grid_jobs
-
-                r = merger.map.result
-                side.make_grids_ahead(local_grid_jobs(r, merged_as.submaps), grid_params(r))
+            if merged_as.placed:
+                make_grids_ahead([merged_as])
             if on_merged is not None:
                 o.placed, o.links, o.note = merged_as.placed, merged_as.links, merged_as.note
                 on_merged(o)
+
+    def make_grids_ahead(placed: list) -> None:
+        """On Ray: the local grids of these placed sessions' submaps made on idle cores meanwhile."""
+        if side is not None:
+            from .mapping.global_map import grid_params, local_grid_jobs
+
+            r = merger.map.result
+            side.make_grids_ahead(local_grid_jobs(r, [i for s in placed for i in s.submaps]), grid_params(r))
 
     def record(k: int, value: dict | None, error: BaseException | None) -> None:
         o = outcomes[k]

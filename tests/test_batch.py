@@ -45,16 +45,23 @@ def test_run_adds_a_session_to_a_saved_map(logs, tmp_path):
     assert (tmp_path / "two" / "poses_tum_hall.a_2.txt").is_file()
 
 
-def test_run_freeze_map_keeps_the_maps_poses_line_for_line(logs, tmp_path):
-    _, a, b, _ = logs
-    assert runner.invoke(app, ["run", str(a), "--out", str(tmp_path / "one")]).exit_code == 0
-    res = runner.invoke(app, ["run", str(b), "--map", str(tmp_path / "one"), "--freeze-map",
-                              "--out", str(tmp_path / "two")])
+@pytest.fixture(scope="module")
+def hall_map(logs, tmp_path_factory):
+    """The map of one run of the first hall (``run LOG --out``)."""
+    _, a, _, _ = logs
+    out = tmp_path_factory.mktemp("map") / "one"
+    assert runner.invoke(app, ["run", str(a), "--out", str(out)]).exit_code == 0
+    return out
+
+
+def test_run_freeze_map_keeps_the_maps_poses_line_for_line(logs, hall_map, tmp_path):
+    _, _, b, _ = logs
+    res = runner.invoke(app, ["run", str(b), "--map", str(hall_map), "--freeze-map", "--out", str(tmp_path / "two")])
     assert res.exit_code == 0, res.output
     assert "kept their poses (--freeze-map): hall.a" in res.output
     rows = list(csv.DictReader(open(tmp_path / "two" / "sessions.csv")))
     assert rows[1]["placed"] == "1", rows[1]["note"]
-    one = (tmp_path / "one" / "poses_tum.txt").read_text().splitlines()
+    one = (hall_map / "poses_tum.txt").read_text().splitlines()
     assert (tmp_path / "two" / "poses_tum_hall.a.txt").read_text().splitlines() == one
     assert (tmp_path / "two" / "poses_tum.txt").read_text().splitlines()[:len(one)] == one
     # without --map there is no map to hold: one red line, nothing written
@@ -141,6 +148,34 @@ def test_batch_on_ray_gives_the_same_trajectories(logs, sequential, tmp_path):
         assert (tmp_path / "ray" / name / "poses_tum.txt").read_bytes() == (seq_out / name / "poses_tum.txt").read_bytes()
     for name in ("poses_tum.txt", "map.pgm", "map.ply"):  # the grid from local grids made on the Ray actors too
         assert (tmp_path / "ray" / "merged" / name).read_bytes() == (seq_out / "merged" / name).read_bytes(), name
+
+
+def test_batch_adds_logs_to_a_map_and_can_hold_it_on_ray_as_without(logs, hall_map, tmp_path):
+    _, _, b, _ = logs
+    fleet = tmp_path / "fleet"
+    res = runner.invoke(app, ["batch", str(b), "--map", str(hall_map), "--freeze-map", "--no-ray", "--out", str(fleet)])
+    assert res.exit_code == 0, res.output
+    assert "kept their poses (--freeze-map): hall.a" in res.output
+    rows = list(csv.DictReader(open(fleet / "merged" / "sessions.csv")))
+    assert [r["session"] for r in rows] == ["hall.a", "hall.b"]  # the map's session, then the log
+    assert rows[1]["placed"] == "1", rows[1]["note"]
+    assert (fleet / "hall.b" / "poses_tum.txt").is_file()  # the log's own results, as without --map
+    one = (hall_map / "poses_tum.txt").read_text().splitlines()
+    assert (fleet / "merged" / "poses_tum_hall.a.txt").read_text().splitlines() == one
+    # the map is an input: never inside the output, whatever the option
+    res = runner.invoke(app, ["batch", str(b), "--map", str(fleet / "merged"), "--out", str(fleet), "--resume",
+                              "--no-ray"])
+    assert res.exit_code == 1 and "contains the input" in res.output
+    res = runner.invoke(app, ["batch", str(b), "--freeze-map", "--no-ray", "--out", str(tmp_path / "x")])
+    assert res.exit_code == 1 and "give --map MAP" in res.output and not (tmp_path / "x").exists()
+    res = runner.invoke(app, ["batch", str(b), "--map", str(b), "--no-ray", "--out", str(tmp_path / "x")])
+    assert res.exit_code == 1 and "not a submapslam map" in res.output and not (tmp_path / "x").exists()
+    # on Ray (the map's local grids made on the actors too): the same merged map
+    pytest.importorskip("ray")
+    par = batch_logs([b], tmp_path / "ray", use_ray=True, num_cpus=2, map_dir=hall_map, freeze_map=True)
+    assert par.executor == "ray" and par.logs[0].placed
+    for name in ("poses_tum.txt", "map.pgm", "map.ply"):
+        assert (tmp_path / "ray" / "merged" / name).read_bytes() == (fleet / "merged" / name).read_bytes(), name
 
 
 def test_batch_cli_prints_a_table_and_fails_on_a_missing_log(logs, tmp_path):

@@ -43,11 +43,17 @@ def register(app: typer.Typer) -> None:
         resume: Annotated[bool, typer.Option(
             "--resume", help="Continue the batch in OUT: keep each log it finished (same log bytes and "
                              "settings), run the others (failed, new, changed), merge them all again.")] = False,
+        map_dir: Annotated[Path | None, typer.Option(
+            "--map", help="Add the logs to this map (a run's output folder or a map/ folder) instead of "
+                          "starting a new one.")] = None,
+        freeze_map: Annotated[bool, typer.Option(
+            "--freeze-map", help="With --map: the map does not move (its poses come out exactly as they were).")] = False,
     ) -> None:
         """Run every LOG (a Ray task each; without Ray one after another), then merge them into one map.
 
-        Each log's results go to OUT/<log name without extensions>/, the merged map to OUT/merged/,
-        and OUT/batch.json records each log as it ends (what --resume reads)."""
+        Each log's results go to OUT/<log name without extensions>/, the merged map to OUT/merged/
+        (with --map: that map and the logs), and OUT/batch.json records each log as it ends (what
+        --resume reads)."""
         from rich.table import Table
 
         from ..fleet_api import batch_logs
@@ -85,7 +91,7 @@ def register(app: typer.Typer) -> None:
                 report = batch_logs(logs, out, address=address, use_ray=False if no_ray else None, config=config,
                                     format=format, max_scans=max_scans, on_done=done, num_cpus=num_cpus,
                                     cpus_per_log=cpus_per_log, overwrite=overwrite, resume=resume,
-                                    on_progress=running, on_merged=merged)
+                                    map_dir=map_dir, freeze_map=freeze_map, on_progress=running, on_merged=merged)
             except SubmapSlamError as exc:
                 raise fail(exc) from None
         table = Table(title=f"batch: {len(logs)} logs ({report.executor}), {report.wall_time_s:.1f} s "
@@ -98,6 +104,11 @@ def register(app: typer.Typer) -> None:
                           str(o.loops_accepted), f"{o.seconds:.1f}", merged, str(Path(out) / o.name))
         console.print(table)
         if report.merged_dir is not None:
+            ours = {o.name for o in report.logs}
+            held = [s for s in report.merged.sessions if s.name not in ours]  # the map's own sessions
+            if freeze_map and held:
+                console.print(f"the map's {len(held)} session(s) kept their poses (--freeze-map): "
+                              f"{', '.join(escape(s.name) for s in held)}", highlight=False)
             console.print(f"merged map in {report.merged_dir}")
         failed = [o.name for o in report.logs if not o.ok]
         if failed:
