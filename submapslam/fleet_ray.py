@@ -1,8 +1,8 @@
 """The Ray side of ``batch`` (:func:`~submapslam.fleet_api.batch_logs`): a local Ray instance
 or a cluster (:class:`RayBatch`), each log's front end a task streaming its progress, the
-merge's independent placement tests on actors, the merge itself in a thread of this process (at
-nice 10: below this process, above the tasks, which Ray runs at nice 15), the merged grid's
-local grids made ahead on actors at the lowest priority (nice 19).
+merge's helpers (actors at the lowest priority, nice 19: its independent placement tests and the
+merged grid's local grids, made ahead while the last logs run), the merge itself in a thread of
+this process (at nice 10: below this process, above the tasks, which Ray runs at nice 15).
 
 Ray is optional (``pip install 'submapslam[ray]'``): :func:`ray_module` is None without it.
 """
@@ -37,10 +37,11 @@ class RayBatch:
     """``batch``'s Ray side: a local Ray instance (``num_cpus``) or the cluster at ``address``,
     started (unless Ray already runs) when made; :meth:`close` shuts down what was started here.
 
-    :meth:`verifier` runs the merge's placement tests on actors; :meth:`run` runs the logs' front
-    ends as tasks with the merge beside them; :meth:`make_grids_ahead` makes the merged map's
-    local grids on idle cores while the last logs still run, and :meth:`local_grids` hands them
-    to the fusion; :meth:`release` starts the shutdown in the background (beside the writing).
+    :meth:`verifier` runs the merge's placement tests on its helper actors (one a CPU, no CPU
+    slot of their own); :meth:`run` runs the logs' front ends as tasks with the merge beside
+    them; :meth:`make_grids_ahead` makes the merged map's local grids on the same helpers while
+    the last logs still run, and :meth:`local_grids` hands them to the fusion; :meth:`release`
+    starts the shutdown in the background (beside the writing).
     """
 
     def __init__(self, ray, address: str | None = None, num_cpus: int | None = None,
@@ -52,17 +53,40 @@ class RayBatch:
         if self.started_here:
             _init_ray_beside_imports(ray, address, num_cpus)
         self.workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
-        self._grid_makers: list = []
-        self._made_ahead: dict[int, tuple] = {}  # submap key -> (grid maker holding its local grid, its make's ref)
+        self._helpers: list = []  # the merge's helper actors (:class:`_MergeHelper`)
+        self._made_ahead: dict[int, tuple] = {}  # submap key -> (helper holding its local grid, its make's ref)
         self._budget = grids_budget_bytes
         self._shutting_down: ThreadPoolExecutor | None = None
         # every Ray object reference and actor handle kept between calls, dropped before the
         # shutdown (one let go while Ray shuts down in the background ends the process)
-        self._holding: list[dict | list] = [self._made_ahead, self._grid_makers]
+        self._holding: list[dict | list] = [self._made_ahead, self._helpers]
 
     def verifier(self) -> Callable[[dict], VerifyMany]:
-        """For :class:`~submapslam.fleet.SessionMerger`: its placement tests on Ray actors."""
-        return _ray_verifier(self.ray, self.workers, self._holding)
+        """For :class:`~submapslam.fleet.SessionMerger`: its placement tests on the helpers, each
+        with a loop closer made from the merger's arguments (results in order). Each helper keeps
+        its loop closer and the submaps between batches (put again only when submaps were added),
+        so its prepared clouds stay warm."""
+        ray = self.ray
+
+        def bind(closer_args: dict) -> VerifyMany:
+            helpers = self._start_helpers()
+            for h in helpers:  # before any test: a helper runs its calls in order
+                h.prepare.remote(closer_args)
+            shared: dict = {}  # the submaps as last put: key (list identity, length) and reference
+            self._holding.append(shared)
+
+            def verify_many(items, submaps, map_poses):
+                key = (id(submaps), len(submaps))
+                if shared.get("key") != key:  # the merge appends submaps and never changes their points
+                    shared.update(key=key, box=[ray.put(submaps)])  # in a list: passed as a reference
+                bounds = np.linspace(0, len(items), min(len(helpers), len(items)) + 1).astype(int)
+                futures = [h.verify.remote(key, shared["box"], map_poses, items[lo:hi])
+                           for h, lo, hi in zip(helpers, bounds[:-1], bounds[1:])]
+                return [rec for f in futures for rec in ray.get(f)]
+
+            return verify_many
+
+        return bind
 
     def run(self, front_end: Callable[..., dict], args: list[tuple], *,
             record: Callable[[int, dict | None, BaseException | None], None], merge_ready: Callable[[], None],
@@ -116,7 +140,7 @@ class RayBatch:
         Beyond the budget (estimated from each submap's extent) they are left for later."""
         from .mapping.global_map import local_extent
 
-        self._start_grid_makers()
+        makers = self._grid_makers()
         chosen = []
         for job in jobs:
             extent = local_extent(job[1], job[2])
@@ -127,13 +151,14 @@ class RayBatch:
             chosen.append(job)
         params_ref = self.ray.put(params)
         for job in chosen:
-            k = len(self._made_ahead) % len(self._grid_makers)
-            self._made_ahead[job[0]] = (k, self._grid_makers[k].make.remote(job, params_ref))
+            k = len(self._made_ahead) % makers
+            self._made_ahead[job[0]] = (k, self._helpers[k].make.remote(job, params_ref))
 
     def local_grids(self, jobs: list[LocalGridJob], params: GridParams, window: int = 8) -> Iterator[EvidenceGrid | None]:
         """The local grids of ``jobs`` in their order: those made ahead from their actor, the
         others made now on the actors (``window`` requests ahead)."""
-        self._start_grid_makers()
+        makers = self._grid_makers()  # the count only: the generator's frame holds no actor handle
+        helpers = self._helpers  # (emptied by :meth:`release`, as every handle must be)
         refs: dict = {"params": self.ray.put(params)}  # n -> the request for jobs[n]; held as the others
         self._holding.append(refs)
 
@@ -141,9 +166,9 @@ class RayBatch:
             key = jobs[n][0]
             held = self._made_ahead.pop(key, None)
             if held is None:
-                refs[n] = self._grid_makers[n % len(self._grid_makers)].take.remote(key, jobs[n], refs["params"])
+                refs[n] = helpers[n % makers].take.remote(key, jobs[n], refs["params"])
             else:  # the made grid's reference as an argument: taken once it is made
-                refs[n] = self._grid_makers[held[0]].take.remote(key, None, refs["params"], held[1])
+                refs[n] = helpers[held[0]].take.remote(key, None, refs["params"], held[1])
 
         for n in range(min(window, len(jobs))):
             request(n)
@@ -155,11 +180,19 @@ class RayBatch:
                 refs.clear()
             yield grid
 
-    def _start_grid_makers(self, most: int = 4) -> None:
-        """One grid maker a CPU, at most ``most`` (the fusion, in one thread, takes no more)."""
-        if not self._grid_makers:
-            maker = self.ray.remote(num_cpus=0, max_restarts=0)(_GridMaker)
-            self._grid_makers.extend(maker.remote() for _ in range(min(self.workers, most)))
+    def _start_helpers(self) -> list:
+        """The merge's helpers, one a CPU of the cluster, started at the first use. They take no
+        CPU slot of their own: while logs still run they share the cores with them (at a lower
+        priority), afterwards they use them all."""
+        if not self._helpers:
+            helper = self.ray.remote(num_cpus=0, max_restarts=0)(_MergeHelper)
+            self._helpers.extend(helper.remote() for _ in range(self.workers))
+        return self._helpers
+
+    def _grid_makers(self, most: int = 4) -> int:
+        """How many of the helpers make local grids (the first ones): at most ``most`` (the
+        fusion, in one thread, takes no more)."""
+        return min(most, len(self._start_helpers()))
 
     def release(self) -> None:
         """Start shutting down a Ray started here, in the background (1.4 s of waiting for its
@@ -244,46 +277,51 @@ def lower_thread_priority(step: int = 10) -> None:
             pass
 
 
-def _ray_verifier(ray, workers: int, holding: list[dict | list]) -> Callable[[dict], VerifyMany]:
-    """For :class:`~submapslam.fleet.SessionMerger`: runs a batch of placement tests on ``workers``
-    Ray actors (:class:`_Verifier`), results in order. The actors take no CPU slot of their own:
-    while logs still run they share the cores with them, afterwards they use them all. Each
-    keeps its loop closer and the submaps between batches (put again only when submaps were
-    added), so its prepared clouds stay warm. The actors and the submaps put are held in a dict
-    appended to ``holding`` (cleared before Ray shuts down)."""
-    actor_class = ray.remote(num_cpus=0, max_restarts=0)(_Verifier)
-
-    def bind(closer_args: dict) -> VerifyMany:
-        # the actors, and the submaps as last put: key (list identity, length) and reference
-        shared: dict = {"actors": [actor_class.remote(closer_args) for _ in range(max(1, workers))]}
-        holding.append(shared)
-
-        def verify_many(items, submaps, map_poses):
-            actors = shared["actors"]
-            key = (id(submaps), len(submaps))
-            if shared.get("key") != key:  # the merge appends submaps and never changes their points
-                shared.update(key=key, box=[ray.put(submaps)])  # in a list: passed as a reference
-            bounds = np.linspace(0, len(items), min(len(actors), len(items)) + 1).astype(int)
-            futures = [a.verify.remote(key, shared["box"], map_poses, items[lo:hi])
-                       for a, lo, hi in zip(actors, bounds[:-1], bounds[1:])]
-            return [rec for f in futures for rec in ray.get(f)]
-
-        return verify_many
-
-    return bind
-
-
-class _GridMaker:
-    """A Ray actor making local grids (:func:`~submapslam.mapping.global_map.local_grid`) at the
-    lowest priority, keeping each until it is taken."""
+class _MergeHelper:
+    """A Ray actor working for the merge at the lowest priority, in one process for both of its
+    jobs: placement tests (a loop closer made by :meth:`prepare`, the submaps of the last batch,
+    fetched again when the driver put new ones) and local grids
+    (:func:`~submapslam.mapping.global_map.local_grid`) made ahead and kept until taken."""
 
     def __init__(self) -> None:
-        lower_thread_priority(19)
+        import threading
+
+        lower_thread_priority()  # nice 19 (Ray's 15 + 10), start-up (imports, 1-2 s) too: the logs come first
+        self.niced: set[int] = {threading.get_native_id()}  # threads whose priority was lowered
+        self.closer = None
+        self.key = None
+        self.submaps: list = []
         self.grids: dict[int, EvidenceGrid | None] = {}
+
+    def _lower_priority(self) -> None:
+        """The thread running this call at the helper's priority (the logs still running come first)."""
+        import threading
+
+        if threading.get_native_id() not in self.niced:
+            lower_thread_priority()
+            self.niced.add(threading.get_native_id())
+
+    def prepare(self, closer_args: dict) -> None:
+        """Make the loop closer that :meth:`verify` tests with."""
+        from .topology.loop_closure import LoopCloser
+
+        self._lower_priority()
+        self.closer = LoopCloser(**closer_args)
+
+    def verify(self, key: tuple, box: list, map_poses: dict, items: list) -> list:
+        import ray
+
+        from .topology.session_placement import verify_items
+
+        self._lower_priority()
+        if key != self.key:
+            self.key, self.submaps = key, ray.get(box[0])
+        return verify_items(self.closer, items, self.submaps, map_poses)
 
     def make(self, job: LocalGridJob, params: GridParams) -> None:
         from .mapping.global_map import local_grid
 
+        self._lower_priority()
         key, poses, points = job
         self.grids[key] = local_grid(poses, points, params)
 
@@ -294,36 +332,5 @@ class _GridMaker:
             return self.grids.pop(key)
         from .mapping.global_map import local_grid
 
+        self._lower_priority()
         return local_grid(job[1], job[2], params)
-
-
-class _Verifier:
-    """A Ray actor for placement tests: a loop closer made from ``closer_args`` and the submaps
-    of the last batch (fetched again when the driver put new ones)."""
-
-    def __init__(self, closer_args: dict) -> None:
-        import threading
-
-        lower_thread_priority()  # nice 19 (Ray's 15 + 10), start-up (imports, 1-2 s) too: the logs come first
-        self.niced: set[int] = {threading.get_native_id()}  # threads whose priority was lowered
-        from .topology.loop_closure import LoopCloser
-
-        self.closer = LoopCloser(**closer_args)
-        self.key = None
-        self.submaps: list = []
-
-    def verify(self, key: tuple, box: list, map_poses: dict, items: list) -> list:
-        import threading
-
-        import ray
-
-        from .topology.session_placement import verify_items
-
-        if threading.get_native_id() not in self.niced:  # the logs still running come first
-            lower_thread_priority()
-            self.niced.add(threading.get_native_id())
-        if key != self.key:
-            self.key, self.submaps = key, ray.get(box[0])
-        return verify_items(self.closer, items, self.submaps, map_poses)
-
-
