@@ -19,11 +19,12 @@ __all__ = [
     "ConfigError", "InputError", "PipelineConfig", "Scan", "SubmapSLAM", "SubmapSlamError",
     "SlamResult", "dump_config", "load_config", "open_log", "run", "run_log", "write_results", "build_map_outputs",
     "SessionMap", "load_map", "save_map", "merge_sessions", "session_map_from_result", "run_sessions", "batch_logs",
+    "drop_sessions",
 ]
 
 _SESSIONS = {"SessionMap": "session_map", "load_map": "io.map_store", "save_map": "io.map_store",
              "merge_sessions": "fleet", "session_map_from_result": "fleet", "run_sessions": "fleet_api",
-             "batch_logs": "fleet_api"}
+             "batch_logs": "fleet_api", "drop_sessions": "fleet"}
 
 
 def __getattr__(name: str):

@@ -99,6 +99,26 @@ def run_sessions(
     return merged, {name: Path(out_dir) / name for name in written}
 
 
+def drop_sessions_from_map(map_dir: str | Path, names: list[str], out_dir: str | Path, *,
+                           overwrite: bool = False) -> tuple[SessionMap, dict[str, Path]]:
+    """The map at ``map_dir`` without the sessions ``names`` (:func:`~submapslam.fleet.drop_sessions`),
+    written into ``out_dir`` as a multi-session run writes (the map rebuilt from the sessions
+    kept; ``map_dir`` is only read). ``out_dir`` is checked before any work and written through a
+    staging folder (``overwrite`` replaces an earlier result). Returns the map and the written paths."""
+    from .fleet import drop_sessions
+    from .io.map_store import load_map, read_manifest
+    from .io.output_folder import check_out_folder, staged_folder
+
+    if not names:
+        raise SubmapSlamError("no session given: name the sessions to drop (sessions.csv lists a map's sessions)")
+    check_out_folder(out_dir, inputs=[map_dir], overwrite=overwrite)
+    read_manifest(map_dir)  # one clear line for a folder that is not a map
+    kept = drop_sessions(load_map(map_dir), names)
+    with staged_folder(out_dir, "drop-sessions", overwrite=overwrite, inputs=[map_dir]) as staging:
+        written = write_session_map(kept, staging)
+    return kept, {name: Path(out_dir) / name for name in written}
+
+
 def write_session_map(session_map: SessionMap, out_dir: str | Path,
                       local_grids: Callable[[list[LocalGridJob], GridParams], Iterable[EvidenceGrid | None]] | None = None,
                       on_fused: Callable[[], None] | None = None) -> dict[str, Path]:

@@ -54,20 +54,47 @@ def hall_map(logs, tmp_path_factory):
     return out
 
 
-def test_run_freeze_map_keeps_the_maps_poses_line_for_line(logs, hall_map, tmp_path):
+@pytest.fixture(scope="module")
+def frozen_two(logs, hall_map, tmp_path_factory):
+    """The second hall added to the first one's frozen map: the output folder and what it printed."""
     _, _, b, _ = logs
-    res = runner.invoke(app, ["run", str(b), "--map", str(hall_map), "--freeze-map", "--out", str(tmp_path / "two")])
+    two = tmp_path_factory.mktemp("frozen") / "two"
+    res = runner.invoke(app, ["run", str(b), "--map", str(hall_map), "--freeze-map", "--out", str(two)])
     assert res.exit_code == 0, res.output
-    assert "kept their poses (--freeze-map): hall.a" in res.output
-    rows = list(csv.DictReader(open(tmp_path / "two" / "sessions.csv")))
+    return two, res.output
+
+
+def test_run_freeze_map_keeps_the_maps_poses_line_for_line(logs, hall_map, frozen_two, tmp_path):
+    _, _, b, _ = logs
+    two, output = frozen_two
+    assert "kept their poses (--freeze-map): hall.a" in output
+    rows = list(csv.DictReader(open(two / "sessions.csv")))
     assert rows[1]["placed"] == "1", rows[1]["note"]
     one = (hall_map / "poses_tum.txt").read_text().splitlines()
-    assert (tmp_path / "two" / "poses_tum_hall.a.txt").read_text().splitlines() == one
-    assert (tmp_path / "two" / "poses_tum.txt").read_text().splitlines()[:len(one)] == one
+    assert (two / "poses_tum_hall.a.txt").read_text().splitlines() == one
+    assert (two / "poses_tum.txt").read_text().splitlines()[:len(one)] == one
     # without --map there is no map to hold: one red line, nothing written
     res = runner.invoke(app, ["run", str(b), "--freeze-map", "--out", str(tmp_path / "three")])
     assert res.exit_code == 1 and "give --map MAP" in res.output and "Traceback" not in res.output
     assert not (tmp_path / "three").exists()
+
+
+def test_drop_sessions_writes_the_map_without_them(frozen_two, tmp_path):
+    two, _ = frozen_two
+    before = (two / "map" / "scans.npz").read_bytes()
+    res = runner.invoke(app, ["drop-sessions", str(two), "hall.a", "--out", str(tmp_path / "b_only")])
+    assert res.exit_code == 0, res.output
+    assert [r["session"] for r in csv.DictReader(open(tmp_path / "b_only" / "sessions.csv"))] == ["hall.b"]
+    # hall.b where it was, now the whole trajectory; hall.a's trajectory and map gone
+    assert (tmp_path / "b_only" / "poses_tum.txt").read_text() == (two / "poses_tum_hall.b.txt").read_text()
+    assert not (tmp_path / "b_only" / "poses_tum_hall.a.txt").exists()
+    assert (tmp_path / "b_only" / "map.pgm").is_file() and (tmp_path / "b_only" / "map" / "manifest.json").is_file()
+    # the map is only read: never the output; a name it does not hold is one red line, nothing written
+    res = runner.invoke(app, ["drop-sessions", str(two), "hall.b", "--out", str(two)])
+    assert res.exit_code == 1 and "is the input" in res.output
+    res = runner.invoke(app, ["drop-sessions", str(two), "hall.c", "--out", str(tmp_path / "x")])
+    assert res.exit_code == 1 and "no session hall.c" in res.output and "Traceback" not in res.output
+    assert not (tmp_path / "x").exists() and (two / "map" / "scans.npz").read_bytes() == before
 
 
 def test_run_with_a_folder_that_is_not_a_map_is_one_red_line(logs, tmp_path):

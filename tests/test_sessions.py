@@ -12,13 +12,14 @@ import pytest
 from datasets_synth import generate
 from submapslam import open_log
 from submapslam.config import PipelineConfig
-from submapslam.errors import InputError
-from submapslam.fleet import merge_sessions, session_map_from_result, session_names
+from submapslam.errors import InputError, SubmapSlamError
+from submapslam.fleet import drop_sessions, merge_sessions, session_map_from_result, session_names
 from submapslam.geometry import inverse
 from submapslam.io.map_store import load_map, save_map
 from submapslam.io.trajectory import read_tum
 from submapslam.mapping.global_map import build_global_grid
 from submapslam.pipeline import run
+from submapslam.session_map import SessionMap
 
 SIZE = (20.0, 12.0)  # a small rectangle of hallways: one lap is ~60 m
 START_B = 120  # session B starts this many (thinned) scans into its drive: somewhere else
@@ -87,6 +88,43 @@ def test_a_frozen_map_does_not_move_and_the_new_session_is_placed_against_it(ses
     assert err.mean() < 0.15, err.mean()
     cross = [e for e in r.edges if (e[0] in a.submaps) != (e[1] in a.submaps)]
     assert cross and all(e[4] == "loop" for e in cross)  # B is tied to the map by its links
+
+
+def test_dropping_a_session_takes_its_links_and_leaves_the_others_where_they_were(sessions, tmp_path):
+    from dataclasses import replace
+
+    merged = sessions["merged"]
+    a, b = merged.sessions
+    only_b = drop_sessions(merged, ["a"])
+    (kept,) = only_b.sessions
+    r, rm = only_b.result, merged.result
+    assert kept.name == "b" and kept.placed and (kept.scan_start, kept.submap_start) == (0, 0)
+    assert (kept.scan_end, kept.submap_end) == (b.scan_end - b.scan_start, b.submap_end - b.submap_start)
+    # B stays where the merge put it, in A's frame, with its own timestamps and descriptors
+    assert np.array_equal(r.poses, rm.poses[b.scans]) and np.array_equal(r.timestamps, rm.timestamps[b.scans])
+    assert np.array_equal(r.submap_poses, rm.submap_poses[b.submaps])
+    assert np.array_equal(r.submap_covariances, rm.submap_covariances[b.submaps])
+    assert np.array_equal(only_b.descriptors, merged.descriptors[b.submaps])
+    # every edge and loop test that touched A went with it; B's own are renumbered
+    own = [(i - b.submap_start, j - b.submap_start, kind) for i, j, _, _, kind in rm.edges
+           if i in b.submaps and j in b.submaps]
+    touching = [e for e in rm.edges if e[0] in b.submaps or e[1] in b.submaps]
+    assert [(i, j, kind) for i, j, _, _, kind in r.edges] == own and len(own) < len(touching)
+    assert len(r.loops) == sum(lp.i in b.submaps and lp.j in b.submaps for lp in rm.loops)
+    assert all(0 <= lp.i < kept.submap_end and 0 <= lp.j < kept.submap_end for lp in r.loops)
+    assert r.path_length_m < rm.path_length_m
+    # it saves and loads as any map
+    save_map(only_b, tmp_path / "b")
+    assert [s.to_dict() for s in load_map(tmp_path / "b").sessions] == [kept.to_dict()]
+    # each refusal is one line
+    for names, words in ((["c"], "no session c"), (["a", "b"], "no map")):
+        with pytest.raises(SubmapSlamError, match=words) as exc:
+            drop_sessions(merged, names)
+        assert "\n" not in str(exc.value)
+    unplaced_b = SessionMap(rm, [a, replace(b, placed=False)], merged.descriptors)
+    with pytest.raises(SubmapSlamError, match="not in the map frame"):
+        drop_sessions(unplaced_b, ["a"])
+    assert merged.sessions == [a, b] and rm.n_scans == a.scan_end - a.scan_start + b.scan_end - b.scan_start
 
 
 def test_poles_seen_only_in_the_first_session_leave_the_merged_grid(sessions):

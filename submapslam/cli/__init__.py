@@ -37,6 +37,7 @@ def _register_commands() -> None:
         batch,
         clean,
         demo,
+        drop_sessions,
         dump_config,
         ekf,
         eval_map,
@@ -47,7 +48,8 @@ def _register_commands() -> None:
         synth,
     )
 
-    for module in (run, dump_config, demo, evaluate, synth, ekf, localize, report, eval_map, clean, batch):
+    for module in (run, dump_config, demo, evaluate, synth, ekf, localize, report, eval_map, clean, batch,
+                   drop_sessions):
         module.register(app)
 
 
