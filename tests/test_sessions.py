@@ -150,6 +150,9 @@ def test_poles_seen_only_in_the_first_session_leave_the_merged_grid(sessions):
     assert occupied_near(grid_ab, poles_map[seen_a]).sum() <= 1
     # the walls are still there
     assert (grid_ab.probabilities() > 0.65).sum() > 0.6 * (grid_a.probabilities() > 0.65).sum()
+    # with session B dropped again, nothing says the poles left: they are back
+    grid_dropped, _ = build_global_grid(drop_sessions(merged, ["b"]).placed_result())
+    assert occupied_near(grid_dropped, poles_map[seen_a]).sum() >= seen_a.sum() - 1
 
 
 def test_map_round_trip_is_byte_identical(sessions, tmp_path):
