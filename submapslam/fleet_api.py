@@ -35,6 +35,12 @@ def _config(config: str | Path | PipelineConfig | None) -> PipelineConfig:
     return config if isinstance(config, PipelineConfig) else load_config(config)
 
 
+def _check_freeze(map_dir: str | Path | None, freeze_map: bool) -> None:
+    """``freeze_map`` holds the map given by ``map_dir``: without one it is one clear line."""
+    if freeze_map and map_dir is None:
+        raise SubmapSlamError("--freeze-map holds the map given by --map where it is: give --map MAP")
+
+
 def run_sessions(
     logs: list[str | Path],
     out_dir: str | Path,
@@ -67,8 +73,7 @@ def run_sessions(
 
     if not logs:
         raise SubmapSlamError("no log given")
-    if freeze_map and map_dir is None:
-        raise SubmapSlamError("--freeze-map holds the map given by --map where it is: give --map MAP")
+    _check_freeze(map_dir, freeze_map)
     inputs = [*logs, map_dir, hints, config if not isinstance(config, PipelineConfig) else None]
     check_out_folder(out_dir, inputs=inputs, overwrite=overwrite)
     base = None
@@ -106,14 +111,13 @@ def drop_sessions_from_map(map_dir: str | Path, names: list[str], out_dir: str |
     kept; ``map_dir`` is only read). ``out_dir`` is checked before any work and written through a
     staging folder (``overwrite`` replaces an earlier result). Returns the map and the written paths."""
     from .fleet import drop_sessions
-    from .io.map_store import load_map, read_manifest
+    from .io.map_store import load_map
     from .io.output_folder import check_out_folder, staged_folder
 
     if not names:
         raise SubmapSlamError("no session given: name the sessions to drop (sessions.csv lists a map's sessions)")
     check_out_folder(out_dir, inputs=[map_dir], overwrite=overwrite)
-    read_manifest(map_dir)  # one clear line for a folder that is not a map
-    kept = drop_sessions(load_map(map_dir), names)
+    kept = drop_sessions(load_map(map_dir), names)  # a folder that is not a map: one clear line
     with staged_folder(out_dir, "drop-sessions", overwrite=overwrite, inputs=[map_dir]) as staging:
         written = write_session_map(kept, staging)
     return kept, {name: Path(out_dir) / name for name in written}
@@ -243,16 +247,12 @@ def batch_logs(
         reusable,
         write_record,
     )
-    from .io.map_store import load_map, read_manifest
+    from .io.map_store import load_map
     from .io.output_folder import staged_folder
 
     t0 = time.perf_counter()
-    if freeze_map and map_dir is None:
-        raise SubmapSlamError("--freeze-map holds the map given by --map where it is: give --map MAP")
-    base = None  # the map the logs are added to (``map_dir``), read before any work
-    if map_dir is not None:
-        read_manifest(map_dir)  # one clear line for a folder that is not a map
-        base = load_map(map_dir)
+    _check_freeze(map_dir, freeze_map)
+    base = None if map_dir is None else load_map(map_dir)  # read before any work; a non-map is one line
     cfg = _config(config) if config is not None or base is None else base.result.config
     out = Path(out_dir)
     names = session_names(logs, [] if base is None else [s.name for s in base.sessions])

@@ -8,6 +8,7 @@ Pose3 tangent order ``(rx, ry, rz, tx, ty, tz)``.
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -274,15 +275,17 @@ class PoseGraph:
         """``(6, 6)`` marginal covariance of a node (GTSAM order), from iSAM2."""
         return np.asarray(self._isam.marginalCovariance(key))
 
-    def all_marginal_covariances(self) -> dict[int, np.ndarray]:
-        """Marginal covariances of every node at the current estimate (batch Marginals)."""
+    def all_marginal_covariances(self, keys: Iterable[int] | None = None) -> dict[int, np.ndarray]:
+        """Marginal covariances ``(6, 6)`` of the nodes ``keys`` (default: every node) at the
+        current estimate (batch Marginals)."""
         gtsam = self._gtsam
+        wanted = list(self._initial if keys is None else keys)
         try:
             marg = gtsam.Marginals(self._active_graph(), self._estimate)
-            return {k: np.asarray(marg.marginalCovariance(k)) for k in self._initial}
+            return {k: np.asarray(marg.marginalCovariance(k)) for k in wanted}
         except RuntimeError as exc:  # indeterminant system; fall back to iSAM2's
             log.warning("batch marginals failed (%s); using iSAM2 marginals", exc)
-            return {k: self.marginal_covariance(k) for k in self._initial}
+            return {k: self.marginal_covariance(k) for k in wanted}
 
 
 def adjoint(T: np.ndarray) -> np.ndarray:

@@ -24,6 +24,13 @@ def print_sessions(session_map) -> None:
     console.print(f"{r.n_scans} scans in {session_map.n_sessions} sessions, {r.n_submaps} submaps", highlight=False)
 
 
+def print_held(held: list) -> None:
+    """The line saying that ``held`` (the map's own sessions) kept their poses (``--freeze-map``)."""
+    if held:
+        console.print(f"the map's {len(held)} session(s) kept their poses (--freeze-map): "
+                      f"{', '.join(escape(s.name) for s in held)}", highlight=False)
+
+
 def run_many(logs: list[Path], out: Path, *, map_dir: Path | None, freeze_map: bool = False, **options) -> None:
     """``run LOG1 LOG2 … [--map MAP [--freeze-map]]``: one map from every log, written into ``out``."""
     from ..fleet_api import run_sessions
@@ -34,7 +41,5 @@ def run_many(logs: list[Path], out: Path, *, map_dir: Path | None, freeze_map: b
         raise fail(exc) from None
     print_sessions(merged)
     if freeze_map:
-        held = merged.sessions[:len(merged.sessions) - len(logs)]
-        console.print(f"the map's {len(held)} session(s) kept their poses (--freeze-map): "
-                      f"{', '.join(escape(s.name) for s in held)}", highlight=False)
+        print_held(merged.sessions[:len(merged.sessions) - len(logs)])  # each log added one session
     console.print(f"results in {out} (per session: poses_tum_<session>.txt; sessions.csv; the map in {out}/map)")

@@ -104,11 +104,11 @@ def register(app: typer.Typer) -> None:
                           str(o.loops_accepted), f"{o.seconds:.1f}", merged, str(Path(out) / o.name))
         console.print(table)
         if report.merged_dir is not None:
-            ours = {o.name for o in report.logs}
-            held = [s for s in report.merged.sessions if s.name not in ours]  # the map's own sessions
-            if freeze_map and held:
-                console.print(f"the map's {len(held)} session(s) kept their poses (--freeze-map): "
-                              f"{', '.join(escape(s.name) for s in held)}", highlight=False)
+            if freeze_map:
+                from ._sessions import print_held
+
+                ours = {o.name for o in report.logs}
+                print_held([s for s in report.merged.sessions if s.name not in ours])  # the map's own sessions
             console.print(f"merged map in {report.merged_dir}")
         failed = [o.name for o in report.logs if not o.ok]
         if failed:

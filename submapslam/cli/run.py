@@ -80,9 +80,7 @@ def register(app: typer.Typer) -> None:
             raise fail("--out is needed: the folder the results go into")
         elif not logs:
             raise fail("LOG is needed (or --resume OUT to continue an interrupted run)")
-        elif freeze_map and map_dir is None:
-            raise fail("--freeze-map holds the map given by --map where it is: give --map MAP")
-        if len(logs) > 1 or map_dir is not None:
+        if len(logs) > 1 or map_dir is not None or freeze_map:  # the sessions' path (it checks --freeze-map)
             from ._sessions import run_many
 
             return run_many(logs, out, map_dir=map_dir, freeze_map=freeze_map, config=config, format=format, hints=hints,

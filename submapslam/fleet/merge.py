@@ -241,8 +241,8 @@ def _optimise(result: SlamResult, sessions: list[SessionInfo], config: PipelineC
         return []
     rejected = [(i, j, f"rejected by the optimiser (GNC weight {w:.2f})") for (i, j), w in weights.items() if w < 0.5]
     rejected += dropped
-    covs = graph.all_marginal_covariances()
     n = result.n_submaps
+    covs = graph.all_marginal_covariances(range(fixed, n))  # a frozen map keeps its own
     new_poses = np.array([graph.pose(k) for k in range(n)]).reshape(-1, 4, 4)
     new_poses[:fixed] = result.submap_poses[:fixed]  # a frozen map: exactly where it was
     scan_poses = _scan_poses_after(result, sessions, new_poses)
