@@ -31,8 +31,14 @@ def _require_order(low_name: str, low: float | None, high_name: str, high: float
 class OdometryConfig(_Strict):
     """KISS-ICP scan-to-map registration, seeded by wheel odometry when the log has it."""
 
+    registration: Literal["auto", "kiss_icp", "voxel_gicp"] = Field(
+        "auto", description="3D scan-to-map registration: kiss_icp (KISS-ICP's point-to-point ICP, for spinning "
+        "LiDARs), voxel_gicp (small_gicp's voxelised GICP, coarse to fine from several initial guesses, for "
+        "narrow-field solid-state sensors whose non-repetitive pattern never samples the same points twice); "
+        "auto: voxel_gicp when the first scan sees less than 180 deg around the vertical axis, else kiss_icp")
     voxel_size: float | None = Field(
-        None, gt=0, description="[m]; None: 0.2 for planar (2D laser) logs, max_range / 100 for 3D"
+        None, gt=0, description="[m]; None: 0.2 for planar (2D laser) logs, 0.5 with voxel_gicp, "
+        "max_range / 100 for other 3D"
     )
     max_range: float = Field(80.0, gt=0, description="drop points farther than this [m]")
     min_range: float = Field(0.3, ge=0, description="drop points closer than this [m]")

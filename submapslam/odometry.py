@@ -14,13 +14,39 @@ import numpy as np
 
 from .config import OdometryConfig
 from .geometry import inverse, matrix_to_se2, se2_to_matrix
+from .registration.voxel_gicp import VoxelGicpSettings
 from .scan import Scan
+
+NARROW_FIELD_DEG = 180.0  # auto registration: a first scan seeing less than this around z is a narrow-field sensor
+
+
+def resolve_registration(config: OdometryConfig, scan: Scan) -> OdometryConfig:
+    """``config`` with ``registration: auto`` made concrete from the log's first ``scan``:
+    voxel_gicp for a 3D sensor seeing less than 180 deg around the vertical axis (solid-state,
+    Livox-like), kiss_icp otherwise (spinning LiDARs, 2D lasers)."""
+    if config.registration != "auto":
+        return config
+    method = "kiss_icp"
+    if not scan.planar and len(scan.points):
+        from .registration.voxel_gicp import azimuth_coverage_deg
+
+        if azimuth_coverage_deg(scan.points, min_range=max(config.min_range, 0.5)) < NARROW_FIELD_DEG:
+            method = "voxel_gicp"
+    return config.model_copy(update={"registration": method})
 
 
 def odometry_voxels(config: OdometryConfig, planar: bool) -> tuple[float, float]:
-    """``(map voxel, frame voxel)`` [m]: KISS-ICP's local-map voxel as resolved for the log's
-    kind, and the voxel each scan is thinned to first (half of it)."""
-    voxel = config.voxel_size or (0.2 if planar else config.max_range / 100.0)
+    """``(map voxel, frame voxel)`` [m]: the local map's voxel as resolved for the log's kind
+    and registration (``config.registration`` resolved, see :func:`resolve_registration`), and
+    the voxel each scan is thinned to first (half of it)."""
+    if config.voxel_size:
+        voxel = config.voxel_size
+    elif planar:
+        voxel = 0.2
+    elif config.registration == "voxel_gicp":
+        voxel = VoxelGicpSettings().fine_voxel
+    else:
+        voxel = config.max_range / 100.0
     return voxel, 0.5 * voxel
 
 
@@ -65,7 +91,15 @@ class Odometry:
         self.n_registered = 0
         self._refiner = None
         self.movers = None  # 3D: keeps what moved out of registration and the local map
-        if not planar and (config.drop_movers or config.movers_delay > 0):
+        self._gicp = None  # 3D narrow-field sensors: voxelised GICP instead of KISS-ICP's registration
+        if not planar and config.registration == "voxel_gicp":
+            from .registration.voxel_gicp import VoxelGicpTracker
+
+            voxel = self.voxel_size
+            self._gicp = VoxelGicpTracker(VoxelGicpSettings(fine_voxel=voxel, coarse_voxel=4.0 * voxel,
+                                                            frame_voxel=self.frame_voxel,
+                                                            coarse_distance=8.0 * voxel, fine_distance=2.0 * voxel))
+        elif not planar and (config.drop_movers or config.movers_delay > 0):
             from .mapping.moving_points import MoverFilter
 
             self.movers = MoverFilter(history=config.movers_history, delay=config.movers_delay,
@@ -97,6 +131,8 @@ class Odometry:
             return new_pose, frame
         frame_down = self._down(frame, self.frame_voxel)
         initial_guess = self.last_pose @ prediction
+        if self._gicp is not None:
+            return self._register_gicp(frame, frame_down, initial_guess, known), frame
         registered = frame_down
         if self.movers is not None and not self._local_map.empty():
             # what the last scans saw through is a mover entering: not registered (a replay tests
@@ -138,6 +174,27 @@ class Odometry:
         self._advance(new_pose)
         self.last_frame_down = frame_down
         return new_pose, frame
+
+    def _register_gicp(self, frame: np.ndarray, frame_down: np.ndarray, initial_guess: np.ndarray,
+                       known: tuple[np.ndarray, np.ndarray | None] | None) -> np.ndarray:
+        """Narrow-field 3D: voxelised GICP from the prediction and from no motion (a hand-held
+        sensor turns in ways a constant-velocity model does not foresee); ``T_odom_base``."""
+        cloud = self._gicp.prepare(frame)
+        if known is not None:
+            new_pose = known[0]
+        elif self._gicp.empty():
+            new_pose = initial_guess
+        else:
+            guesses = [initial_guess]
+            if not np.allclose(initial_guess, self.last_pose):
+                guesses.append(self.last_pose)
+            new_pose, _ = self._gicp.align(cloud, guesses)
+            u, _, vt = np.linalg.svd(new_pose[:3, :3])  # exactly a rotation (KISS-ICP's deskew checks it)
+            new_pose[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+        self._gicp.insert(cloud, new_pose)
+        self._advance(new_pose)
+        self.last_frame_down = frame_down
+        return new_pose
 
     def _predicted_delta(self, scan: Scan) -> np.ndarray:
         wheel = scan.odometry if self.config.use_wheel_odometry else None

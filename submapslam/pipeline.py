@@ -21,6 +21,7 @@ from .errors import InputError, SubmapSlamError
 from .geometry import blend_poses_many, inverse
 from .graph_builder import GraphBuilder
 from .observer import RunObserver, notify_closed_submap
+from .odometry import resolve_registration
 from .odometry_stage import InlineOdometry, OdometryProcess, start_odometry
 from .process_stats import combined_peak_mb, current_memory_mb, peak_memory_mb, release_free_memory
 from .result import LoopRecord, SlamResult
@@ -67,6 +68,7 @@ class SubmapSLAM:
         self.memory_mb_by_km: list[tuple[float, float]] = []  # (km travelled, resident MiB) per closed submap
         self.scans_by_wall_time: list[tuple[float, int]] = []  # (seconds since start, scans done) per closed submap
         self.planar: bool | None = None
+        self.odometry_config = self.config.odometry  # registration "auto" resolved at the first scan
         self._fuse_thinned = False  # 3D: fuse the odometry's thinned scans into submaps (set at the first scan)
         self.map_voxel = self.config.mapping.map_voxel_size or 0.1  # resolved for the log's kind at the first scan
         self._odometry: InlineOdometry | OdometryProcess | None = None
@@ -166,7 +168,8 @@ class SubmapSLAM:
     def _start(self, scan: Scan) -> None:
         self.planar = bool(scan.planar)
         cfg = self.config
-        self._odometry = start_odometry(cfg.odometry, self.planar)
+        self.odometry_config = resolve_registration(cfg.odometry, scan)
+        self._odometry = start_odometry(self.odometry_config, self.planar)
         voxel = cfg.submaps.voxel_size or self._odometry.voxel_size / 2.0
         # 3D: a submap at the odometry's thinning voxel or coarser is the same when fused from the
         # thinned scans, with ~5x fewer points to transform and voxelise
@@ -183,7 +186,7 @@ class SubmapSLAM:
             from .registration.spatial import SubmapClouds
 
             self._clouds = SubmapClouds(match_voxel(voxel, False))
-        self._graph_builder = GraphBuilder(cfg.backend, cfg.odometry, planar=self.planar,
+        self._graph_builder = GraphBuilder(cfg.backend, self.odometry_config, planar=self.planar,
                                            match_voxel=match_voxel(voxel, self.planar), clouds=self._clouds,
                                            timer=self.timer)
         if cfg.loops.enabled:

@@ -6,7 +6,9 @@ Usage:
     python tools/bench_city.py --generate 00 02 05 08 --rings 16 --data-root /work/bench_data
 
 LOG is a synthetic cloud-folder log (scans/NNNNNN.ply, times.txt, odometry_tum.txt,
-groundtruth_tum.txt, meta.yaml). ``--generate NN`` uses DATA_ROOT/kittiNN_RR and writes it
+groundtruth_tum.txt, meta.yaml), or a real log folder with ``reference_poses_kitti.txt`` (one pose a
+scan file) and ``scans/times.txt``: ``python tools/bench_city.py ../shared/data/lidar3d/livox_hku_loop
+../shared/data/lidar3d/livox_hku_main_building``. ``--generate NN`` uses DATA_ROOT/kittiNN_RR and writes it
 first with ``datasets_synth.generate_kitti_drive`` along the KITTI ground-truth path NN when the
 folder is missing.
 
@@ -189,13 +191,21 @@ def read_log_meta(log: Path) -> dict:
     return (yaml.safe_load(path.read_text()) or {}) if path.exists() else {}
 
 
+REFERENCE_KITTI = "reference_poses_kitti.txt"  # real logs (../shared/data/lidar3d/livox_*): pose k <-> scan k
+
+
 def ground_truth_per_scan(log: Path, n: int | None = None):
     """``(gt, poses)``: the ground-truth Trajectory, and ``(n, 4, 4)`` ground-truth poses of the
-    log's first ``n`` scans (matched to times.txt by timestamp within 20 ms)."""
-    from submapslam.io.trajectory import read_tum
+    log's first ``n`` scans (matched to times.txt by timestamp within 20 ms). A real log without
+    ``groundtruth_tum.txt`` uses its ``reference_poses_kitti.txt`` (line k: scan k)."""
+    from submapslam.io.trajectory import read_kitti, read_tum
 
+    times_path = log / "times.txt" if (log / "times.txt").exists() else log / "scans" / "times.txt"
+    if not (log / "groundtruth_tum.txt").exists() and (log / REFERENCE_KITTI).exists():
+        # a real log: the reference poses, one KITTI line per scan file, stamped with times.txt
+        gt = read_kitti(log / REFERENCE_KITTI, timestamps=np.loadtxt(times_path, ndmin=1, usecols=0))
+        return gt, gt.poses[:n]
     gt = read_tum(log / "groundtruth_tum.txt")
-    times_path = log / "times.txt"
     times = np.loadtxt(times_path, ndmin=1, usecols=0) if times_path.exists() else gt.timestamps
     times = times if n is None else times[:n]
     order = np.argsort(gt.timestamps)
@@ -377,7 +387,8 @@ def evaluate_peer(out: Path, gt, gt_scan_poses: np.ndarray) -> dict:
 def bench_log(log: Path, args) -> dict:
     meta = read_log_meta(log)
     n_meta = meta.get("n_scans")
-    n_files = len(list((log / "scans").glob("*.ply"))) if (log / "scans").is_dir() else None
+    n_files = (sum(p.suffix in (".ply", ".pcd", ".bin") for p in (log / "scans").iterdir())
+               if (log / "scans").is_dir() else None)
     n = n_files if n_files is not None else n_meta
     if args.max_scans:
         n = min(n, args.max_scans) if n else args.max_scans

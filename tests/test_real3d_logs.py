@@ -1,0 +1,45 @@
+"""Real 3D logs end to end at the defaults: accuracy against their reference poses.
+
+The two Livox sequences of ../shared/data/lidar3d (a hand-held narrow-field sensor, keyframes
+irregular in time, no IMU used here): the guard that the 3D defaults hold on data they were not
+made on. KISS-ICP 1.3.0 at its defaults gets 0.83 m and 1.54 m on them (SOURCE.txt).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from submapslam import open_log, run
+from submapslam.evaluation.metrics import ate
+from submapslam.io.trajectory import read_kitti
+from submapslam.trajectory import Trajectory
+
+from .conftest import shared_data
+
+
+def _run_against_reference(name: str):
+    folder = shared_data("lidar3d", name)
+    result = run(open_log(folder / "scans"))
+    stamps = np.loadtxt(folder / "scans" / "times.txt", ndmin=1)
+    reference = read_kitti(folder / "reference_poses_kitti.txt", timestamps=stamps)
+    estimate = Trajectory(result.timestamps, result.poses)
+    return result, reference, float(ate(estimate, reference, align="se3")["rmse"])
+
+
+def test_livox_loop_is_closed_and_within_a_tenth_of_a_metre():
+    result, reference, error = _run_against_reference("livox_hku_loop")
+    assert len(result.poses) == 266
+    assert error <= 0.08, f"ATE {error:.3f} m"
+    last = len(result.submap_poses) - 1
+    closing = [loop for loop in result.loops if loop.accepted and loop.i == 0 and loop.j >= last - 1]
+    assert closing, "no closure accepted between the first and the last submaps"
+    # the end lies where the scans put it: registering the last scan onto the first five
+    # (placed by the reference) puts it 0.077 m from the first; the reference says 0.18 m
+    end_to_start = np.linalg.norm(result.poses[-1][:3, 3] - result.poses[0][:3, 3])
+    assert end_to_start < 0.15
+
+
+def test_livox_main_building_within_a_tenth_of_a_metre():
+    result, _, error = _run_against_reference("livox_hku_main_building")
+    assert len(result.poses) == 457
+    assert error <= 0.10, f"ATE {error:.3f} m"
