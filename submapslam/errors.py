@@ -42,3 +42,7 @@ class DivergenceError(SubmapSlamError):
 class OutputError(SubmapSlamError):
     """An output path cannot take the results (a file, an input, a folder of the user's, not
     writable, or an earlier result without ``--overwrite``); found before any work is done."""
+
+
+class OptimisationError(SubmapSlamError):
+    """GTSAM could not solve the pose graph, even after regularising it."""

@@ -17,7 +17,7 @@ import numpy as np
 
 from .checkpoint import Checkpoint
 from .config import PipelineConfig
-from .errors import InputError, SubmapSlamError
+from .errors import InputError, OptimisationError, SubmapSlamError
 from .geometry import blend_poses_many, inverse
 from .graph_builder import GraphBuilder
 from .observer import RunObserver, notify_closed_submap
@@ -377,7 +377,8 @@ class SubmapSLAM:
         return fuse_clouds(clouds, voxel or self.map_voxel)
 
     # ------------------------------------------------------------------ finishing
-    def finish(self, input_error: str | None = None, source: str = "", interrupted: bool = False) -> SlamResult:
+    def finish(self, input_error: str | None = None, source: str = "", interrupted: bool = False,
+               failure: str | None = None) -> SlamResult:
         """Close the last submap, run the final batch optimisation and build the result
         (``interrupted``: the scans stop before the end of the log, marked in the result)."""
         if self.planar is None:
@@ -385,14 +386,23 @@ class SubmapSLAM:
         while self._in_flight:
             self.complete_scan()
         self.close()
-        last = self._builder.flush()
-        if last is not None:
-            self._close_submap(last, background=False)
-        self._settle()
+        try:
+            if failure is None:  # after a failure the graph takes nothing more
+                last = self._builder.flush()
+                if last is not None:
+                    self._close_submap(last, background=False)
+            self._settle()
+        except OptimisationError as exc:
+            failure = str(exc)
         if self._worker is not None:
             self._worker.shutdown()
             self._worker = None
-        reasons, covs = self._graph_builder.finish()
+        try:
+            reasons, covs = self._graph_builder.finish()
+        except (OptimisationError, RuntimeError) as exc:  # the estimate so far is kept, without covariances
+            log.warning("the final optimisation failed: %s", exc)
+            failure = failure or f"the final optimisation failed: {exc}"
+            reasons, covs = {}, {k: np.full((6, 6), np.nan) for k in range(len(self.submaps))}
         for rec in self.loops:
             if rec.accepted and (rec.i, rec.j) in reasons:
                 rec.accepted = False
@@ -429,7 +439,10 @@ class SubmapSLAM:
             peak_while_odometry_mb=self._peak_while_odometry_mb,
             input_error=input_error,
             source=source,
-            interrupted=interrupted,
+            interrupted=interrupted or failure is not None,
+            failure=failure,
+            optimiser_recoveries=list(graph.recoveries),
+            odometry_registration="" if self.planar else self.odometry_config.registration,
             submap_descriptors=self._descriptors(n),
             submap_dynamic_points=[s.dynamic_points for s in self.submaps] if self._movers is not None else None,
         )
@@ -486,6 +499,7 @@ def run(
         raise SubmapSlamError(f"--max-scans {config.max_scans} is below the {resume_from.n_scans} scans "
                               "the checkpoint already covers")
     input_error = None
+    failure = None  # an optimiser failure that could not be recovered
     interrupted = False
     n = 0  # scans completed
     submitted = 0
@@ -502,7 +516,9 @@ def run(
         if progress is not None:
             progress(n)
 
-    try:
+    def read_all() -> None:
+        """Submit and complete every scan until the end, a stop or an input error."""
+        nonlocal submitted, interrupted, input_error
         with ReadAhead(scans) as iterator:
             while config.max_scans is None or submitted < config.max_scans:
                 if stop is not None and stop.is_set():
@@ -528,6 +544,13 @@ def run(
             slam.close()  # the result ends with the scan completed when the stop came: drop those in flight
         while slam.in_flight:  # the scans read are all completed (the end of the log, an input error)
             complete_one()
+
+    try:
+        try:
+            read_all()
+        except OptimisationError as exc:  # the run ends here; its result is kept as after a stop
+            failure, interrupted = str(exc), True
+            slam.close()
         if n == 0 and interrupted:
             raise SubmapSlamError(f"{source or 'log'}: stopped before the first scan was processed")
         if resume_from is not None and n < resume_from.n_scans and input_error is None and not interrupted:
@@ -538,7 +561,7 @@ def run(
         raise
     if interrupted and on_checkpoint is not None:
         on_checkpoint(slam.checkpoint(source))
-    result = slam.finish(input_error=input_error, source=source, interrupted=interrupted)
+    result = slam.finish(input_error=input_error, source=source, interrupted=interrupted, failure=failure)
     result.log_info = dict(getattr(scans, "log_info", None) or {})  # the reader's account (record, skips)
     return result
 

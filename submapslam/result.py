@@ -78,6 +78,12 @@ class SlamResult:
         log_info: what the reader reports about the log (its ``log_info``: e.g. the CARMEN
             record read, damaged records skipped), written into ``summary.json``.
         hint_problems: one message per manual loop hint the log could not use.
+        optimiser_recoveries: one line per GTSAM failure the back end recovered from (the graph
+            regularised, or the batch pass skipped).
+        failure: the message of an optimiser failure that could not be recovered: the run
+            ended there (``interrupted`` is set) and the result covers the scans before it.
+        odometry_registration: the 3D registration used (``odometry.registration`` resolved:
+            kiss_icp or voxel_gicp); "" for 2D lasers.
         submap_dynamic_points: 3D runs with ``mapping.split_movers``: per submap the ``(D_k, 3)``
             points (anchor frame) that moved, taken out of ``submap_points``; None otherwise.
     """
@@ -111,6 +117,9 @@ class SlamResult:
     submap_descriptors: np.ndarray | None = None
     log_info: dict = field(default_factory=dict)
     hint_problems: list[str] = field(default_factory=list)
+    optimiser_recoveries: list[str] = field(default_factory=list)
+    failure: str | None = None
+    odometry_registration: str = ""
     submap_dynamic_points: list[np.ndarray] | None = None
 
     @property
@@ -150,4 +159,7 @@ class SlamResult:
             "interrupted": self.interrupted,
             **self.log_info,
             "hint_problems": list(self.hint_problems),
+            "odometry_registration": self.odometry_registration or None,
+            "optimiser_recoveries": list(self.optimiser_recoveries),
+            "failure": self.failure,
         }

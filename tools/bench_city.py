@@ -552,8 +552,9 @@ def resolve_logs(args) -> list[Path]:
     if not logs:
         raise SystemExit("bench_city: no logs; give LOG folders or --generate NN")
     for log in logs:
-        if not (log / "groundtruth_tum.txt").exists():
-            raise SystemExit(f"bench_city: {log}: no groundtruth_tum.txt (not a synthetic cloud-folder log?)")
+        if not (log / "groundtruth_tum.txt").exists() and not (log / REFERENCE_KITTI).exists():
+            raise SystemExit(f"bench_city: {log}: no groundtruth_tum.txt nor {REFERENCE_KITTI} "
+                             "(not a synthetic cloud-folder log nor a real log with reference poses?)")
     return logs
 
 

@@ -8,12 +8,14 @@ Pose3 tangent order ``(rx, ry, rz, tx, ty, tz)``.
 from __future__ import annotations
 
 import logging
+import re
 from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..config import BackendConfig
+from ..errors import OptimisationError
 from ..geometry import rotation_between
 
 log = logging.getLogger(__name__)
@@ -43,6 +45,26 @@ def floor_information(information: np.ndarray, sigma_m: float, sigma_rad: float)
     return (V / w) @ V.T
 
 
+# The least information an edge carries in any direction (GTSAM order): sigma 100 m / 100 rad. A
+# direction the measurement does not see at all (a zero eigenvalue, a registration that failed)
+# otherwise leaves a node under-determined and GTSAM's solve fails on it.
+MIN_INFORMATION = 1e-4
+
+
+def regularised_information(information: np.ndarray) -> np.ndarray:
+    """``(6, 6)`` information made symmetric positive definite: eigenvalues floored at
+    :data:`MIN_INFORMATION`; a non-finite matrix carries that floor only (no information)."""
+    info = np.asarray(information, dtype=np.float64)
+    if not np.isfinite(info).all():
+        log.warning("an edge's information is not finite: the edge is kept with none (sigma 100 m / 100 rad)")
+        return np.eye(len(info)) * MIN_INFORMATION
+    info = 0.5 * (info + info.T)
+    w, V = np.linalg.eigh(info)
+    if w.min() >= MIN_INFORMATION:
+        return info
+    return (V * np.maximum(w, MIN_INFORMATION)) @ V.T
+
+
 def cap_covariance(cov: np.ndarray, sigma_m: float, sigma_rad: float) -> np.ndarray:
     """Clip a ``(6, 6)`` covariance (GTSAM order) so no direction is less certain than the caps.
 
@@ -65,7 +87,9 @@ class PoseGraph:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(0.01)
         params.relinearizeSkip = 1
+        self._isam_params = params
         self._isam = gtsam.ISAM2(params)
+        self.recoveries: list[str] = []  # GTSAM failures recovered by regularising the graph
         self._graph = gtsam.NonlinearFactorGraph()  # everything, for batch and export
         self._pending_graph = gtsam.NonlinearFactorGraph()
         self._pending_values = gtsam.Values()
@@ -132,6 +156,7 @@ class PoseGraph:
     def add_between(self, i: int, j: int, T_i_j: np.ndarray, information: np.ndarray, kind: str) -> None:
         """Add ``T_i_j`` (pose of node j in node i's frame); loop edges get the robust kernel."""
         gtsam = self._gtsam
+        information = regularised_information(information)
         f = gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(np.asarray(T_i_j, dtype=np.float64)),
                                      self._noise(information, robust=(kind == "loop")))
         self._pending_graph.add(f)
@@ -143,14 +168,49 @@ class PoseGraph:
 
     # ------------------------------------------------------------------ solving
     def update(self, extra_iterations: int = 0) -> None:
-        """One iSAM2 step with everything added since the last call."""
-        self._isam.update(self._pending_graph, self._pending_values)
-        for _ in range(extra_iterations):
-            self._isam.update()
+        """One iSAM2 step with everything added since the last call.
+
+        When GTSAM finds the system indeterminate, the node it names is held where it is by a
+        weak prior and iSAM2 restarted on the whole graph (:attr:`recoveries` says so);
+        :class:`OptimisationError` if that does not help.
+        """
+        try:
+            self._isam.update(self._pending_graph, self._pending_values)
+            for _ in range(extra_iterations):
+                self._isam.update()
+        except RuntimeError as exc:
+            self._recover(exc)
         self._pending_graph = self._gtsam.NonlinearFactorGraph()
         self._pending_values = self._gtsam.Values()
         self._estimate = self._isam.calculateEstimate()
         self.n_updates += 1
+
+    def _recover(self, exc: RuntimeError, attempts: int = 8) -> None:
+        """Find the under-constrained node GTSAM names ("near variable K"), hold it where it is
+        with a prior (sigma 1 m / 1 rad), restart iSAM2 on the whole active graph; repeat for the
+        next node it names, at most ``attempts`` times."""
+        gtsam = self._gtsam
+        values = gtsam.Values()
+        for key, T in self._initial.items():
+            values.insert(key, self._estimate.atPose3(key) if self._estimate.exists(key) else gtsam.Pose3(T))
+        hold = gtsam.noiseModel.Isotropic.Sigma(6, 1.0)
+        for _ in range(attempts):
+            why = _one_line(exc)
+            match = re.search(r"near variable\s+(\d+)", str(exc))
+            if match is None or int(match.group(1)) not in self._initial:
+                break
+            key = int(match.group(1))
+            log.warning("GTSAM could not solve the graph (%s); holding node %d where it is and solving again",
+                        why, key)
+            self._graph.add(gtsam.PriorFactorPose3(key, values.atPose3(key), hold))
+            self.recoveries.append(f"{why}: node {key} held by a weak prior (1 m, 1 rad), solved again")
+            self._isam = gtsam.ISAM2(self._isam_params)
+            try:
+                self._isam.update(self._active_graph(), values)
+                return
+            except RuntimeError as again:
+                exc = again
+        raise OptimisationError(f"the pose graph cannot be solved, even regularised: {_one_line(exc)}") from exc
 
     def _active_graph(self, also_without: int | None = None):
         """The graph without the factors at indices in ``self._excluded`` (rejected loops) and,
@@ -177,12 +237,21 @@ class PoseGraph:
         ``{(i, j): w}`` (0 = rejected as an outlier; such edges leave the graph). Otherwise plain
         LM; weights are all 1.
         """
-        gtsam = self._gtsam
         if self._pending_graph.size() or self._pending_values.size():
             self.update()
         lm = self._lm_params(max_iterations)
         loop_factors = {idx: key for idx, key in self._factor_edges.items() if self.edges[key].kind == "loop"}
         weights = {(e.i, e.j): 1.0 for e in self.edges if e.kind == "loop"}
+        try:
+            return self._batch(lm, loop_factors, weights)
+        except RuntimeError as exc:  # keep iSAM2's estimate
+            log.warning("the batch pass failed (%s); keeping the incremental estimate", _one_line(exc))
+            self.recoveries.append(f"batch pass: {_one_line(exc)}; kept the incremental estimate")
+            return weights
+
+    def _batch(self, lm, loop_factors: dict[int, int], weights: dict[tuple[int, int], float]
+               ) -> dict[tuple[int, int], float]:
+        gtsam = self._gtsam
         if self.config.robust_kernel == "gnc" and loop_factors:
             params = gtsam.GncLMParams(lm)
             params.setLossType(gtsam.GncLossType.TLS)
@@ -286,6 +355,12 @@ class PoseGraph:
         except RuntimeError as exc:  # indeterminant system; fall back to iSAM2's
             log.warning("batch marginals failed (%s); using iSAM2 marginals", exc)
             return {k: self.marginal_covariance(k) for k in wanted}
+
+
+def _one_line(exc: BaseException) -> str:
+    """GTSAM's multi-line exception text as one line ("... near variable 1 (Symbol: 1).")."""
+    lines = [line.strip() for line in str(exc).strip().splitlines() if line.strip()]
+    return " ".join(lines[:2]) if lines else type(exc).__name__
 
 
 def adjoint(T: np.ndarray) -> np.ndarray:

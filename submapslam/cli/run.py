@@ -122,6 +122,8 @@ def register(app: typer.Typer) -> None:
             console.print(f"skipped {s['skipped_records']} damaged record(s): {where}"
                           f"{' ...' if s['skipped_records'] > 5 else ''}")
         console.print(f"results in {out}")
+        if result.failure:
+            raise fail(f"{result.failure} (results cover the first {s['scans']} scans)")
         if result.interrupted:
             console.print(f"interrupted: the results cover the first {s['scans']} scans of the log; "
                           f"`submapslam run --resume {out}` continues the run")
