@@ -142,7 +142,7 @@ def generate_kitti_drive(path_file: str | Path, out_dir: str | Path, *, rings: i
     write_meta(out, {
         "world": world.name, "description": world.description, "seed": seed, "laps": 1,
         "source_path": Path(path_file).name, "repeated_buildings": repeated_buildings,
-        "sensor": {"type": "lidar3d", **asdict(dev)}, "planar": False,
+        "sensor": {"type": "lidar3d", **asdict(dev)}, "planar": False, "motion_distorted": False,
         "n_scans": int(total), "rate_hz": KITTI_RATE_HZ,
         "speed_mps": round(summary["path_length_m"] / max((total - 1) / KITTI_RATE_HZ, 1e-9), 3),
         "path_length_m": summary["path_length_m"], "loop_length_m": summary["path_length_m"],

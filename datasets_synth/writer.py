@@ -227,7 +227,7 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
     summary = odometry_summary(truth, odom)
     write_meta(out, {
         "world": world, "description": w.description, "seed": seed, "laps": laps,
-        "sensor": {"type": sensor, **asdict(dev)}, "planar": sensor == "laser2d",
+        "sensor": {"type": sensor, **asdict(dev)}, "planar": sensor == "laser2d", "motion_distorted": False,
         "n_scans": int(len(truth)), "rate_hz": rate, "speed_mps": speed,
         "loop_length_m": round(w.loop_length(), 3), "odometry_noise": asdict(noise),
         "odometry_end_drift_m": summary["odometry_end_drift_m"], "T_base_sensor": np.eye(4).tolist(),

@@ -47,7 +47,10 @@ class OdometryConfig(_Strict):
         "one point per 0.8 m voxel still gives ICP its neighbours; on the 3.7 km KITTI-00 city drive 1.7x "
         "faster than 3 points and less drift, 9.1 m odometry ATE against 14.4)"
     )
-    deskew: bool = False
+    deskew: bool | None = Field(
+        None, description="correct each scan's motion during the sweep from its per-point times (a PLY/PCD "
+        "time/t/timestamp/offset_time field, a PointCloud2's t/time/timestamp/offset_time); None: on when the "
+        "scans carry such times, off otherwise")
     use_wheel_odometry: bool = Field(True, description="wheel odometry as the ICP initial guess")
     planar_point_to_line: bool = Field(
         True, description="2D lasers: refine each pose point-to-line against the last scans (removes the "

@@ -10,10 +10,12 @@ scans (:mod:`.registration.point_to_line`), which removes point-to-point ICP's l
 
 from __future__ import annotations
 
+from collections import deque
+
 import numpy as np
 
 from .config import OdometryConfig
-from .geometry import inverse, matrix_to_se2, se2_to_matrix
+from .geometry import blend_poses, inverse, matrix_to_se2, se2_to_matrix
 from .registration.voxel_gicp import VoxelGicpSettings
 from .scan import Scan
 
@@ -69,7 +71,7 @@ class Odometry:
         kiss = KISSConfig()
         kiss.data.max_range = config.max_range
         kiss.data.min_range = config.min_range
-        kiss.data.deskew = config.deskew
+        kiss.data.deskew = False  # this preprocessor only crops; _deskewing corrects the motion when asked
         kiss.mapping.voxel_size, self.frame_voxel = odometry_voxels(config, planar)
         kiss.mapping.max_points_per_voxel = config.max_points_per_voxel or (20 if planar else 1)
         kiss.registration.max_num_iterations = config.max_iterations
@@ -81,6 +83,10 @@ class Odometry:
         self.last_frame_down = np.zeros((0, 3))
         self.last_xyt: np.ndarray | None = None  # planar: (3,) x, y, yaw of the last scan as refined
         self._preprocessor = get_preprocessor(kiss)
+        kiss.data.deskew = True
+        self._deskewing = get_preprocessor(kiss) if config.deskew is not False else None
+        self._last_stamp: float | None = None
+        self._gaps: deque[float] = deque(maxlen=50)  # recent times between scans [s]
         self._registration = get_registration(kiss)
         self._local_map = get_voxel_hash_map(kiss)
         self._threshold = get_threshold_estimator(kiss)
@@ -119,8 +125,7 @@ class Odometry:
         registered at before (a resumed run): no ICP, the local map and the motion model are
         updated exactly as they were. :attr:`last_xyt` is the planar pose as refined.
         """
-        times = scan.point_times if scan.point_times is not None else np.zeros(len(scan.points))
-        frame = self._preprocessor.preprocess(scan.points, times, self.last_delta)
+        frame = self._crop_and_deskew(scan)
         prediction = self._predicted_delta(scan)
         if len(frame) < 10:
             # nothing to register: dead-reckon on the prediction
@@ -174,6 +179,32 @@ class Odometry:
         self._advance(new_pose)
         self.last_frame_down = frame_down
         return new_pose, frame
+
+    def _crop_and_deskew(self, scan: Scan) -> np.ndarray:
+        """The scan's points within the range limits, ``(N, 3)`` in its frame; motion-corrected
+        to the middle of the sweep when it has per-point times (``config.deskew`` not False).
+
+        The motion during the sweep is the last scan-to-scan motion (KISS-ICP's model), scaled
+        down when the scans lay further apart in time than usual (the median of the last 50
+        gaps): after a pause, or in a keyframed log, the sweep is a small share of that motion.
+        """
+        times, previous = scan.point_times, self._last_stamp
+        self._last_stamp = scan.timestamp
+        no_times = np.zeros(len(scan.points))
+        if self._deskewing is None or times is None or len(times) != len(scan.points) or len(times) == 0:
+            return self._preprocessor.preprocess(scan.points, no_times, self.last_delta)
+        times = np.asarray(times, dtype=np.float64)
+        span = float(times.max() - times.min())
+        if not np.isfinite(span) or span <= 0.0:
+            return self._preprocessor.preprocess(scan.points, no_times, self.last_delta)
+        motion = self.last_delta
+        gap = scan.timestamp - previous if previous is not None else 0.0
+        if gap > 0.0:
+            self._gaps.append(gap)
+            sweep = float(np.median(self._gaps))  # a sweep lasts no longer than the usual time between scans
+            if gap > sweep:  # after a pause or in a keyframed log: the last motion took longer than a sweep
+                motion = blend_poses(np.eye(4), self.last_delta, sweep / gap)
+        return self._deskewing.preprocess(scan.points, (times - times.min()) / span, motion)
 
     def _register_gicp(self, frame: np.ndarray, frame_down: np.ndarray, initial_guess: np.ndarray,
                        known: tuple[np.ndarray, np.ndarray | None] | None) -> np.ndarray:

@@ -6,10 +6,13 @@ Accepted layouts (``LOG`` is the path given):
 Optional beside the scans (in LOG or the scans folder):
     times.txt           one timestamp [s] per scan (plain or ``.xz``); else the index is used
     odometry_tum.txt    wheel odometry ``T_odom_base`` per scan, TUM format
-    meta.yaml           ``planar: true`` marks 2D laser logs; ``T_base_sensor`` (4x4 list): the
+    meta.yaml           ``planar: true`` marks 2D laser logs; ``motion_distorted: false`` marks scans
+                        taken from one pose (their per-point times are not used to deskew);
+                        ``T_base_sensor`` (4x4 list): the
                         sensor's mounting on the robot base; points are moved into the base
                         frame, the frame the odometry describes
-Scans are sorted by file name. Per-point times come from a PLY/PCD ``time``/``t`` field.
+Scans are sorted by file name. Per-point times come from a PLY/PCD ``time``/``t``/``timestamp``/
+``offset_time`` field (normalised to [0, 1] over the sweep; ``odometry.deskew`` uses them).
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ log = logging.getLogger(__name__)
 
 SCAN_SUFFIXES = (".bin", ".ply", ".pcd")
 _SUBFOLDERS = ("scans", "Scans", "velodyne", "points", "clouds")
-_TIME_FIELDS = ("time", "t", "timestamp")
+_TIME_FIELDS = ("time", "t", "timestamp", "offset_time")  # offset_time: Livox drivers' [ns]
 _PLY_HEADER_BYTES = 65536
 
 
@@ -123,6 +126,12 @@ class CloudFolderReader:
         folders = (self.path, self.scan_dir)
         self.meta = self._read_meta(_find_file(("meta.yaml",), folders))
         self.planar = bool(self.meta.get("planar", False))
+        # per-point times are for deskewing; a log whose scans were taken from one pose says so
+        # (``motion_distorted: false``; the synthetic logs written before that key: a ``world``
+        # and a ``sensor`` entry and no key); their times are then not passed on
+        distorted = self.meta.get("motion_distorted")
+        self.motion_distorted = bool(distorted) if distorted is not None else not (
+            "world" in self.meta and "sensor" in self.meta)
         mounting = self.meta.get("T_base_sensor")
         self.T_base_sensor = np.eye(4) if mounting is None else check_transform(mounting, self.path / "meta.yaml")
         self._mounted = not sensor_frame and not np.array_equal(self.T_base_sensor, np.eye(4))
@@ -196,7 +205,8 @@ class CloudFolderReader:
                 if times is not None and len(times) == len(points):
                     times = times[finite]
                 points = points[finite]
-            if times is not None and len(times) == len(points) and np.all(np.isfinite(times)):
+            if (self.motion_distorted and times is not None and len(times) == len(points)
+                    and np.all(np.isfinite(times))):
                 span = times.max() - times.min() if len(times) else 0.0
                 times = ((times - times.min()) / span if 0 < span < np.inf else np.zeros_like(times))
             else:

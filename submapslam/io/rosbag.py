@@ -64,7 +64,7 @@ TF_SCAN_LIMIT = 2000  # /tf messages looked at for transforms that never change
 DEFAULT_BASE_FRAME = "base_link"
 SCAN_TYPES = (CLOUD_TYPE, LASER_TYPE)
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
-TIME_FIELDS = ("t", "time", "timestamp")
+TIME_FIELDS = ("t", "time", "timestamp", "offset_time")  # offset_time: Livox drivers'
 # sensor_msgs/PointField datatypes -> numpy type codes
 _POINTFIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
 _FLOAT_TYPES = {7, 8}

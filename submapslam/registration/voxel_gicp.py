@@ -26,7 +26,8 @@ class VoxelGicpSettings:
     fine_voxel: the fine map's voxel; coarse_voxel: the coarse map's; frame_voxel: each scan is
     thinned to this before its covariances are estimated (``neighbours`` nearest points);
     coarse_distance / fine_distance: the largest point-to-voxel distance of a correspondence in
-    each stage; horizon: insertions a voxel survives unseen.
+    each stage; horizon: insertions a voxel survives unseen; enough_inliers: a guess whose
+    alignment has this fraction of the scan's points as inliers is taken without trying the next.
     """
 
     fine_voxel: float = 0.5
@@ -37,6 +38,7 @@ class VoxelGicpSettings:
     neighbours: int = 10
     horizon: int = 100
     max_iterations: int = 30
+    enough_inliers: float = 0.9
 
 
 class VoxelGicpTracker:
@@ -69,11 +71,15 @@ class VoxelGicpTracker:
         return cloud
 
     def align(self, cloud, guesses: list[np.ndarray]) -> tuple[np.ndarray, int]:
-        """The best ``T_odom_scan`` over ``guesses`` (each ``(4, 4)``): coarse, then fine from
-        the coarse result; best = most fine inliers (the first guess wins ties)."""
+        """The best ``T_odom_scan`` over ``guesses`` (each ``(4, 4)``, tried in order): coarse,
+        then fine from the coarse result; best = most fine inliers (the earlier guess wins ties).
+        A guess whose alignment has ``enough_inliers`` of the scan as inliers ends the search
+        (on the Livox sequences 7-24 % of the scans then try the no-motion guess, at the same ATE)."""
         s = self.settings
         best: tuple[int, np.ndarray] | None = None
         for guess in guesses:
+            if best is not None and best[0] >= s.enough_inliers * cloud.size():
+                break
             coarse = self._gicp.align(self._coarse, cloud, guess, max_correspondence_distance=s.coarse_distance,
                                       max_iterations=s.max_iterations)
             fine = self._gicp.align(self._fine, cloud, coarse.T_target_source,
