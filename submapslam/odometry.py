@@ -87,6 +87,7 @@ class Odometry:
         self._deskewing = get_preprocessor(kiss) if config.deskew is not False else None
         self._last_stamp: float | None = None
         self._gaps: deque[float] = deque(maxlen=50)  # recent times between scans [s]
+        self._last_gap: float | None = None  # time between the last two scans [s] (what last_delta spans)
         self._registration = get_registration(kiss)
         self._local_map = get_voxel_hash_map(kiss)
         self._threshold = get_threshold_estimator(kiss)
@@ -182,14 +183,18 @@ class Odometry:
 
     def _crop_and_deskew(self, scan: Scan) -> np.ndarray:
         """The scan's points within the range limits, ``(N, 3)`` in its frame; motion-corrected
-        to the middle of the sweep when it has per-point times (``config.deskew`` not False).
+        to the end of the sweep (KISS-ICP's convention) when it has per-point times
+        (``config.deskew`` not False).
 
         The motion during the sweep is the last scan-to-scan motion (KISS-ICP's model), scaled
-        down when the scans lay further apart in time than usual (the median of the last 50
-        gaps): after a pause, or in a keyframed log, the sweep is a small share of that motion.
+        down when those scans lay further apart in time than usual (the median of the last 50
+        gaps): after a pause, or in a keyframed log, a sweep is a small share of that motion.
         """
-        times, previous = scan.point_times, self._last_stamp
+        times, previous, last_gap = scan.point_times, self._last_stamp, self._last_gap
         self._last_stamp = scan.timestamp
+        if previous is not None and scan.timestamp > previous:
+            self._last_gap = scan.timestamp - previous
+            self._gaps.append(self._last_gap)
         no_times = np.zeros(len(scan.points))
         if self._deskewing is None or times is None or len(times) != len(scan.points) or len(times) == 0:
             return self._preprocessor.preprocess(scan.points, no_times, self.last_delta)
@@ -198,12 +203,10 @@ class Odometry:
         if not np.isfinite(span) or span <= 0.0:
             return self._preprocessor.preprocess(scan.points, no_times, self.last_delta)
         motion = self.last_delta
-        gap = scan.timestamp - previous if previous is not None else 0.0
-        if gap > 0.0:
-            self._gaps.append(gap)
+        if last_gap is not None and self._gaps:
             sweep = float(np.median(self._gaps))  # a sweep lasts no longer than the usual time between scans
-            if gap > sweep:  # after a pause or in a keyframed log: the last motion took longer than a sweep
-                motion = blend_poses(np.eye(4), self.last_delta, sweep / gap)
+            if last_gap > sweep:  # after a pause or in a keyframed log: the last motion took longer than a sweep
+                motion = blend_poses(np.eye(4), self.last_delta, sweep / last_gap)
         return self._deskewing.preprocess(scan.points, (times - times.min()) / span, motion)
 
     def _register_gicp(self, frame: np.ndarray, frame_down: np.ndarray, initial_guess: np.ndarray,

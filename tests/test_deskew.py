@@ -69,3 +69,23 @@ def test_per_point_times_deskew_by_default_and_make_the_odometry_more_accurate(d
     without = _odometry_ate(scans, truth, False)
     assert default < 0.75 * without, (default, without)
     assert PipelineConfig().odometry.deskew is None  # the default: deskew where the scans have times
+
+
+def test_after_a_pause_the_sweep_takes_only_its_share_of_the_last_motion():
+    """The last motion took 2 s (the sensor stood still, or a keyframed log); a sweep lasts about
+    the usual 0.1 s between scans, so a point from the sweep's start moves by 1/20 of it."""
+    from submapslam.config import OdometryConfig
+    from submapslam.odometry import Odometry
+
+    odometry = Odometry(OdometryConfig(), planar=False)
+    points = np.array([[10.0, 0.0, 0.0], [10.0, 0.0, 0.0]])
+    times = np.array([0.0, 1.0])
+    step = np.eye(4)
+    step[0, 3] = 1.0  # 1 m along x between the last two scans
+    odometry.last_delta = step
+    corrected = []
+    for stamp in (0.0, 0.1, 0.2, 2.2, 2.3):
+        corrected.append(odometry._crop_and_deskew(Scan(0, stamp, points, times)))
+    assert corrected[2][0, 0] == pytest.approx(9.0)  # the usual gap: the whole last motion, KISS-ICP's model
+    assert corrected[4][0, 0] == pytest.approx(10.0 - 0.1 / 2.0)  # after the 2 s gap: 0.05 of it
+    assert np.allclose(corrected[4][1], points[1])  # the sweep's end is the scan's pose
