@@ -30,6 +30,7 @@ class LoopRecord:
     structure_overlap: float = float("nan")  # 3D: overlap of the non-ground points, both ways
     plane_rmse: float = float("nan")  # 3D: point-to-plane RMSE [m] of those inliers
     information: np.ndarray | None = None  # (6, 6) GTSAM order: the registration's, as measured
+    blamed: str = ""  # accepted closures: the constraint the final check blamed instead ("this closure": dropped)
 
 
 @dataclass
@@ -112,6 +113,7 @@ class SlamResult:
     log_info: dict = field(default_factory=dict)
     hint_problems: list[str] = field(default_factory=list)
     submap_dynamic_points: list[np.ndarray] | None = None
+    final_check: dict = field(default_factory=dict)
 
     @property
     def n_scans(self) -> int:
@@ -150,4 +152,5 @@ class SlamResult:
             "interrupted": self.interrupted,
             **self.log_info,
             "hint_problems": list(self.hint_problems),
+            **({"final_check": self.final_check} if self.final_check else {}),
         }
