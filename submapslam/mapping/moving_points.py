@@ -154,10 +154,11 @@ def non_ground(points_sensor: np.ndarray, band: float, radius: float = 15.0, per
         normal = V[:, 0] if V[2, 0] > 0 else -V[:, 0]
         if w[1] > 1.0 and normal[2] > np.cos(np.deg2rad(20.0)):  # spread in two directions, not a wall
             h = (pts - centre) @ normal
-    keys = np.floor(pts[:, :2] / cell).astype(np.int64)
-    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    ij = np.floor(pts[:, :2] / cell).astype(np.int64)
+    keys = (ij[:, 0] << 32) + ij[:, 1]  # one int64 per column (|index| < 2^31)
+    _, inverse = np.unique(keys, return_inverse=True)
     inverse = inverse.reshape(-1)
-    lowest = np.full(len(counts), np.inf)
+    lowest = np.full(int(inverse.max()) + 1 if len(inverse) else 0, np.inf)
     np.minimum.at(lowest, inverse, h)
     ground = lowest[inverse]
     allowed = rise + rise_per_m * horizontal
