@@ -407,6 +407,9 @@ class SubmapSLAM:
         backend = self.config.backend
         final_check = ({"loops_dropped": int(dropped), "gave_way": gave_way}
                        if backend.final_check and backend.final_batch else {})
+        if final_check and backend.ground_prior_kernel is not None:
+            beyond = sum(v > 9.0 for v in self._graph_builder.graph.prior_chi2().values())
+            final_check["ground_priors_beyond_3_sigma"] = int(beyond)  # down-weighted by their kernel
         timestamps, poses = self.trajectory()
         n = len(self.submaps)
         graph = self._graph_builder.graph

@@ -256,7 +256,8 @@ class PoseGraph:
 
         After the batch pass every kept edge should be explained within its noise: whitened
         residual at most ``limit`` (chi-square, 6 DOF, 99.9 %), every ground prior at most
-        ``prior_limit`` (2 DOF, 99.9 %). While one is exceeded, one constraint gives way. The
+        ``prior_limit`` (2 DOF, 99.9 %; Gaussian priors only: under ``ground_prior_kernel`` a
+        prior far out has lost its pull already). While one is exceeded, one constraint gives way. The
         candidates: the ``max_suspects`` loops with the largest residuals, the most stretched
         odometry edge and the most stretched ground prior (and the priors on that edge's two
         nodes). Each is taken out in turn (an odometry edge keeps a 1e-6 stand-in: the chain stays
@@ -278,7 +279,8 @@ class PoseGraph:
             chi2 = self.edge_chi2()
             loops = {k: v for k, v in chi2.items() if self.edges[k].kind == "loop"}
             odo = {k: v for k, v in chi2.items() if self.edges[k].kind == "odometry"}
-            priors = self.prior_chi2()
+            # robust priors far out have given way already (their kernel): only Gaussian ones are a symptom
+            priors = self.prior_chi2() if self.config.ground_prior_kernel is None else {}
             worst_odo = max(odo, key=lambda k: (odo[k], -k)) if odo else None
             worst_prior = max(priors, key=lambda k: (priors[k], -k)) if priors else None
             if worst_odo is not None and odo[worst_odo] > limit:
