@@ -57,11 +57,13 @@ class Lidar3D:
 
     @classmethod
     def preset(cls, rings: int, **overrides) -> Lidar3D:
-        """A Velodyne-like sensor: ``rings`` 16 (VLP-16) or 64 (HDL-64E), at KITTI's 1.73 m mount height.
+        """A spinning sensor: ``rings`` 16 (VLP-16), 64 (HDL-64E) or 128 (OS1-128), at KITTI's 1.73 m
+        mount height.
 
         VLP-16: -15..+15 deg, 1800 columns, 4 cm range noise, 100 m. HDL-64E: -24.8..+2 deg,
-        1800 columns, 2 cm noise, 120 m. Rings are evenly spaced in elevation (the real HDL-64E's
-        are not quite). ``overrides`` replace any field.
+        1800 columns, 2 cm noise, 120 m. OS1-128 like: -22.5..+22.5 deg, 1024 columns, 3 cm
+        noise, 120 m. Rings are evenly spaced in elevation (the real HDL-64E's are not quite).
+        ``overrides`` replace any field.
         """
         if rings not in LIDAR_PRESETS:
             raise ValueError(f"no LiDAR preset with {rings} rings; use {' or '.join(map(str, LIDAR_PRESETS))}")
@@ -73,7 +75,43 @@ LIDAR_PRESETS: dict[int, dict] = {
          "range_noise": 0.04, "dropout": 0.01, "mount_height": 1.73},
     64: {"rings": 64, "fov_up_deg": 2.0, "fov_down_deg": -24.8, "columns": 1800, "max_range": 120.0,
          "range_noise": 0.02, "dropout": 0.01, "mount_height": 1.73},
+    128: {"rings": 128, "fov_up_deg": 22.5, "fov_down_deg": -22.5, "columns": 1024, "max_range": 120.0,
+          "range_noise": 0.03, "dropout": 0.01, "mount_height": 1.73},
 }
+
+
+@dataclass
+class LivoxLike:
+    """A forward-looking solid-state LiDAR with a non-repetitive rosette pattern (Livox Avia like).
+
+    ``points`` rays per scan over ``fov_h_deg`` x ``fov_v_deg`` (x forward, y left, z up): two
+    incommensurate rotations (``f1_hz``, ``f2_hz``) trace a rosette that never repeats, so each
+    scan samples different directions and the coverage fills in over time. The pattern runs on
+    from scan to scan at ``rate_hz`` (scan ``k`` covers ``[k, k + 1) / rate_hz`` seconds).
+    """
+
+    fov_h_deg: float = 70.4
+    fov_v_deg: float = 77.2
+    points: int = 24000
+    f1_hz: float = 733.0
+    f2_hz: float = -467.3
+    rate_hz: float = 10.0
+    max_range: float = 120.0
+    range_noise: float = 0.02
+    dropout: float = 0.01
+    mount_height: float = 1.73
+
+    def directions_at(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Unit ray directions ``(points, 3)`` of scan ``k`` and their times in [0, 1) within it."""
+        frac = np.arange(self.points) / self.points
+        t = (k + frac) / self.rate_hz
+        a, b = 2 * np.pi * self.f1_hz * t, 2 * np.pi * self.f2_hz * t
+        u = 0.5 * (np.cos(a) + np.cos(b))  # rosette in the unit disc
+        v = 0.5 * (np.sin(a) + np.sin(b))
+        az = u * np.deg2rad(self.fov_h_deg) / 2
+        el = v * np.deg2rad(self.fov_v_deg) / 2
+        d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=1)
+        return d, frac
 
 
 class RayCaster:

@@ -35,6 +35,10 @@ class World:
         extent: ``(xmin, ymin, xmax, ymax)``.
         doorways: ``(D, 4)`` ``(x0, y0, x1, y1)``: openings in the walls where a door can hang
             (the room doors of ``rooms``), on the wall line.
+        ground_height: terrain: the ground height [m] ``(M,)`` at world points ``(M, 2)``, added to
+            the rough ground; oriented boxes and cylinders stand on it (buildings sunk to their
+            lowest corner, cars, canopies and poles lifted by the height at their centre).
+            None: flat ground at z ~ 0.
     """
 
     name: str
@@ -53,6 +57,7 @@ class World:
     corner_radius: float = 1.2
     terrain_radius: float | None = None
     doorways: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    ground_height: Callable[[np.ndarray], np.ndarray] | None = None
 
     def loop_length(self) -> float:
         """Length [m] of the waypoint polygon (closed: with the edge back to the start)."""
@@ -85,23 +90,45 @@ class World:
             add(b, STATIC_CLASSES["building"])
         for x0, y0, x1, y1 in self.segments:
             add(_wall_quad(o3d, x0, y0, x1, y1, self.wall_height), STATIC_CLASSES["building"])
-        for x, y, r, h in self.cylinders:
+        base = np.zeros(len(self.cylinders))
+        if self.ground_height is not None and len(self.cylinders):
+            base = self.ground_height(np.asarray(self.cylinders)[:, :2]) - SINK
+        for (x, y, r, h), z0 in zip(self.cylinders, base):
+            h = h + (SINK if self.ground_height is not None else 0.0)
             c = o3d.geometry.TriangleMesh.create_cylinder(radius=r, height=h, resolution=16)
-            c.translate((x, y, h / 2))
+            c.translate((x, y, z0 + h / 2))
             add(c, STATIC_CLASSES["pole"])
         if len(self.oriented_boxes):
             per_box = np.array([STATIC_CLASSES.get(str(lab), STATIC_CLASSES["other"]) for lab in self.box_labels]
                                if len(self.box_labels) == len(self.oriented_boxes)
                                else [STATIC_CLASSES["other"]] * len(self.oriented_boxes), dtype=np.uint32)
-            add(_triangle_mesh(o3d, *_oriented_box_arrays(self.oriented_boxes)), np.repeat(per_box, 12))
+            add(_triangle_mesh(o3d, *_oriented_box_arrays(self.grounded_boxes())), np.repeat(per_box, 12))
         if self.ground:
             keep = None
             if self.terrain_radius is not None:
                 keep = _near_polyline(self.waypoints, self.terrain_radius, self.closed)
-            add(_terrain(o3d, self.extent, keep=keep), STATIC_CLASSES["road"])
+            add(_terrain(o3d, self.extent, keep=keep, height=self.ground_height), STATIC_CLASSES["road"])
         tri_labels = np.concatenate(labels) if labels else np.zeros(0, dtype=np.uint32)
         return mesh, tri_labels
 
+
+    def grounded_boxes(self) -> np.ndarray:
+        """``oriented_boxes`` ``(B, 7)`` standing on the terrain (unchanged without ``ground_height``):
+        a building's bottom sinks to its lowest footprint corner minus :data:`SINK`, its top rises
+        by the height at its centre; every other box is lifted by the height at its centre."""
+        boxes = np.array(self.oriented_boxes, dtype=np.float64).reshape(-1, 7)
+        if self.ground_height is None or not len(boxes):
+            return boxes
+        centre = self.ground_height(boxes[:, :2])
+        corners = _oriented_box_arrays(boxes)[0].reshape(-1, 8, 3)[:, :4, :2]
+        lowest = self.ground_height(corners.reshape(-1, 2)).reshape(-1, 4).min(axis=1)
+        building = (self.box_labels == "building") if len(self.box_labels) == len(boxes) else np.zeros(len(boxes), bool)
+        boxes[:, 5] = np.where(building, lowest - SINK, boxes[:, 5] + centre)
+        boxes[:, 6] += centre
+        return boxes
+
+
+SINK = 0.5  # [m] on terrain, buildings and poles reach this far below the ground (no gap under them)
 
 STATIC_CLASSES: dict[str, int] = {"building": 50, "car": 10, "canopy": 70, "pole": 80, "road": 40, "other": 99}
 """SemanticKITTI classes of the static world parts (``labels/NNNNNN.label``, lower 16 bits)."""
@@ -166,11 +193,13 @@ def densify(polyline: np.ndarray, spacing: float) -> np.ndarray:
 
 
 def _terrain(o3d, extent, spacing: float = 0.5, amplitude: float = 0.08, roughness: float = 0.04,
-             keep: Callable[[np.ndarray], np.ndarray] | None = None):
+             keep: Callable[[np.ndarray], np.ndarray] | None = None,
+             height: Callable[[np.ndarray], np.ndarray] | None = None):
     """Undulating, rough ground (a height field). A flat plane gives every scan identical ground
     rings, which pin point-to-point ICP at zero motion; real ground has kerbs, grass and bumps.
 
-    ``keep`` (a mask function of ``(N, 2)`` points) drops the cells whose centre it rejects."""
+    ``keep`` (a mask function of ``(N, 2)`` points) drops the cells whose centre it rejects;
+    ``height`` (``(N, 2)`` -> ``(N,)`` [m]) adds the terrain's large-scale height."""
     xmin, ymin, xmax, ymax = extent
     xs = np.arange(xmin - 40, xmax + 40 + spacing, spacing)
     ys = np.arange(ymin - 40, ymax + 40 + spacing, spacing)
@@ -185,6 +214,14 @@ def _terrain(o3d, extent, spacing: float = 0.5, amplitude: float = 0.08, roughne
         cells = keep(centres).reshape(nx - 1, ny - 1)
     else:
         cells = np.ones((nx - 1, ny - 1), dtype=bool)
+    if height is not None:  # only where a kept cell needs it (long drives: millions of far vertices)
+        used = np.zeros((nx, ny), dtype=bool)
+        for di in (0, 1):
+            for dj in (0, 1):
+                used[di:nx - 1 + di, dj:ny - 1 + dj] |= cells
+        flat = verts.reshape(nx, ny, 3)
+        flat[used, 2] += height(flat[used][:, :2])
+        verts = flat.reshape(-1, 3)
     a, b, c, d = idx[:-1, :-1][cells], idx[1:, :-1][cells], idx[1:, 1:][cells], idx[:-1, 1:][cells]
     tris = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
     if keep is not None:  # drop the vertices no kept cell uses

@@ -31,7 +31,7 @@ from submapslam.io.trajectory import Trajectory, write_kitti, write_tum
 
 from .motion import OdometryNoise, loop_path, open_path, wheel_odometry
 from .movers import MoverCaster, MoverTracks, door_tracks, indoor_movers
-from .sensors import Laser2D, Lidar3D, RayCaster, measure
+from .sensors import Laser2D, Lidar3D, LivoxLike, RayCaster, measure
 from .worlds import WORLDS, World
 
 log = logging.getLogger(__name__)
@@ -72,7 +72,7 @@ def _carmen_lines(stamps, ranges_list, odom, max_range) -> list[str]:
     return lines
 
 
-def cast_scans(out: Path, caster: RayCaster, dev: Laser2D | Lidar3D, T_world_sensor: np.ndarray,
+def cast_scans(out: Path, caster: RayCaster, dev: Laser2D | Lidar3D | LivoxLike, T_world_sensor: np.ndarray,
                rng: np.random.Generator, *, keep_ranges: bool = False,
                progress: Callable[[int], None] | None = None, triangle_labels: np.ndarray | None = None,
                movers: MoverTracks | None = None) -> list[np.ndarray]:
@@ -87,6 +87,8 @@ def cast_scans(out: Path, caster: RayCaster, dev: Laser2D | Lidar3D, T_world_sen
     ``triangle_labels`` ``(T,)``: the SemanticKITTI class of each triangle of the caster's mesh;
     given, every scan's per-point classes are written to ``out/labels/NNNNNN.label`` (uint32,
     the points' order). ``movers``: objects that move, cast scan by scan in front of the world.
+    A :class:`LivoxLike` sensor casts its own pattern for every scan (the pattern's clock is the
+    scan index).
     """
     (out / "scans").mkdir(parents=True, exist_ok=True)
     if triangle_labels is not None:
@@ -94,11 +96,15 @@ def cast_scans(out: Path, caster: RayCaster, dev: Laser2D | Lidar3D, T_world_sen
     if isinstance(dev, Laser2D):
         dirs = dev.directions()
         times = np.zeros(len(dirs))
+    elif isinstance(dev, LivoxLike):
+        dirs, times = dev.directions_at(0)
     else:
         dirs, times = dev.directions()
     mover_caster = MoverCaster(movers, dev.max_range) if movers is not None and len(movers) else None
     kept = []
     for k, T in enumerate(T_world_sensor):
+        if isinstance(dev, LivoxLike) and k:
+            dirs, times = dev.directions_at(k)
         t_hit, prim = caster.cast(T, dirs)
         cls = None
         if triangle_labels is not None:
@@ -123,11 +129,12 @@ def cast_scans(out: Path, caster: RayCaster, dev: Laser2D | Lidar3D, T_world_sen
     return kept
 
 
-def write_trajectories(out: Path, truth: np.ndarray, odom: np.ndarray, rate: float) -> np.ndarray:
+def write_trajectories(out: Path, truth: np.ndarray, odom: np.ndarray, rate: float,
+                       times: np.ndarray | None = None) -> np.ndarray:
     """``times.txt``, ``odometry_tum.txt``, ``groundtruth_tum.txt`` and ``groundtruth_kitti.txt``
-    for ``truth`` ``T_world_base`` and ``odom`` ``T_odom_base`` ``(N, 4, 4)`` at ``rate`` Hz;
-    returns the timestamps ``(N,)``."""
-    stamps = START_TIME + np.arange(len(truth)) / rate
+    for ``truth`` ``T_world_base`` and ``odom`` ``T_odom_base`` ``(N, 4, 4)`` at ``rate`` Hz (or at
+    ``times`` ``(N,)`` [s from the start] when given: irregular keyframes); returns the timestamps ``(N,)``."""
+    stamps = START_TIME + (np.arange(len(truth)) / rate if times is None else np.asarray(times, dtype=np.float64))
     (out / "times.txt").write_text("".join(f"{t:.6f}\n" for t in stamps))
     write_tum(out / "odometry_tum.txt", Trajectory(stamps, odom))
     write_tum(out / "groundtruth_tum.txt", Trajectory(stamps, truth))
@@ -138,7 +145,7 @@ def write_trajectories(out: Path, truth: np.ndarray, odom: np.ndarray, rate: flo
 def odometry_summary(truth: np.ndarray, odom: np.ndarray) -> dict:
     """Driven path length and wheel odometry's end drift [m], rounded for ``meta.yaml``."""
     end_drift = float(np.linalg.norm(odom[-1][:2, 3] - (np.linalg.inv(truth[0]) @ truth[-1])[:2, 3]))
-    length = float(np.linalg.norm(np.diff(truth[:, :2, 3], axis=0), axis=1).sum())
+    length = float(np.linalg.norm(np.diff(truth[:, :3, 3], axis=0), axis=1).sum())  # 3D: terrain climbs
     return {"path_length_m": round(length, 3), "odometry_end_drift_m": round(end_drift, 3)}
 
 

@@ -191,11 +191,23 @@ class BackendConfig(_Strict):
         "the yaw and the positions stay free) that keeps the odometry's small pitch bias from adding up: on three "
         "600-scan drives ATE 0.10-0.24 -> 0.07-0.13 m, the height error most of it. null: off (terrain whose "
         "slope changes sharply, ramps)")
+    ground_prior_kernel: float | None = Field(
+        1.0, gt=0, description="3D logs: Cauchy kernel width [whitened units, sigmas] on the ground priors "
+        "(attitude and tilt change): a prior the data contradict by many sigmas (a change of grade, a crest, "
+        "a road climbing at more than a few degrees) pulls with at most half a sigma instead of bending the "
+        "graph, while the odometry's small pitch drift (a fraction of a sigma per submap) is held as before. "
+        "null: Gaussian priors (the behaviour before)")
     loop_sigma_floor_m: float = Field(0.05, gt=0)
     loop_sigma_floor_deg: float = Field(0.5, gt=0)
     final_check: bool = Field(
         True, description="after the batch pass, drop loop closures the solution cannot reconcile with the "
-        "odometry (whitened residual above the chi-square 99.9 % bound), one at a time, and re-solve")
+        "odometry (whitened residual above the chi-square 99.9 % bound), one at a time, and re-solve. When "
+        "the closures agree with each other and one odometry edge or ground prior is what they contradict, "
+        "that edge or prior gives way instead (summary.json: final_check); never more than half the closures "
+        "are dropped")
+    final_check_consensus: int = Field(
+        3, ge=1, description="the final check lets an odometry edge or ground prior give way only when at "
+        "least this many loop closures remain and all of them fit once it has")
 
     def rotation_drift(self, planar: bool) -> tuple[float, float]:
         """``(deg per metre, fraction of the turned angle)`` of the odometry rotation sigma."""

@@ -403,13 +403,26 @@ class SubmapSLAM:
             log.warning("the final optimisation failed: %s", exc)
             failure = failure or f"the final optimisation failed: {exc}"
             reasons, covs = {}, {k: np.full((6, 6), np.nan) for k in range(len(self.submaps))}
+        gave_way = list(self._graph_builder.graph.gave_way)
         for rec in self.loops:
             if rec.accepted and (rec.i, rec.j) in reasons:
                 rec.accepted = False
                 rec.reason = reasons[(rec.i, rec.j)]
+                if rec.reason.startswith("dropped by the final check"):
+                    rec.blamed = "this closure"
+            elif rec.accepted:
+                lo, hi = min(rec.i, rec.j), max(rec.i, rec.j)
+                rec.blamed = "; ".join(f"{g['constraint']} {g['i']}-{g['j']} (chi2 {g['chi2']:.1f})" for g in gave_way
+                                       if lo <= min(g["i"], g["j"]) and max(g["i"], g["j"]) <= hi)
         dropped = sum(why.startswith("dropped by the final check") for why in reasons.values())
         if dropped:
             log.warning("final check dropped %d loop closure(s) the odometry cannot reconcile", dropped)
+        backend = self.config.backend
+        final_check = ({"loops_dropped": int(dropped), "gave_way": gave_way}
+                       if backend.final_check and backend.final_batch else {})
+        if final_check and backend.ground_prior_kernel is not None:
+            beyond = sum(v > 9.0 for v in self._graph_builder.graph.prior_chi2().values())
+            final_check["ground_priors_beyond_3_sigma"] = int(beyond)  # down-weighted by their kernel
         timestamps, poses = self.trajectory()
         n = len(self.submaps)
         graph = self._graph_builder.graph
@@ -445,6 +458,7 @@ class SubmapSLAM:
             odometry_registration="" if self.planar else self.odometry_config.registration,
             submap_descriptors=self._descriptors(n),
             submap_dynamic_points=[s.dynamic_points for s in self.submaps] if self._movers is not None else None,
+            final_check=final_check,
         )
 
     def close(self) -> None:

@@ -30,6 +30,7 @@ class LoopRecord:
     structure_overlap: float = float("nan")  # 3D: overlap of the non-ground points, both ways
     plane_rmse: float = float("nan")  # 3D: point-to-plane RMSE [m] of those inliers
     information: np.ndarray | None = None  # (6, 6) GTSAM order: the registration's, as measured
+    blamed: str = ""  # accepted closures: the constraint the final check blamed instead ("this closure": dropped)
 
 
 @dataclass
@@ -121,6 +122,7 @@ class SlamResult:
     failure: str | None = None
     odometry_registration: str = ""
     submap_dynamic_points: list[np.ndarray] | None = None
+    final_check: dict = field(default_factory=dict)
 
     @property
     def n_scans(self) -> int:
@@ -162,4 +164,5 @@ class SlamResult:
             "odometry_registration": self.odometry_registration or None,
             "optimiser_recoveries": list(self.optimiser_recoveries),
             "failure": self.failure,
+            **({"final_check": self.final_check} if self.final_check else {}),
         }

@@ -105,6 +105,12 @@ def test_pipeline_final_check_rejects_a_closure_forced_into_the_graph(tmp_path, 
     kept = [lp for lp in result.loops if lp.accepted]
     assert len(kept) >= 5 and sum(j - i >= 2 for i, j, *_ in edges) == len(kept)  # the right ones stay
     assert "dropped by the final check" in paths["loops.csv"].read_text()
+    import csv
+
+    rows = list(csv.DictReader(paths["loops.csv"].open()))
+    assert [(r["submap_i"], r["submap_j"]) for r in rows if r["final_check_blamed"] == "this closure"] == [("8", "19")]
+    summary = json.loads(paths["summary.json"].read_text())
+    assert summary["final_check"]["loops_dropped"] == 1 and summary["final_check"]["gave_way"] == []
 
 
 def test_short_gap_pairs_are_not_cycle_candidates():
@@ -347,3 +353,94 @@ def test_ground_tilt_change_prior_keeps_a_ramp_and_removes_the_pitch_bias():
     assert errors["tilt change"] < 0.3 * errors["none"]  # the odometry edge still pulls its way
     assert errors["level"] > 1.5 * errors["tilt change"]  # the level prior pulls the ramp flat
     assert yaw_errors["tilt change"] < 0.05  # the turns are the odometry's
+
+
+def _two_laps_with_a_wrong_edge(config, wrong_edge=30, extra_m=3.0):
+    """Two laps of a 240 m block (48 submaps; k and k + 24 at one place), odometry exact but for
+    edge ``wrong_edge - 1``-``wrong_edge``, which claims ``extra_m`` more; closures (k, k + 24) for even k."""
+    lap = square_truth(n_side=6, step=10.0)
+    truth = np.concatenate([lap, lap])
+    g = PoseGraph(config)
+    g.add_node(0, truth[0], np.diag([1e8] * 6))
+    for k in range(1, len(truth)):
+        T = inverse(truth[k - 1]) @ truth[k]
+        info = odometry_information(T, 10.0, False, config)
+        if k == wrong_edge:
+            T = T @ se2_to_matrix(extra_m, 0.0, 0.0)
+        g.add_node(k, g.pose(k - 1) @ T)
+        g.add_between(k - 1, k, T, info, "odometry")
+    loop_info = np.diag([1 / np.deg2rad(0.5) ** 2] * 3 + [1 / 0.05**2] * 3)
+    loops = [(k, k + 24) for k in range(0, 24, 2)]
+    for i, j in loops:
+        g.add_between(i, j, inverse(truth[i]) @ truth[j], loop_info, "loop")
+    g.update()
+    g.optimize_batch()
+    return g, truth, loops
+
+
+def test_final_check_blames_one_wrong_odometry_edge_not_the_loops_that_agree():
+    """Twelve true closures agree with each other and with every odometry edge but one (29-30
+    claims 3 m more than was driven): an odometry edge in their cycle gives way, no closure is
+    dropped (before: every closure, one after the other)."""
+    g, truth, loops = _two_laps_with_a_wrong_edge(BackendConfig(robust_kernel="none"))
+    assert max(v for k, v in g.edge_chi2().items() if g.edges[k].kind == "odometry") > 22.46
+    assert g.final_check() == []
+    assert len(g.gave_way) == 1 and g.gave_way[0]["constraint"] == "odometry edge"
+    # closures (4, 28) and (6, 30) make the one cycle the wrong edge is in: any of its odometry edges explains it
+    assert (g.gave_way[0]["i"], g.gave_way[0]["j"]) in {(4, 5), (5, 6), (28, 29), (29, 30)}
+    assert g.gave_way[0]["loops_agreeing"] == len(loops) and g.gave_way[0]["chi2"] > 22.46
+    assert {(e.i, e.j) for e in g.active_edges() if e.kind == "loop"} == set(loops)
+    assert max(v for v in g.edge_chi2().values()) < 22.46  # everything left fits
+    assert set(g.all_marginal_covariances()) == set(range(len(truth)))  # the chain is still connected
+
+
+def test_final_check_never_drops_more_than_half_the_closures():
+    """Without a consensus to let the edge give way (required: more closures than there are), the
+    check stops after dropping half the closures instead of emptying the graph."""
+    g, _, loops = _two_laps_with_a_wrong_edge(BackendConfig(robust_kernel="none", final_check_consensus=20))
+    dropped = g.final_check()
+    assert g.gave_way == [] and 1 <= len(dropped) <= len(loops) // 2
+    assert sum(e.kind == "loop" for e in g.active_edges()) >= len(loops) - len(loops) // 2
+
+
+def _crest_chain(kernel: float | None, n: int = 40, step: float = 12.0) -> float:
+    """Anchors ``step`` m apart, level for 20, then climbing 4 deg (a change of grade at anchor 20),
+    odometry pitching 0.05 deg too far up each step, the ground straight below every anchor, the
+    tilt-change and level priors, and three true closures from anchors 0, 5 and 10 to the last (they
+    fix the height the climb reached). Returns the largest position error [m] after the batch pass."""
+    from submapslam.geometry import so3_exp
+
+    truth = [np.eye(4)]
+    for k in range(1, n):
+        T = np.eye(4)
+        T[0, 3] = step
+        if k == 20:
+            T[:3, :3] = so3_exp(np.deg2rad([0.0, -4.0, 0.0]))
+        truth.append(truth[-1] @ T)
+    bias = np.eye(4)
+    bias[:3, :3] = so3_exp(np.deg2rad([0.0, -0.05, 0.0]))
+    config = BackendConfig(robust_kernel="none", ground_prior_kernel=kernel)
+    g = PoseGraph(config)
+    g.add_node(0, truth[0], np.diag([1e8] * 6))
+    world_up = truth[0][:3, 2]
+    for k in range(1, n):
+        meas = inverse(truth[k - 1]) @ truth[k] @ bias
+        g.add_node(k, g.pose(k - 1) @ meas)
+        g.add_between(k - 1, k, meas, odometry_information(meas, step, False, config), "odometry")
+        g.add_relative_attitude(k - 1, k, UP, UP, meas, np.deg2rad(0.2))
+        g.add_attitude(k, UP, world_up, np.deg2rad(2.0))
+    loop_info = np.diag([1 / np.deg2rad(0.5) ** 2] * 3 + [1 / 0.05**2] * 3)
+    for i in (0, 5, 10):
+        g.add_between(i, n - 1, inverse(truth[i]) @ truth[n - 1], loop_info, "loop")
+    g.update()
+    g.optimize_batch()
+    return float(max(np.linalg.norm(g.pose(k)[:3, 3] - truth[k][:3, 3]) for k in range(n)))
+
+
+def test_robust_ground_priors_let_a_change_of_grade_through():
+    """At a crest the ground normals of consecutive anchors really differ by 4 deg: Gaussian priors
+    (the behaviour before) fight it and the closures, bending the chain; under the Cauchy kernel
+    they give way there and still hold the small pitch drift elsewhere."""
+    gaussian, robust = _crest_chain(None), _crest_chain(BackendConfig().ground_prior_kernel)
+    assert robust < 0.3
+    assert gaussian > 3 * robust

@@ -211,7 +211,7 @@ def test_kitti_bad_input_raises_clear_errors(tmp_path):
     bad.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n2 0 0 1 0 2 0 0 0 0 2 0\n")
     with pytest.raises(InputError, match="bad.txt:2: the 3x3 part is not a rotation"):
         read_kitti_path(bad)
-    with pytest.raises(SubmapSlamError, match="rings must be 16 or 64, not 32"):
+    with pytest.raises(SubmapSlamError, match="rings must be 16, 64, 128 or livox, not 32"):
         generate_kitti_drive(bad, tmp_path / "o", rings=32)
 
 
@@ -235,7 +235,7 @@ def test_cli_synth_kitti_bad_input_is_one_line(tmp_path):
     bad.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 x 0 1 0 0 0 0 1 0\n")
     one_line_error(runner.invoke(app, ["synth", "kitti", "--path", str(bad), *out]), "bad.txt:2", "non-numeric")
     one_line_error(runner.invoke(app, ["synth", "kitti", "--path", str(bad), "--rings", "32", *out]),
-                   "--rings must be 16 or 64, not 32")
+                   "--rings must be 16, 64 or 128, not 32")
     one_line_error(runner.invoke(app, ["synth", "kitti", *out]), "needs --path")
     one_line_error(runner.invoke(app, ["synth", "kitti", "--path", str(bad), "--laps", "2", *out]),
                    "--laps not used by synth kitti")

@@ -97,7 +97,10 @@ class PoseGraph:
         self._initial: dict[int, np.ndarray] = {}
         self.edges: list[GraphEdge] = []
         self._factor_edges: dict[int, int] = {}  # factor index in _graph -> index in edges
-        self._excluded: set[int] = set()  # factor indices of rejected loop edges
+        self._excluded: set[int] = set()  # factor indices of rejected loop edges and of priors that gave way
+        self._relaxed: dict[int, object] = {}  # factor index of an odometry edge that gave way -> its weak stand-in
+        self._priors: dict[int, tuple] = {}  # factor index -> (kind, i, j, information) of a ground prior
+        self.gave_way: list[dict] = []  # what the final check blamed instead of loops (odometry edges, priors)
         self.odometry_steps: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # i -> (T_i_i+1, Sigma)
         self.n_updates = 0
 
@@ -117,6 +120,16 @@ class PoseGraph:
         }[kernel].Create(k)
         return gtsam.noiseModel.Robust.Create(est, base)
 
+    def _prior_noise(self, base):
+        """A ground prior's noise: ``base`` under the Cauchy kernel of ``ground_prior_kernel``
+        whitened units when set (a prior the data contradicts by many sigmas, a change of grade,
+        loses its pull instead of bending the graph), else ``base``."""
+        k = self.config.ground_prior_kernel
+        if k is None:
+            return base
+        gtsam = self._gtsam
+        return gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(k), base)
+
     def add_node(self, key: int, T_world_node: np.ndarray, prior_information: np.ndarray | None = None) -> None:
         """Add a node with its initial estimate; anchor it with a prior when given."""
         gtsam = self._gtsam
@@ -132,9 +145,10 @@ class PoseGraph:
         ``up_in_world`` ``(3,)``: constrains roll and pitch, never yaw or position (2 DOF)."""
         gtsam = self._gtsam
         f = gtsam.AttitudeFactorPose3(key, gtsam.Unit3(np.asarray(up_in_world, dtype=np.float64)),
-                                      gtsam.noiseModel.Isotropic.Sigma(2, float(sigma_rad)),
+                                      self._prior_noise(gtsam.noiseModel.Isotropic.Sigma(2, float(sigma_rad))),
                                       gtsam.Unit3(np.asarray(up_in_node, dtype=np.float64)))
         self._pending_graph.add(f)
+        self._priors[self._graph.size()] = ("ground attitude prior", key, key, np.eye(2) / float(sigma_rad) ** 2)
         self._graph.add(f)
 
     def add_relative_attitude(self, i: int, j: int, up_i: np.ndarray, up_j: np.ndarray, T_i_j: np.ndarray,
@@ -149,8 +163,10 @@ class PoseGraph:
         measured[:3, :3] = rotation_between(R @ up_j, up_i) @ R  # tilted so that R up_j = up_i
         info = np.eye(6) * 1e-9  # GTSAM order (rx, ry, rz, tx, ty, tz), in node j's frame
         info[:3, :3] += (np.eye(3) - np.outer(up_j, up_j)) / sigma_rad**2
-        f = gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(measured), gtsam.noiseModel.Gaussian.Information(info))
+        f = gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(measured),
+                                     self._prior_noise(gtsam.noiseModel.Gaussian.Information(info)))
         self._pending_graph.add(f)
+        self._priors[self._graph.size()] = ("ground tilt-change prior", i, j, info)
         self._graph.add(f)
 
     def add_between(self, i: int, j: int, T_i_j: np.ndarray, information: np.ndarray, kind: str) -> None:
@@ -215,13 +231,26 @@ class PoseGraph:
     def _active_graph(self, also_without: int | None = None):
         """The graph without the factors at indices in ``self._excluded`` (rejected loops) and,
         when given, the factor at index ``also_without``."""
-        if not self._excluded and also_without is None:
+        if not self._excluded and not self._relaxed and also_without is None:
             return self._graph
         graph = self._gtsam.NonlinearFactorGraph()
         for idx in range(self._graph.size()):
-            if idx not in self._excluded and idx != also_without:
-                graph.add(self._graph.at(idx))
+            if idx in self._excluded:
+                continue
+            if idx == also_without:
+                if idx in self._factor_edges and self.edges[self._factor_edges[idx]].kind == "odometry":
+                    graph.add(self._weak(idx))  # the chain stays connected
+                continue
+            graph.add(self._relaxed.get(idx, self._graph.at(idx)))
         return graph
+
+    def _weak(self, idx: int):
+        """A stand-in for the odometry edge at factor ``idx`` that has given way: the same
+        measurement, its information scaled by 1e-6 (a switched-off edge that keeps the chain connected)."""
+        e = self.edges[self._factor_edges[idx]]
+        info = 0.5 * (e.information + e.information.T) * 1e-6
+        return self._gtsam.BetweenFactorPose3(e.i, e.j, self._gtsam.Pose3(np.asarray(e.T_i_j, dtype=np.float64)),
+                                              self._gtsam.noiseModel.Gaussian.Information(info))
 
     def _lm_params(self, max_iterations: int):
         lm = self._gtsam.LevenbergMarquardtParams()
@@ -275,55 +304,119 @@ class PoseGraph:
         """
         out = {}
         for idx, key in self._factor_edges.items():
-            if idx not in self._excluded:
+            if idx not in self._excluded and idx not in self._relaxed:
                 out[key] = 2.0 * float(self._graph.at(idx).error(self._estimate))
         return out
 
-    def final_check(self, limit: float = 22.46, max_drops: int | None = None,
-                    max_suspects: int = 12) -> list[tuple[int, int, str]]:
-        """Drop loop edges the solution cannot reconcile with the odometry; return ``(i, j, why)``.
+    def prior_chi2(self) -> dict[int, float]:
+        """``{factor index: chi2}`` of the active ground priors (2 DOF each) at the current estimate;
+        for a robust prior the whitened squared residual before the kernel."""
+        out = {}
+        for idx in self._priors:
+            if idx in self._excluded:
+                continue
+            e = np.asarray(self._graph.at(idx).unwhitenedError(self._estimate))
+            out[idx] = float(e @ self._priors[idx][3] @ e)
+        return out
+
+    def final_check(self, limit: float = 22.46, max_drops: int | None = None, max_suspects: int = 12,
+                    prior_limit: float = 13.82) -> list[tuple[int, int, str]]:
+        """Drop loop edges the solution cannot reconcile; return ``(i, j, why)`` of those dropped.
 
         After the batch pass every kept edge should be explained within its noise: whitened
-        residual at most ``limit`` (chi-square, 6 DOF, 99.9 %). While an odometry edge is
-        stretched beyond it, or a loop edge exceeds it, one loop is dropped: of the
-        ``max_suspects`` loops with the largest residuals, the one whose removal lowers the
-        re-solved graph's cost the most (a residual alone can point at a right loop that the
-        wrong one bent; the stretched edge need not lie under the wrong loop). Then the graph is
-        re-solved and checked again. Odometry edges are trusted: they are never dropped.
+        residual at most ``limit`` (chi-square, 6 DOF, 99.9 %), every ground prior at most
+        ``prior_limit`` (2 DOF, 99.9 %; Gaussian priors only: under ``ground_prior_kernel`` a
+        prior far out has lost its pull already). While one is exceeded, one constraint gives way. The
+        candidates: the ``max_suspects`` loops with the largest residuals, the most stretched
+        odometry edge and the most stretched ground prior (and the priors on that edge's two
+        nodes). Each is taken out in turn (an odometry edge keeps a 1e-6 stand-in: the chain stays
+        connected) and the graph re-solved; the one whose removal lowers the cost the most goes.
+        An odometry edge or a prior can be that one only when at least
+        ``config.final_check_consensus`` loops remain and all of them fit without it (many loops
+        agree and contradict it); otherwise the best loop is dropped (a residual alone can point
+        at a right loop that the wrong one bent). Then the check repeats. At most ``max_drops``
+        loops are dropped (default: half the loops, at least one): the check never empties the
+        graph of mutually consistent closures. What gave way besides loops is in :attr:`gave_way`.
         """
         gtsam = self._gtsam
         dropped: list[tuple[int, int, str]] = []
         index_of = {key: idx for idx, key in self._factor_edges.items()}
-        max_drops = max_drops if max_drops is not None else len(self.edges)
-        while len(dropped) < max_drops:
+        n_loops = sum(1 for k in self.edge_chi2() if self.edges[k].kind == "loop")
+        max_drops = max_drops if max_drops is not None else max(1, n_loops // 2)
+        consensus = self.config.final_check_consensus
+        for _ in range(len(self.edges) + len(self._priors)):
             chi2 = self.edge_chi2()
             loops = {k: v for k, v in chi2.items() if self.edges[k].kind == "loop"}
             odo = {k: v for k, v in chi2.items() if self.edges[k].kind == "odometry"}
+            # robust priors far out have given way already (their kernel): only Gaussian ones are a symptom
+            priors = self.prior_chi2() if self.config.ground_prior_kernel is None else {}
             worst_odo = max(odo, key=lambda k: (odo[k], -k)) if odo else None
+            worst_prior = max(priors, key=lambda k: (priors[k], -k)) if priors else None
             if worst_odo is not None and odo[worst_odo] > limit:
                 m = self.edges[worst_odo].i
-                symptom = f"odometry edge {m}-{m + 1} stretched to chi2 {odo[worst_odo]:.1f} > {limit:.1f}"
+                symptom = f"odometry edge {m}-{self.edges[worst_odo].j} stretched to chi2 {odo[worst_odo]:.1f} > {limit:.1f}"
+            elif worst_prior is not None and priors[worst_prior] > prior_limit:
+                kind, i, j, _ = self._priors[worst_prior]
+                symptom = (f"{kind} {i}" + (f"-{j}" if j != i else "")
+                           + f" stretched to chi2 {priors[worst_prior]:.1f} > {prior_limit:.1f}")
             elif loops and max(loops.values()) > limit:
                 symptom = "loop residual above the chi2 bound"
             else:
                 break
             if not loops:
                 break
-            suspects = sorted(loops, key=lambda k: (-loops[k], k))[:max_suspects]
+            suspects = [("loop", index_of[k]) for k in sorted(loops, key=lambda k: (-loops[k], k))[:max_suspects]]
+            others: list[int] = []
+            if worst_odo is not None and odo[worst_odo] > limit:
+                others.append(index_of[worst_odo])
+                ei, ej = self.edges[worst_odo].i, self.edges[worst_odo].j
+                others += [idx for idx, p in self._priors.items() if idx not in self._excluded
+                           and ((p[1] == p[2] and p[1] in (ei, ej)) or (p[1], p[2]) == (ei, ej))]
+            if worst_prior is not None and priors[worst_prior] > prior_limit and worst_prior not in others:
+                others.append(worst_prior)
+            if len(loops) >= consensus:
+                suspects += [("other", idx) for idx in others]
             best = None
-            for k in suspects:
-                trial = self._active_graph(also_without=index_of[k])
+            for what, idx in suspects:
+                trial = self._active_graph(also_without=idx)
                 estimate = gtsam.LevenbergMarquardtOptimizer(trial, self._estimate, self._lm_params(30)).optimize()
                 cost = trial.error(estimate)
-                if best is None or cost < best[1] - 1e-9:
-                    best = (k, cost, estimate)
-            victim, _, estimate = best
-            self._excluded.add(index_of[victim])
+                if what == "other" and not self._loops_fit(estimate, loops, index_of, limit):
+                    continue
+                if best is None or cost < best[2] - 1e-9:
+                    best = (what, idx, cost, estimate)
+            if best is None:
+                break
+            what, idx, _, estimate = best
+            if what == "loop" and len(dropped) >= max_drops:
+                log.warning("final check: stops after dropping %d of %d loop closures (%s); the rest stay",
+                            len(dropped), n_loops, symptom)
+                break
             self._estimate = estimate
-            e = self.edges[victim]
-            dropped.append((e.i, e.j, f"dropped by the final check: {symptom}; its residual chi2 was "
-                                      f"{loops[victim]:.1f}, the graph agrees best without it"))
+            if what == "loop":
+                self._excluded.add(idx)
+                e = self.edges[self._factor_edges[idx]]
+                dropped.append((e.i, e.j, f"dropped by the final check: {symptom}; its residual chi2 was "
+                                          f"{loops[self._factor_edges[idx]]:.1f}, the graph agrees best without it"))
+                continue
+            if idx in self._factor_edges:  # an odometry edge: a weak stand-in keeps the chain connected
+                self._relaxed[idx] = self._weak(idx)
+                e = self.edges[self._factor_edges[idx]]
+                kind, i, j, before = "odometry edge", e.i, e.j, odo[self._factor_edges[idx]]
+            else:
+                self._excluded.add(idx)
+                kind, i, j, _ = self._priors[idx]
+                before = priors[idx]
+            entry = {"constraint": kind, "i": int(i), "j": int(j), "chi2": round(float(before), 2),
+                     "loops_agreeing": len(loops), "symptom": symptom}
+            self.gave_way.append(entry)
+            log.info("final check: %s %d-%d gave way (chi2 %.1f; %d loop closures agree without it)",
+                     kind, i, j, before, len(loops))
         return dropped
+
+    def _loops_fit(self, estimate, loops: dict[int, float], index_of: dict[int, int], limit: float) -> bool:
+        """Whether every loop edge in ``loops`` has a whitened residual within ``limit`` at ``estimate``."""
+        return all(2.0 * float(self._graph.at(index_of[k]).error(estimate)) <= limit for k in loops)
 
     def odometry_chain(self, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
         """Odometry-only ``(T_i_j, Sigma_i_j)`` between nodes ``i < j`` (loop edges ignored)."""

@@ -22,12 +22,21 @@ def register(app: typer.Typer) -> None:
         out: Annotated[Path, typer.Option("--out", "-o", help="Output log folder.")],
         seed: Annotated[int, typer.Option(help="Random seed (same seed, same files).")] = 0,
         laps: Annotated[int | None, typer.Option(help="Laps around the loop [default: 2].")] = None,
-        sensor: Annotated[str | None, typer.Option(help="laser2d or lidar3d (default: the world's).")] = None,
+        sensor: Annotated[str | None, typer.Option(help="laser2d or lidar3d (default: the world's); kitti: livox "
+                                                         "(a forward 70 deg non-repetitive pattern instead of "
+                                                         "--rings).")] = None,
         max_scans: Annotated[int | None, typer.Option(min=1, help="Cut the log after N scans.")] = None,
         odometry_noise: Annotated[float, typer.Option(min=0.0, help="Scale of the wheel-odometry noise (0: exact).")] = 1.0,
         poles: Annotated[int, typer.Option(min=0, help="rectangle: free-standing poles (EKF point features).")] = 0,
         path: Annotated[Path | None, typer.Option("--path", help="kitti: KITTI pose file (NN.txt or NN.txt.xz).")] = None,
-        rings: Annotated[int, typer.Option(help="kitti: 16 (VLP-16 like) or 64 (HDL-64E like).")] = 16,
+        rings: Annotated[int, typer.Option(help="kitti: 16 (VLP-16 like), 64 (HDL-64E like) or 128 (OS1-128 "
+                                                "like).")] = 16,
+        terrain: Annotated[bool, typer.Option("--terrain", help="kitti: the ground follows the path's real "
+                                                                "height; the vehicle pitches and rolls with "
+                                                                "the road.")] = False,
+        keyframes: Annotated[bool, typer.Option("--keyframes", help="kitti: irregular keyframes (0.2-0.5 s "
+                                                                    "apart, stops of 6-13 s standing "
+                                                                    "still).")] = False,
         movers: Annotated[int, typer.Option(min=0, help="Things that move: kitti: cars both ways, pedestrians, parked "
                                                         "cars that leave; 2D worlds: people and boxes. Labelled in "
                                                         "labels/NNNNNN.label (SemanticKITTI).")] = 0,
@@ -74,13 +83,16 @@ def register(app: typer.Typer) -> None:
                 return
             if world == "kitti":
                 _check_kitti_options(path, rings, laps=laps, sensor=sensor, poles=poles)
+            elif terrain or keyframes:
+                raise SubmapSlamError(f"--terrain and --keyframes are for the kitti world, not {world!r}")
             elif path is not None:
                 raise SubmapSlamError(f"--path is for the kitti world, not {world!r}")
             else:
                 _check_world(world)
             with staged_folder(out, "synth", overwrite=overwrite, inputs=[path]) as staging:
                 if world == "kitti":
-                    meta = _kitti(staging, path, rings, seed, max_scans, odometry_noise, movers)
+                    meta = _kitti(staging, path, "livox" if sensor == "livox" else rings, seed, max_scans,
+                                  odometry_noise, movers, terrain=terrain, keyframes=keyframes)
                 else:
                     meta = _world(world, staging, seed, laps or 2, sensor, max_scans, odometry_noise, poles, movers,
                                   doors)
@@ -100,13 +112,14 @@ def _check_world(world: str) -> None:
 def _check_kitti_options(path, rings, *, laps, sensor, poles) -> None:
     if path is None:
         raise SubmapSlamError("synth kitti needs --path: a KITTI pose file such as kitti_gt/00.txt.xz")
-    unused = [name for name, value in (("--laps", laps), ("--sensor", sensor), ("--poles", poles or None))
+    unused = [name for name, value in (("--laps", laps), ("--sensor", None if sensor == "livox" else sensor),
+                                       ("--poles", poles or None))
               if value is not None]
     if unused:
         raise SubmapSlamError(f"{', '.join(unused)} not used by synth kitti (the path is driven once, "
-                              "the sensor is set by --rings)")
-    if rings not in (16, 64):
-        raise SubmapSlamError(f"--rings must be 16 or 64, not {rings}")
+                              "the sensor is set by --rings, or --sensor livox)")
+    if rings not in (16, 64, 128):
+        raise SubmapSlamError(f"--rings must be 16, 64 or 128, not {rings}")
     if not Path(path).is_file():
         raise SubmapSlamError(f"--path {path}: no such KITTI pose file")
 
@@ -143,7 +156,7 @@ def _world(world, out, seed, laps, sensor, max_scans, odometry_noise, poles, mov
             f"x {meta['laps']} laps, wheel odometry end drift {meta['odometry_end_drift_m']:.2f} m{_movers_text(meta)}")
 
 
-def _kitti(out, path, rings, seed, max_scans, odometry_noise, movers=0) -> str:
+def _kitti(out, path, rings, seed, max_scans, odometry_noise, movers=0, *, terrain=False, keyframes=False) -> str:
     import yaml
 
     from datasets_synth import generate_kitti_drive
@@ -153,10 +166,12 @@ def _kitti(out, path, rings, seed, max_scans, odometry_noise, movers=0) -> str:
     with progress_bar(None) as bar:
         task = bar.add_task("scans", total=None)
         log = generate_kitti_drive(path, out, rings=rings, seed=seed, max_scans=max_scans,
-                                   odometry_noise=odometry_noise, movers=movers,
-                                   progress=lambda done, total: bar.update(task, completed=done, total=total))
+                                   odometry_noise=odometry_noise, movers=movers, terrain=terrain,
+                                   keyframes=keyframes, progress=lambda done, total: bar.update(task, completed=done, total=total))
     meta = yaml.safe_load((log / "meta.yaml").read_text())
-    return (f"{meta['n_scans']} scans along {path.name} ({rings}-ring LiDAR), "
+    sensor = "Livox-like LiDAR" if rings == "livox" else f"{rings}-ring LiDAR"
+    relief = f", terrain relief {meta['terrain']['relief_m']:.1f} m" if "terrain" in meta else ""
+    return (f"{meta['n_scans']} scans along {path.name} ({sensor}{relief}), "
             f"{meta['path_length_m'] / 1000:.2f} km, {meta['city']['buildings']} buildings, "
             f"{meta['city']['cars']} parked cars{_movers_text(meta)}")
 

@@ -81,10 +81,11 @@ def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs,
 def _write_loops(path: Path, result: SlamResult) -> None:
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(["submap_i", "submap_j", "source", "accepted", "fitness", "overlap", "inlier_rmse", "reason"])
+        w.writerow(["submap_i", "submap_j", "source", "accepted", "fitness", "overlap", "inlier_rmse", "reason",
+                    "final_check_blamed"])
         for lp in result.loops:
             w.writerow([lp.i, lp.j, lp.source, int(lp.accepted), f"{lp.fitness:.4f}", f"{lp.overlap:.4f}",
-                        f"{lp.inlier_rmse:.4f}", lp.reason])
+                        f"{lp.inlier_rmse:.4f}", lp.reason, lp.blamed])
 
 
 def _write_submaps(path: Path, result: SlamResult) -> None:

@@ -128,14 +128,42 @@ class ViewStack:
         return tested, free
 
 
-def non_ground(points_sensor: np.ndarray, band: float, radius: float = 15.0, percentile: float = 2.0) -> np.ndarray:
-    """``(N,)`` bool: points more than ``band`` [m] above the scan's ground, the ``percentile`` of the
-    heights within ``radius`` [m] (as :func:`~submapslam.mapping.height_band.estimate_ground_z`, not
-    imported: the odometry's child process stays without scipy); all when no ground is near."""
-    near = points_sensor[np.hypot(points_sensor[:, 0], points_sensor[:, 1]) <= radius, 2]
+def non_ground(points_sensor: np.ndarray, band: float, radius: float = 15.0, percentile: float = 2.0,
+               cell: float = 4.0, rise: float = 0.3, rise_per_m: float = 0.02) -> np.ndarray:
+    """``(N,)`` bool: points more than ``band`` [m] above the scan's ground; all when no ground is near.
+
+    The ground follows the terrain: a plane fitted (PCA) to the low points within ``radius`` [m]
+    (those within 0.5 m of the ``percentile`` of the heights there), tilted with the road, then
+    bent cell by cell: in each ``cell`` x ``cell`` [m] column the lowest point, when it lies within
+    ``rise + rise_per_m * range`` [m] of the plane, is that column's ground (a crest, a dip, a
+    change of grade far from the sensor); a column whose lowest point is higher (a canopy, a wall
+    seen above the ground) keeps the plane. Numpy only (the odometry's child process stays
+    without scipy). Heights are measured along the plane's normal.
+    """
+    pts = np.asarray(points_sensor, dtype=np.float64)
+    horizontal = np.hypot(pts[:, 0], pts[:, 1])
+    near = pts[horizontal <= radius]
     if not len(near):
-        return np.ones(len(points_sensor), dtype=bool)
-    return points_sensor[:, 2] > float(np.percentile(near, percentile)) + band
+        return np.ones(len(pts), dtype=bool)
+    z0 = float(np.percentile(near[:, 2], percentile))
+    low = near[near[:, 2] <= z0 + 0.5]
+    h = pts[:, 2] - z0
+    if len(low) >= 30:
+        centre = low.mean(axis=0)
+        w, V = np.linalg.eigh((low - centre).T @ (low - centre) / len(low))
+        normal = V[:, 0] if V[2, 0] > 0 else -V[:, 0]
+        if w[1] > 1.0 and normal[2] > np.cos(np.deg2rad(20.0)):  # spread in two directions, not a wall
+            h = (pts - centre) @ normal
+    ij = np.floor(pts[:, :2] / cell).astype(np.int64)
+    keys = (ij[:, 0] << 32) + ij[:, 1]  # one int64 per column (|index| < 2^31)
+    _, inverse = np.unique(keys, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    lowest = np.full(int(inverse.max()) + 1 if len(inverse) else 0, np.inf)
+    np.minimum.at(lowest, inverse, h)
+    ground = lowest[inverse]
+    allowed = rise + rise_per_m * horizontal
+    ground = np.where(np.abs(ground) <= allowed, ground, 0.0)
+    return h > ground + band
 
 
 _HALF = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) > (0, 0, 0)])
