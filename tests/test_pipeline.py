@@ -245,3 +245,18 @@ def test_a_map_bent_away_from_its_odometry_says_so(rectangle_run, tmp_path):
     run_dir = paths["summary.json"].parent
     rec = dataclasses.replace(read_run_folder(run_dir, with_cloud=False), summary=summary)
     assert "disagrees with the odometry" in build_run_report(rec)
+
+
+def test_planar_covariances_stay_planar(rectangle_run):
+    """A 2D log observes x, y and yaw: every anchor's marginal sigma in z, roll and pitch stays tiny
+    (loops and registration-shaped odometry edges once let sigma_z reach metres), x/y do not."""
+    from submapslam.graph_builder import pin_planar
+
+    _, result, _ = rectangle_run
+    assert result.planar
+    sig = np.sqrt(np.diagonal(result.submap_covariances, axis1=1, axis2=2))  # (S, 6) GTSAM order
+    assert sig[:, [0, 1, 5]].max() < 1e-2  # roll, pitch [rad], z [m]
+    assert sig[1:, [3, 4]].max() > 1e-3  # x, y are uncertain
+    loose = np.full((6, 6), 0.5) + np.eye(6)
+    pinned = pin_planar(loose)
+    assert pinned[5, 5] == 1e8 and pinned[5, 3] == 0.0 and pinned[3, 4] == 0.5
