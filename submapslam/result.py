@@ -80,6 +80,9 @@ class SlamResult:
         hint_problems: one message per manual loop hint the log could not use.
         submap_dynamic_points: 3D runs with ``mapping.split_movers``: per submap the ``(D_k, 3)``
             points (anchor frame) that moved, taken out of ``submap_points``; None otherwise.
+        submap_scan_no_returns: planar runs: per submap each scan's ``(m, 3)`` ends of the beams
+            that returned nothing (free space in the grid; an empty list per submap when the log
+            gives none, and for maps loaded from a map folder, which do not keep them).
     """
 
     timestamps: np.ndarray
@@ -112,6 +115,7 @@ class SlamResult:
     log_info: dict = field(default_factory=dict)
     hint_problems: list[str] = field(default_factory=list)
     submap_dynamic_points: list[np.ndarray] | None = None
+    submap_scan_no_returns: list[list[np.ndarray]] = field(default_factory=list)
 
     @property
     def n_scans(self) -> int:
