@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from .config import PipelineConfig, load_config, with_updates
-from .errors import SubmapSlamError
+from .errors import ConfigError, SubmapSlamError
 from .result import SlamResult
 
 if TYPE_CHECKING:
@@ -337,25 +337,32 @@ def _reference(ref: str | Path, raw_log: str | Path | None):
 
 
 def evaluate_files(est: str | Path, ref: str | Path, *, align: str = "se3", relations: str | Path | None = None,
-                   max_diff: float = 0.02, raw_log: str | Path | None = None) -> dict:
+                   max_diff: float = 0.02, raw_log: str | Path | None = None, derive_relations: bool = False) -> dict:
     """ATE of the trajectory file ``est`` against ``ref`` (TUM, KITTI or CARMEN; ``raw_log``: the raw
     CARMEN log when ``ref`` is a corrected one), RPE over consecutive frames, and with
-    ``relations`` the relations error (Kümmerle et al. 2009).
+    ``relations`` the relations error (Kümmerle et al. 2009); with ``derive_relations`` (instead of
+    a relations file) the relations error on relations derived from ``ref``
+    (:func:`~submapslam.evaluation.derived_relations.derive_relations`: pairs close in time and
+    pairs across loops).
 
     Returns ``{"ate": ate(...), "rpe": rpe(...), "relations": ... or None, "warnings": [...]}``
     (how the poses were paired, when it is doubtful: KITTI files of different lengths). An unknown
     ``align`` fails before any file is read.
     """
+    from .evaluation.derived_relations import derive_relations as derive
     from .evaluation.metrics import Alignment, ate, relations_error, rpe
     from .io.trajectory import read_relations, read_trajectory
 
     Alignment(align)
+    if relations and derive_relations:
+        raise ConfigError("give a relations file or derive the relations from the reference, not both")
     e = read_trajectory(est)
     r = _reference(ref, raw_log)
     warnings = _pairing_warnings(Path(est), Path(ref), e, r, raw_log, max_diff)
+    rel = read_relations(relations) if relations else derive(r) if derive_relations else None
     return {"ate": ate(e, r, align=align, max_diff=max_diff),
             "rpe": rpe(e, r, delta=1, unit="frames", max_diff=max_diff),
-            "relations": relations_error(e, read_relations(relations), max_diff=max_diff) if relations else None,
+            "relations": relations_error(e, rel, max_diff=max_diff) if rel is not None else None,
             "warnings": warnings}
 
 

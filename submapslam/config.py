@@ -56,6 +56,11 @@ class OdometryConfig(_Strict):
         True, description="2D lasers: refine each pose point-to-line against the last scans (removes the "
         "lag of point-to-point ICP on sparse scans)"
     )
+    wheel_check_deg: float = Field(
+        5.0, gt=0, description="2D lasers: when the wheel-odometry increment and the constant-velocity one differ "
+        "by more than this [deg] (or wheel_check_m), the scan is registered from both and the better fit to the "
+        "last scans is kept (stale or jumping wheel poses, as in MIT CSAIL's log, otherwise lead ICP astray)")
+    wheel_check_m: float = Field(0.25, gt=0, description="2D lasers: the same in translation [m]")
     initial_threshold: float = Field(2.0, gt=0)
     min_motion_threshold: float = Field(0.1, ge=0)
     max_iterations: int = Field(500, ge=1)

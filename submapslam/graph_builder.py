@@ -41,6 +41,22 @@ def odometry_information(T_i_j: np.ndarray, distance: float, planar: bool, confi
     return np.diag(1.0 / sig**2)
 
 
+#: GTSAM-order indices of what a planar log cannot observe: roll, pitch, z
+PLANAR_PINNED = (0, 1, 5)
+
+
+def pin_planar(information: np.ndarray, sigma: float = 1e-4) -> np.ndarray:
+    """``information (6, 6)`` (GTSAM order) with roll, pitch and z decoupled from the planar
+    directions and held at ``sigma`` (rad / m): a 2D log observes x, y and yaw only, and a
+    registration's or a cap's looseness there must not let anchors drift out of the plane."""
+    out = np.array(information, dtype=np.float64)
+    idx = list(PLANAR_PINNED)
+    out[idx, :] = 0.0
+    out[:, idx] = 0.0
+    out[idx, idx] = 1.0 / sigma**2
+    return out
+
+
 class GraphBuilder:
     """Adds submaps, odometry edges, ground priors and loop constraints to one pose graph.
 
@@ -88,6 +104,8 @@ class GraphBuilder:
                 info = odometry_information(T_prev_k, previous.distance, self.planar, self.config)
                 if self.config.odometry_registration_covariance:
                     info = self._registration_shaped(info, previous, submap, T_prev_k, wheel_odometry)
+                if self.planar:
+                    info = pin_planar(info)
             self.odometry_information[submap.id] = info
         with self._time("optimisation"):
             if previous is None:
@@ -160,6 +178,8 @@ class GraphBuilder:
         accepted = [r for r in records if r.accepted]
         for rec in accepted:
             info = floor_information(rec.information, floor_m, floor_rad)
+            if self.planar:
+                info = pin_planar(info)
             self.graph.add_between(rec.i, rec.j, rec.T_i_j, info, "loop")
         if accepted:
             with self._time("optimisation"):

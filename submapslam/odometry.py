@@ -96,6 +96,8 @@ class Odometry:
         self.last_delta = np.eye(4)
         self._last_wheel: np.ndarray | None = None
         self.n_registered = 0
+        self.wheel_overruled = 0  # planar scans whose constant-velocity guess fitted better than the wheels'
+        self._recent_fits: deque[float] = deque(maxlen=20)  # planar: fit of the last scans to the ones before
         self._refiner = None
         self.movers = None  # 3D: keeps what moved out of registration and the local map
         self._gicp = None  # 3D narrow-field sensors: voxelised GICP instead of KISS-ICP's registration
@@ -139,6 +141,10 @@ class Odometry:
         initial_guess = self.last_pose @ prediction
         if self._gicp is not None:
             return self._register_gicp(frame, frame_down, initial_guess, known), frame
+        # planar: when the wheels and the constant-velocity model disagree, both are tried (below)
+        alternative = None
+        if self.planar and known is None and self._wheel_disagrees(prediction):
+            alternative = self.last_pose @ self.last_delta
         registered = frame_down
         if self.movers is not None and not self._local_map.empty():
             # what the last scans saw through is a mover entering: not registered (a replay tests
@@ -149,25 +155,39 @@ class Odometry:
             new_pose = known[0]
             if self.planar:
                 xyt = known[1] if known[1] is not None else matrix_to_se2(new_pose)
-                if self._refiner is not None:
+                if self._refiner is not None:  # the fits the live run kept, for the scans after the replay
+                    self._recent_fits.append(self._fit(frame_down, xyt))
                     self._refiner.add(frame_down[:, :2], xyt)
                 self.last_xyt = xyt
         elif self._local_map.empty():
             new_pose = initial_guess
         else:
-            sigma = self._threshold.get_threshold()
-            new_pose = self._registration.align_points_to_map(
-                points=source,
-                voxel_map=self._local_map,
-                initial_guess=initial_guess,
-                max_correspondance_distance=3.0 * sigma,
-                kernel=sigma,
-            )
+            new_pose = self._align(source, initial_guess)
         if self.planar and known is None:
-            xyt = matrix_to_se2(new_pose)
+            xyt = self._refine(frame_down, new_pose, initial_guess)
+            if alternative is not None and not self._local_map.empty():
+                # stale or jumping wheel odometry (MIT CSAIL's FLASER poses stand still for a few
+                # scans, then jump by up to 85 deg) leads ICP into a wrong minimum: the guess
+                # whose result fits the recent scans better wins; when neither fits as the last
+                # scans did, guesses turned by up to +-30 deg from both are tried too
+                fit = self._fit(frame_down, xyt)
+                alt_xyt = self._refine(frame_down, self._align(source, alternative), alternative)
+                alt_fit = self._fit(frame_down, alt_xyt)
+                if alt_fit > fit:
+                    xyt, initial_guess, fit = alt_xyt, alternative, alt_fit
+                    self.wheel_overruled += 1
+                if self._recent_fits and fit < 0.5 * float(np.median(self._recent_fits)):
+                    for base in (self.last_pose @ prediction, alternative):
+                        for turn in (-30.0, -20.0, -10.0, 10.0, 20.0, 30.0):
+                            guess = base @ se2_to_matrix(0.0, 0.0, np.deg2rad(turn))
+                            cand = self._refine(frame_down, self._align(source, guess), guess)
+                            cand_fit = self._fit(frame_down, cand)
+                            if cand_fit > fit:
+                                xyt, initial_guess, fit = cand, guess, cand_fit
+                self._recent_fits.append(fit)
+            elif self._refiner is not None:
+                self._recent_fits.append(self._fit(frame_down, xyt))
             if self._refiner is not None:
-                # degenerate directions take the prediction (wheel odometry when the log has it)
-                xyt, _ = self._refiner.refine(frame_down[:, :2], xyt, matrix_to_se2(initial_guess))
                 self._refiner.add(frame_down[:, :2], xyt)
             new_pose = se2_to_matrix(*xyt)
             self.last_xyt = xyt
@@ -229,6 +249,38 @@ class Odometry:
         self._advance(new_pose)
         self.last_frame_down = frame_down
         return new_pose
+
+    def _align(self, source: np.ndarray, initial_guess: np.ndarray) -> np.ndarray:
+        """KISS-ICP point-to-point registration of ``source (N, 3)`` to the local map from ``initial_guess``."""
+        sigma = self._threshold.get_threshold()
+        return self._registration.align_points_to_map(
+            points=source, voxel_map=self._local_map, initial_guess=initial_guess,
+            max_correspondance_distance=3.0 * sigma, kernel=sigma)
+
+    def _refine(self, frame_down: np.ndarray, pose: np.ndarray, initial_guess: np.ndarray) -> np.ndarray:
+        """Planar ``(x, y, yaw)`` of ``pose``, refined point-to-line when on; degenerate directions
+        take the ``initial_guess`` (the prediction: wheel odometry when the log has it)."""
+        xyt = matrix_to_se2(pose)
+        if self._refiner is not None:
+            xyt, _ = self._refiner.refine(frame_down[:, :2], xyt, matrix_to_se2(initial_guess))
+        return xyt
+
+    def _fit(self, frame_down: np.ndarray, xyt: np.ndarray) -> float:
+        """Share of the scan's points ``(N, 3)`` placed at ``xyt`` within half an odometry-map voxel
+        of the last scans (the point-to-line target; 0 when there is none)."""
+        if self._refiner is None:
+            return 0.0
+        return self._refiner.fit(frame_down[:, :2], xyt, 0.5 * self.voxel_size)
+
+    def _wheel_disagrees(self, prediction: np.ndarray) -> bool:
+        """The wheel-odometry ``prediction`` (4, 4) is not the constant-velocity one and differs from
+        it by more than ``wheel_check_m`` or ``wheel_check_deg``."""
+        c = self.config
+        if self._refiner is None or not c.use_wheel_odometry or prediction is self.last_delta:
+            return False
+        diff = inverse(self.last_delta) @ prediction
+        return bool(np.linalg.norm(diff[:2, 3]) > c.wheel_check_m
+                    or abs(np.degrees(np.arctan2(diff[1, 0], diff[0, 0]))) > c.wheel_check_deg)
 
     def _predicted_delta(self, scan: Scan) -> np.ndarray:
         wheel = scan.odometry if self.config.use_wheel_odometry else None

@@ -159,7 +159,7 @@ class SubmapSLAM:
                 submap = self._builder.add(len(self.timestamps) - 1, T_odom_base, registered.frame_down,
                                            full_scan=frame)
             else:
-                submap = self._builder.add(len(self.timestamps) - 1, T_odom_base, frame)
+                submap = self._builder.add(len(self.timestamps) - 1, T_odom_base, frame, no_returns=scan.no_returns)
         if self._observer is not None:
             self._observer.on_scan(len(self.timestamps) - 1, scan.timestamp, T_odom_base, scan.points)
         if submap is not None:
@@ -436,6 +436,7 @@ class SubmapSLAM:
             submap_scan_indices=[s.scan_indices for s in self.submaps],
             submap_scan_poses=[s.T_anchor_scans for s in self.submaps],
             submap_scan_points=[s.scan_points for s in self.submaps],
+            submap_scan_no_returns=[s.scan_no_returns for s in self.submaps],
             edges=[(e.i, e.j, e.T_i_j, e.information, e.kind) for e in graph.active_edges()],
             loops=self.loops,
             planar=bool(self.planar),

@@ -87,6 +87,9 @@ class SlamResult:
             kiss_icp or voxel_gicp); "" for 2D lasers.
         submap_dynamic_points: 3D runs with ``mapping.split_movers``: per submap the ``(D_k, 3)``
             points (anchor frame) that moved, taken out of ``submap_points``; None otherwise.
+        submap_scan_no_returns: planar runs: per submap each scan's ``(m, 3)`` ends of the beams
+            that returned nothing (free space in the grid; an empty list per submap when the log
+            gives none, and for maps loaded from a map folder, which do not keep them).
     """
 
     timestamps: np.ndarray
@@ -123,6 +126,7 @@ class SlamResult:
     odometry_registration: str = ""
     submap_dynamic_points: list[np.ndarray] | None = None
     final_check: dict = field(default_factory=dict)
+    submap_scan_no_returns: list[list[np.ndarray]] = field(default_factory=list)
 
     @property
     def n_scans(self) -> int:
@@ -135,6 +139,47 @@ class SlamResult:
     @property
     def loops_accepted(self) -> int:
         return sum(1 for lp in self.loops if lp.accepted)
+
+    def odometry_consistency(self) -> dict:
+        """How far the optimised anchors moved each odometry edge from its measurement.
+
+        Per odometry edge ``(i, i + 1)`` the whitened squared residual ``e^T I e`` of
+        ``e = log(T_meas^-1 T_i^-1 T_j)`` (GTSAM order, first order in the rotation) at the
+        optimised anchors. With no ground truth at run time this is what tells that the loops
+        made the graph disagree with the odometry: on the real 2D logs a consistent run stays
+        below chi2 4 per edge (mean below 0.1 per DOF); MIT CSAIL before its odometry fix, which
+        ended worse than its odometry, reached 10.3. ``disagrees_with_odometry`` is set when one
+        edge exceeds the chi-square 95 % bound (3 DOF planar: 7.81; 6 DOF: 12.59) or the mean
+        per DOF exceeds 0.25. Returns the figures and a ``message`` (None when consistent).
+        """
+        from .geometry import inverse, so3_log
+
+        dof, bound = (3, 7.81) if self.planar else (6, 12.59)
+        chi2, worst = [], None
+        for i, j, T_i_j, info, kind in self.edges:
+            if kind != "odometry" or max(i, j) >= len(self.submap_poses):
+                continue
+            err = inverse(np.asarray(T_i_j)) @ inverse(self.submap_poses[i]) @ self.submap_poses[j]
+            e = np.concatenate([so3_log(err[:3, :3]), err[:3, 3]])
+            value = float(e @ np.asarray(info) @ e)
+            if worst is None or value > worst[2]:
+                worst = (int(i), int(j), value)
+            chi2.append(value)
+        if not chi2:
+            return {"odometry_edges": 0, "disagrees_with_odometry": False, "message": None}
+        values = np.asarray(chi2)
+        mean_per_dof = float(values.mean()) / dof
+        disagrees = bool(values.max() > bound or mean_per_dof > 0.25)
+        message = None
+        if disagrees:
+            message = (f"the optimised map disagrees with the odometry: odometry edge {worst[0]}-{worst[1]} "
+                       f"stretched to chi2 {worst[2]:.1f} (95 % bound {bound}), {int((values > bound).sum())} of "
+                       f"{len(values)} edges beyond it, mean {mean_per_dof:.2f} per DOF; loop closures may be "
+                       "wrong: the result can be worse than the odometry alone (compare odometry_tum.txt)")
+        return {"odometry_edges": len(values), "odometry_chi2_max": round(float(values.max()), 3),
+                "odometry_chi2_mean_per_dof": round(mean_per_dof, 4), "worst_odometry_edge": [worst[0], worst[1]],
+                "edges_beyond_bound": int((values > bound).sum()), "chi2_bound": bound,
+                "disagrees_with_odometry": disagrees, "message": message}
 
     def summary(self) -> dict:
         """Figures for ``summary.json``."""
@@ -165,4 +210,5 @@ class SlamResult:
             "optimiser_recoveries": list(self.optimiser_recoveries),
             "failure": self.failure,
             **({"final_check": self.final_check} if self.final_check else {}),
+            "consistency": self.odometry_consistency(),
         }

@@ -27,6 +27,10 @@ class Scan:
         odometry: ``(4, 4)`` wheel-odometry pose ``T_odom_base`` at the scan time, or ``None``.
         planar: True for 2D laser scans (all z = 0).
         source: where the scan came from, e.g. ``"intel.clf.bz2:1234"``, for error messages.
+        no_returns: ``(M, 3)`` float64, planar scans: where the beams that returned nothing
+            (reading at the laser's maximum range) end, at that range, in the frame of
+            ``points``; free space up to there for the occupancy grid, never a point. None: not
+            known.
     """
 
     index: int
@@ -36,9 +40,12 @@ class Scan:
     odometry: NDArray[np.float64] | None = None
     planar: bool = False
     source: str = ""
+    no_returns: NDArray[np.float64] | None = None
 
     def __post_init__(self) -> None:
         self.points = np.asarray(self.points, dtype=np.float64).reshape(-1, 3)
+        if self.no_returns is not None:
+            self.no_returns = np.asarray(self.no_returns, dtype=np.float64).reshape(-1, 3)
 
 
 @dataclass(frozen=True)

@@ -55,6 +55,9 @@ class Submap:
             obstacle slice the builder's ``grid_points`` gives, in float16 (empty without one).
         dynamic_points: 3D with ``mapping.split_movers``: ``(D, 3)`` the fused points (anchor frame,
             compact) that other scans saw through, taken out of ``points``; None when not split.
+        scan_no_returns: planar: each scan's ``(m, 3)`` float32 ends of its beams that returned
+            nothing (:attr:`~submapslam.scan.Scan.no_returns`; free space for the grids, not
+            points); empty when the log gives none.
     """
 
     id: int
@@ -67,6 +70,7 @@ class Submap:
     scan_points: list[np.ndarray] = field(default_factory=list)
     descriptor: np.ndarray | None = None
     dynamic_points: np.ndarray | None = None
+    scan_no_returns: list[np.ndarray] = field(default_factory=list)
 
 
 class SubmapBuilder:
@@ -94,6 +98,7 @@ class SubmapBuilder:
         self._poses: list[np.ndarray] = []
         self._chunks: list[np.ndarray] = []
         self._scan_points: list[np.ndarray] = []
+        self._scan_no_returns: list[np.ndarray] = []
         self._buffered = 0
         self._fused = np.zeros((0, 3))
         self._distance = 0.0
@@ -107,11 +112,12 @@ class SubmapBuilder:
         return self._T_odom_anchor
 
     def add(self, index: int, T_odom_scan: np.ndarray, points: np.ndarray,
-            full_scan: np.ndarray | None = None) -> Submap | None:
+            full_scan: np.ndarray | None = None, no_returns: np.ndarray | None = None) -> Submap | None:
         """Add one scan (points ``(N, 3)`` in its sensor frame); return a submap when one closes.
 
         ``full_scan``: the scan before thinning, when ``points`` is thinned; the occupancy grid's
-        obstacle slice is taken from it (finer than the submap voxel).
+        obstacle slice is taken from it (finer than the submap voxel). ``no_returns``: planar,
+        ``(M, 3)`` ends of the scan's beams that returned nothing (free space for the grid).
         """
         if self._T_odom_anchor is None:
             self._T_odom_anchor = T_odom_scan.copy()
@@ -123,6 +129,8 @@ class SubmapBuilder:
         self._chunks.append(transform_points(T_anchor_scan, points))
         if self.planar:
             self._scan_points.append(points.astype(np.float32))
+            self._scan_no_returns.append(np.zeros((0, 3), np.float32) if no_returns is None
+                                         else no_returns.astype(np.float32))
         elif self.grid_points is not None:
             # float16: at most 3 cm off at 64-128 m range, a sixth of a 0.2 m grid cell, in half the
             # memory (a long drive keeps every scan's slice until the grid is built)
@@ -132,7 +140,7 @@ class SubmapBuilder:
             self._compact()
         if self._distance >= self.max_distance or len(self._indices) >= self.config.max_scans:
             submap = self._close()
-            self._reset((index, T_odom_scan, points, full_scan))
+            self._reset((index, T_odom_scan, points, full_scan, no_returns))
             return submap
         return None
 
@@ -153,6 +161,7 @@ class SubmapBuilder:
             distance=self._distance,
             planar=self.planar,
             scan_points=list(self._scan_points),
+            scan_no_returns=list(self._scan_no_returns) if any(len(r) for r in self._scan_no_returns) else [],
         )
         self._next_id += 1
         return submap

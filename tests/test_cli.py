@@ -90,6 +90,14 @@ def test_eval_with_relations(small_log, tmp_path):
     assert r.exit_code == 0, r.output
     assert "relations (3)" in r.output
     assert json.loads((tmp_path / "r.json").read_text())["relations"]["trans_mean"] < 1e-4
+    r = runner.invoke(app, ["eval", str(small_log / "odometry_tum.txt"), str(small_log / "groundtruth_tum.txt"),
+                            "--derive-relations", "--json", str(tmp_path / "d.json")])
+    assert r.exit_code == 0, r.output
+    derived = json.loads((tmp_path / "d.json").read_text())["relations"]
+    assert derived["n"] > 100 and derived["trans_mean"] > 1e-4  # the wheel odometry's relations are off
+    assert_one_error_line(runner.invoke(app, ["eval", str(small_log / "groundtruth_tum.txt"),
+                                              str(small_log / "groundtruth_tum.txt"), "--relations", str(rel),
+                                              "--derive-relations"]), "not both")
 
 
 def test_input_errors_are_one_line(small_log, tmp_path):

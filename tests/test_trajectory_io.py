@@ -88,3 +88,43 @@ def test_carmen_trajectory_and_reference_from_real_logs():
     assert len(ref) == 910  # every corrected scan finds its raw line
     assert 976052850 < ref.timestamps[0] < 976053000  # ipc time of the raw log, not logger time
     assert set(np.round(ref.timestamps, 6)) <= set(np.round(odo.timestamps, 6))
+
+
+def _flaser(ranges: list[float], x: float, y: float, th: float, logger: str) -> str:
+    r = " ".join(f"{v:.2f}" for v in ranges)
+    return f"FLASER {len(ranges)} {r} {x} {y} {th} {x} {y} {th} {logger} host {logger}\n"
+
+
+def test_corrected_log_with_imprecise_times_is_matched_by_identical_ranges(tmp_path):
+    """MIT CSAIL's corrected log prints its times with 6 digits (1.13486e+09): its scans are
+    matched to the raw log's by identical readings, in log order, each taking the raw ipc time."""
+    rng = np.random.default_rng(3)
+    scans = [list(rng.uniform(0.5, 8.0, 10)) for _ in range(5)]
+    scans[3] = list(scans[1])  # the robot stood still: the same readings twice
+    raw = tmp_path / "raw.clf"
+    raw.write_text("".join(_flaser(s, k, 0.0, 0.0, f"{1134860000.0 + 0.2 * k:.6f}") for k, s in enumerate(scans)))
+    corrected = tmp_path / "corrected.log"
+    # the printed time 1.13486e+09 is raw scan 0's logger time exactly: time alone would pick scan 0
+    corrected.write_text("".join(_flaser(scans[k], 10.0 + k, 1.0, 0.5, "1.13486e+09") for k in (1, 4)))
+    ref = carmen_reference_trajectory(corrected, raw)
+    np.testing.assert_allclose(ref.timestamps - 1134860000.0, [0.2, 0.8], rtol=0, atol=1e-6)  # scans 1 and 4
+    np.testing.assert_allclose(ref.positions[:, 0], [11.0, 14.0])
+    # scans 1 and 3 share their readings: the one nearest in logger time
+    corrected.write_text(_flaser(scans[3], 0.0, 0.0, 0.0, "1134860000.61"))
+    ref = carmen_reference_trajectory(corrected, raw)
+    np.testing.assert_allclose(ref.timestamps - 1134860000.0, [0.6], rtol=0, atol=1e-6)
+    # no identical readings: by time (within 10 ms), else nothing matches
+    corrected.write_text(_flaser([9.0] * 10, 0.0, 0.0, 0.0, "1134860000.405"))
+    np.testing.assert_allclose(carmen_reference_trajectory(corrected, raw).timestamps - 1134860000.0, [0.4],
+                               rtol=0, atol=1e-6)
+    corrected.write_text(_flaser([9.0] * 10, 0.0, 0.0, 0.0, "1.13487e+09"))
+    with pytest.raises(InputError, match="identical ranges"):
+        carmen_reference_trajectory(corrected, raw)
+
+
+def test_mit_csail_reference_matches_by_ranges():
+    raw = shared_data("carmen", "mit-csail.clf.bz2")
+    ref = carmen_reference_trajectory(shared_data("carmen", "corrected", "mit-csail-corrected.log.gz"), raw)
+    assert len(ref) == 406  # SOURCE.txt: 406 of its 407 lines match a raw scan exactly
+    assert np.all(np.diff(ref.timestamps) > 0)
+    assert set(np.round(ref.timestamps, 6)) <= set(np.round(read_carmen_trajectory(raw).timestamps, 6))

@@ -26,15 +26,19 @@ def register(app: typer.Typer) -> None:
         json_out: Annotated[Path | None, typer.Option("--json", help="Write all figures as JSON.")] = None,
         max_diff: Annotated[float, typer.Option(help="Timestamp association tolerance [s].")] = 0.02,
         raw_log: Annotated[Path | None, typer.Option(help="Raw CARMEN log, when REF is a corrected CARMEN log.")] = None,
+        derive_relations: Annotated[bool, typer.Option(
+            "--derive-relations", help="Relations error on relations derived from REF (pairs close in time and "
+            "across loops), for references without a relations file.")] = False,
     ) -> None:
-        """ATE (RMSE) and RPE of EST against REF; with --relations the relations error."""
+        """ATE (RMSE) and RPE of EST against REF; with --relations (or --derive-relations) the relations error."""
         from ..api import evaluate_files
         from ..io.output_folder import check_out_file, write_file_atomically
 
         try:
             if json_out is not None:
                 check_out_file(json_out, inputs=[est, ref, relations, raw_log], what="--json")
-            figures = evaluate_files(est, ref, align=align, relations=relations, max_diff=max_diff, raw_log=raw_log)
+            figures = evaluate_files(est, ref, align=align, relations=relations, max_diff=max_diff, raw_log=raw_log,
+                                     derive_relations=derive_relations)
         except SubmapSlamError as exc:
             raise fail(exc) from None
         for warning in figures.get("warnings", []):

@@ -114,6 +114,10 @@ def register(app: typer.Typer) -> None:
             f"{s['scans']} scans, {s['submaps']} submaps, {s['loop_candidates_tested']} loop candidates tested, "
             f"{s['loop_closures_accepted']} accepted; {s['wall_time_total_s']:.1f} s, peak {s['peak_memory_mb']:.0f} MiB"
         )
+        consistency = s.get("consistency") or {}
+        if consistency.get("disagrees_with_odometry"):
+            err_console.print(f"[yellow]warning:[/yellow] {escape(consistency['message'])}", highlight=False,
+                              soft_wrap=True)
         for problem in result.hint_problems:  # shown without -v: the user asked for these loops
             err_console.print(f"[yellow]warning:[/yellow] {escape(problem)}", highlight=False, soft_wrap=True)
         if s.get("skipped_records"):

@@ -68,6 +68,12 @@ def _overview(rec: RunRecord) -> str:
              ("scans/s", s.get("scans_per_second")), ("peak memory [MiB]", s.get("peak_memory_mb"))]
     if s.get("input_error"):
         pairs.append(("input stopped early", s["input_error"]))
+    consistency = s.get("consistency") or {}
+    if "odometry_chi2_max" in consistency:
+        pairs.append(("odometry edges after optimisation (largest chi2, mean per DOF)",
+                      f"{consistency['odometry_chi2_max']}, {consistency['odometry_chi2_mean_per_dof']}"))
+    if consistency.get("disagrees_with_odometry"):
+        pairs.append(("WARNING", consistency["message"]))
     return hp.key_values(pairs)
 
 

@@ -63,6 +63,30 @@ _DETECT_LINES = 5000  # lines read past the first laser record to see which kind
 _MAX_BEAMS = 1_000_000
 _SKIPPED_LINES_KEPT = 20
 _NO_RETURN = 80.0
+_NO_RETURN_SCAN_LINES = 3000  # laser records read ahead to find the log's no-return reading
+
+
+def detect_no_return_range(ranges: np.ndarray, min_count: int = 20, min_share: float = 0.001) -> float | None:
+    """The value a laser writes when a beam returns nothing, found in its readings ``(N,)`` [m].
+
+    A scanner reports "no return" as its maximum range: the largest reading, repeated exactly
+    far more often than any real distance is (ACES-like logs: 11,139 readings of exactly 50.0 m;
+    Intel 81.83 m, 6x as often as its most common real reading). Returns that value when it
+    makes up at least ``min_count`` readings and ``min_share`` of them, is at least 3x as
+    frequent as any other value, and at least ``min_count`` readings lie below it; else None
+    (the log's largest readings are real distances, or there is too little to tell).
+    """
+    r = np.asarray(ranges, dtype=np.float64)
+    r = r[np.isfinite(r) & (r > 0.0)]
+    if len(r) == 0:
+        return None
+    top = float(r.max())
+    count = int(np.count_nonzero(r == top))
+    below = r[r < top]
+    if count < min_count or count < min_share * len(r) or len(below) < min_count:
+        return None
+    _, counts = np.unique(below, return_counts=True)
+    return top if count >= 3 * int(counts.max()) else None
 
 
 def laser_choices() -> list[str]:
@@ -317,12 +341,35 @@ class CarmenReader:
         self.skip_bad = skip_bad
         self.skipped_records = 0
         self.skipped_lines: list[int] = []
+        self.no_return_range: float | None = None  # found in the data when the scans are read
 
     @property
     def log_info(self) -> dict:
-        """What ``summary.json`` reports about the reading: record used, damaged records skipped."""
+        """What ``summary.json`` reports about the reading: record used, damaged records skipped,
+        the reading found to mean "no return" (None: none found)."""
         return {"log_format": self.name, "laser_record": self.tag, "skipped_records": self.skipped_records,
-                "skipped_record_lines": list(self.skipped_lines)}
+                "skipped_record_lines": list(self.skipped_lines), "no_return_range_m": self.no_return_range}
+
+    def _find_no_return(self) -> float | None:
+        """:func:`detect_no_return_range` over the first ``_NO_RETURN_SCAN_LINES`` records read
+        (damaged ones left to the reading proper)."""
+        parse = _PARSERS[self.tag]
+        chunks: list[np.ndarray] = []
+        try:
+            with open_text(self.path) as fh:
+                for lineno, line in enumerate(fh, start=1):
+                    tokens = line.split()
+                    if not tokens or tokens[0] != self.tag:
+                        continue
+                    try:
+                        chunks.append(parse(tokens, self.path, lineno).ranges)
+                    except InputError:
+                        continue
+                    if len(chunks) >= _NO_RETURN_SCAN_LINES:
+                        break
+        except (OSError, EOFError, lzma.LZMAError, zlib.error, gzip.BadGzipFile, UnicodeDecodeError):
+            return None  # the reading proper reports it
+        return detect_no_return_range(np.concatenate(chunks)) if chunks else None
 
     def _skip(self, exc: InputError) -> None:
         if not self.skip_bad:
@@ -334,21 +381,34 @@ class CarmenReader:
 
     def _scan(self, reading: LaserReading, index: int, odometry: np.ndarray | None, lineno: int) -> Scan:
         limit = min(self.max_valid_range, reading.max_range)
-        valid = np.isfinite(reading.ranges) & (reading.ranges > 0.0) & (reading.ranges < limit)
-        r, a = reading.ranges[valid], reading.angles[valid]
+        if self.no_return_range is not None:
+            limit = min(limit, self.no_return_range)
+        finite = np.isfinite(reading.ranges) & (reading.ranges > 0.0)
+        valid = finite & (reading.ranges < limit)
+        points = self._points(reading, reading.ranges[valid], reading.angles[valid])
+        nothing = finite & ~valid  # at or beyond the maximum: no return, free up to the limit
+        no_returns = None
+        if math.isfinite(limit):
+            no_returns = self._points(reading, np.full(int(nothing.sum()), limit), reading.angles[nothing])
+        return Scan(index=index, timestamp=reading.stamp, points=points,
+                    odometry=None if odometry is None else se2_to_matrix(*odometry),
+                    planar=True, source=f"{self.path.name}:{lineno}", no_returns=no_returns)
+
+    @staticmethod
+    def _points(reading: LaserReading, r: np.ndarray, a: np.ndarray) -> np.ndarray:
+        """``(n, 3)`` points of ranges ``r`` along angles ``a`` (laser frame) in the robot frame."""
         points = np.zeros((len(r), 3))
         points[:, 0] = r * np.cos(a)
         points[:, 1] = r * np.sin(a)
         if reading.T_base_laser is not None:
             points = points @ reading.T_base_laser[:3, :3].T + reading.T_base_laser[:3, 3]
             points[:, 2] = 0.0
-        return Scan(index=index, timestamp=reading.stamp, points=points,
-                    odometry=None if odometry is None else se2_to_matrix(*odometry),
-                    planar=True, source=f"{self.path.name}:{lineno}")
+        return points
 
     def __iter__(self) -> Iterator[Scan]:
         self.skipped_records = 0
         self.skipped_lines = []
+        self.no_return_range = self._find_no_return()
         parse = _PARSERS[self.tag]
         needs_odom = self.tag.startswith("RAWLASER")
         index = 0

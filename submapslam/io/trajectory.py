@@ -87,9 +87,15 @@ def write_kitti(path: str | Path, poses: np.ndarray) -> None:
     Path(path).write_text("\n".join(lines) + "\n")
 
 
-def _carmen_flaser_rows(path: Path) -> list[tuple[float, float, np.ndarray]]:
+def _ranges_key(tokens: list[str]) -> bytes:
+    """The range readings of a laser line as a hashable key (millimetres), for matching scans."""
+    return np.round(np.asarray(tokens, dtype=np.float64) * 1000.0).astype(np.int64).tobytes()
+
+
+def _carmen_flaser_rows(path: Path, with_ranges: bool = False) -> list[tuple]:
     """(ipc_timestamp, logger_timestamp, (x, y, theta)) of every FLASER line; of every
-    ROBOTLASER1 line (its robot pose) in a log without FLASER lines."""
+    ROBOTLASER1 line (its robot pose) in a log without FLASER lines. With ``with_ranges`` each row
+    has a fourth item, the readings' :func:`_ranges_key` (None for ROBOTLASER1 rows)."""
     from .carmen import parse_robotlaser
 
     out, robotlaser = [], []
@@ -105,7 +111,7 @@ def _carmen_flaser_rows(path: Path) -> list[tuple[float, float, np.ndarray]]:
                         logger = float(tok[-1])
                     except ValueError:
                         raise InputError(path, "malformed ROBOTLASER1 logger timestamp", lineno) from None
-                    robotlaser.append((reading.stamp, logger, reading.robot_pose))
+                    robotlaser.append((reading.stamp, logger, reading.robot_pose) + ((None,) if with_ranges else ()))
                 continue
             try:
                 n = int(tok[1])
@@ -115,7 +121,13 @@ def _carmen_flaser_rows(path: Path) -> list[tuple[float, float, np.ndarray]]:
                 raise InputError(path, "malformed or truncated FLASER line", lineno) from None
             if len(pose) != 3 or not (np.all(np.isfinite(pose)) and math.isfinite(ipc)):
                 raise InputError(path, "malformed FLASER pose", lineno)
-            out.append((ipc, logger, pose))
+            row = (ipc, logger, pose)
+            if with_ranges:
+                try:
+                    row += (_ranges_key(tok[2 : 2 + n]),)
+                except ValueError:
+                    raise InputError(path, "malformed FLASER ranges", lineno) from None
+            out.append(row)
     if not out and not robotlaser:
         raise InputError(path, "no FLASER or ROBOTLASER1 lines: not a CARMEN laser log")
     return out or robotlaser
@@ -134,25 +146,40 @@ def read_carmen_trajectory(path: str | Path, timestamp: Literal["ipc", "logger"]
 def carmen_reference_trajectory(corrected_path: str | Path, raw_path: str | Path, tolerance: float = 0.01) -> Trajectory:
     """Corrected Freiburg log -> reference stamped with the *raw* log's ipc_timestamps.
 
-    The corrected logs hold corrected poses but their timestamps are the raw log's
-    logger_timestamp (rounded); each is matched to the raw FLASER line with the nearest logger
-    time (within ``tolerance`` s; the files differ by up to 5 ms, scans are ~100 ms apart) and takes that line's ipc_timestamp.
+    Each corrected FLASER line is matched to the raw FLASER line with identical range readings
+    (all of Intel's and FR079's lines, 406 of MIT CSAIL's 407; when several raw lines share
+    them, e.g. a robot standing still, the one nearest in logger time), else to the raw line with
+    the nearest logger time within ``tolerance`` s (the corrected logs carry the raw
+    logger_timestamp, rounded: the files differ by up to 5 ms, scans are ~100 ms apart; MIT
+    CSAIL's prints its times with 6 significant digits, so time alone cannot match it). The
+    reference takes the matched raw line's ipc_timestamp.
     """
-    corrected = _carmen_flaser_rows(Path(corrected_path))
-    raw = _carmen_flaser_rows(Path(raw_path))
+    corrected = _carmen_flaser_rows(Path(corrected_path), with_ranges=True)
+    raw = _carmen_flaser_rows(Path(raw_path), with_ranges=True)
     raw_logger = np.array([r[1] for r in raw])
     raw_ipc = np.array([r[0] for r in raw])
     order = np.argsort(raw_logger)
-    raw_logger, raw_ipc = raw_logger[order], raw_ipc[order]
+    sorted_logger = raw_logger[order]
+    by_ranges: dict[bytes, list[int]] = {}
+    for k, r in enumerate(raw):
+        if r[3] is not None:
+            by_ranges.setdefault(r[3], []).append(k)
     stamps, poses = [], []
-    for _ipc, logger, pose in corrected:
-        k = int(np.searchsorted(raw_logger, logger))
-        best = min((j for j in (k - 1, k) if 0 <= j < len(raw_logger)), key=lambda j: abs(raw_logger[j] - logger))
-        if abs(raw_logger[best] - logger) <= tolerance:
-            stamps.append(raw_ipc[best])
+    for _ipc, logger, pose, key in corrected:
+        same = by_ranges.get(key, []) if key is not None else []
+        if same:
+            match = min(same, key=lambda j: abs(raw_logger[j] - logger))
+        else:
+            k = int(np.searchsorted(sorted_logger, logger))
+            best = min((j for j in (k - 1, k) if 0 <= j < len(sorted_logger)),
+                       key=lambda j: abs(sorted_logger[j] - logger))
+            match = int(order[best]) if abs(sorted_logger[best] - logger) <= tolerance else None
+        if match is not None:
+            stamps.append(raw_ipc[match])
             poses.append(se2_to_matrix(*pose))
     if not stamps:
-        raise InputError(corrected_path, f"no scan matched the raw log {raw_path} by logger timestamp")
+        raise InputError(corrected_path, f"no scan matched the raw log {raw_path} by identical ranges or by logger "
+                         "timestamp")
     return Trajectory(np.array(stamps), np.array(poses))
 
 

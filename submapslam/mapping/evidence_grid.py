@@ -46,12 +46,18 @@ class EvidenceGrid:
         inside = (rc[:, 0] >= 0) & (rc[:, 1] >= 0) & (rc[:, 0] < self.logodds.shape[1]) & (rc[:, 1] < self.logodds.shape[0])
         return rc[:, 1], rc[:, 0], inside
 
-    def integrate_scan(self, T_grid_sensor: np.ndarray, points: np.ndarray, carve_free: bool = True) -> None:
+    def integrate_scan(self, T_grid_sensor: np.ndarray, points: np.ndarray, carve_free: bool = True,
+                       no_returns: np.ndarray | None = None) -> None:
         """Trace rays from the sensor to ``(N, 3)`` hits (sensor frame) into the grid.
 
         Free evidence is laid along each ray up to one cell short of the hit (and at most
-        ``params.max_free_range`` metres); the hit cell gets occupied evidence.
+        ``params.max_free_range`` metres); the hit cell gets occupied evidence. ``no_returns``
+        ``(M, 3)``: ends of beams that returned nothing: free along them (at most
+        ``max_free_range``), no hit.
         """
+        if no_returns is not None and len(no_returns) and carve_free:
+            self._carve_no_returns(T_grid_sensor, np.asarray(no_returns, dtype=np.float64),
+                                   transform_points(T_grid_sensor, np.asarray(points, dtype=np.float64))[:, :2])
         if len(points) == 0:
             return
         p = self.params
@@ -94,6 +100,33 @@ class EvidenceGrid:
         flat[hit_idx] = np.minimum(flat[hit_idx] + p.l_occ, p.l_max)
         if self.free_run is not None:
             self.free_run.reshape(-1)[hit_idx] = 0
+
+    def _carve_no_returns(self, T_grid_sensor: np.ndarray, no_returns: np.ndarray, hits: np.ndarray) -> None:
+        """Free evidence along beams that returned nothing, up to ``max_free_range`` (clipped to
+        the grid), sparing the cells ``hits (N, 2)`` of the same scan."""
+        p = self.params
+        ends = transform_points(T_grid_sensor, no_returns)[:, :2]
+        origin = T_grid_sensor[:2, 3]
+        vec = ends - origin
+        lengths = np.linalg.norm(vec, axis=1)
+        keep = lengths > 0
+        vec, lengths = vec[keep], lengths[keep]
+        steps = np.floor(np.minimum(lengths, p.max_free_range) / p.resolution).astype(int)
+        if not len(steps) or steps.sum() == 0:
+            return
+        ray = np.repeat(np.arange(len(vec)), steps)
+        offsets = np.arange(int(steps.sum())) - np.repeat(np.cumsum(steps) - steps, steps)
+        scale = offsets * p.resolution / lengths[ray]
+        r, c, inside = self.cells(origin + vec[ray] * scale[:, None])
+        width = self.logodds.shape[1]
+        free_idx = np.unique(r[inside] * width + c[inside])
+        hr, hc, h_in = self.cells(hits)
+        free_idx = np.setdiff1d(free_idx, hr[h_in] * width + hc[h_in], assume_unique=False)
+        flat = self.logodds.reshape(-1)
+        flat[free_idx] = np.maximum(flat[free_idx] + p.l_free, p.l_min)
+        if self.free_run is not None:
+            runs = self.free_run.reshape(-1)
+            runs[free_idx] = np.minimum(runs[free_idx], 254) + 1
 
     def probabilities(self) -> np.ndarray:
         """Occupancy probability per cell, ``(rows, cols)`` float32 (the logistic of the log-odds).

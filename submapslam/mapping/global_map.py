@@ -22,15 +22,19 @@ def local_grid_jobs(result: SlamResult, ids: Iterable[int]) -> list[LocalGridJob
     return [(i, result.submap_scan_poses[i], result.submap_scan_points[i]) for i in ids]
 
 
-def local_grid(T_anchor_scans: np.ndarray, scan_points: list[np.ndarray], params: GridParams) -> EvidenceGrid | None:
-    """Evidence grid of one submap in its anchor frame from its scans (``(n_k, 3)`` sensor frame)."""
+def local_grid(T_anchor_scans: np.ndarray, scan_points: list[np.ndarray], params: GridParams,
+               no_returns: list[np.ndarray] | None = None) -> EvidenceGrid | None:
+    """Evidence grid of one submap in its anchor frame from its scans (``(n_k, 3)`` sensor frame);
+    ``no_returns``: per scan the ends of its beams that returned nothing (free, never hit; they
+    do not widen the grid)."""
     world = [transform_points(T, p)[:, :2] for T, p in zip(T_anchor_scans, scan_points) if len(p)]
     if not world:
         return None
     extent = np.vstack([*world, T_anchor_scans[:, :2, 3]])
     grid = EvidenceGrid.covering(extent, params)
     for n, (T, pts) in enumerate(zip(T_anchor_scans, scan_points)):
-        grid.integrate_scan(T, pts, carve_free=n % params.free_scan_stride == 0)
+        free = no_returns[n] if no_returns and n < len(no_returns) else None
+        grid.integrate_scan(T, pts, carve_free=n % params.free_scan_stride == 0, no_returns=free)
     return grid
 
 
@@ -96,7 +100,8 @@ def build_global_grid(result: SlamResult, params: GridParams | None = None,
                                                             result.submap_scan_points)):
         if track and k in starts:
             occupied_at_start = global_grid.logodds > params.occupied_threshold
-        grid = next(made) if made is not None else local_grid(poses, points, params)
+        no_returns = result.submap_scan_no_returns[k] if k < len(result.submap_scan_no_returns) else None
+        grid = next(made) if made is not None else local_grid(poses, points, params, no_returns)
         if grid is not None:
             cleared += fuse_submap_grids(global_grid, grid, T_world_anchor,
                                          left if occupied_at_start is not None else None, occupied_at_start)

@@ -88,6 +88,16 @@ class RecentScanMap:
         self._points, self._normals = pts[line], normals[line]
         self._tree = cKDTree(self._points) if line.sum() >= 10 else None
 
+    def fit(self, points_xy: np.ndarray, xyt: np.ndarray, distance: float) -> float:
+        """Share of ``points_xy (N, 2)`` (sensor frame) placed at ``xyt`` that lie within ``distance``
+        [m] of the target's line points (0 with no target)."""
+        if self._tree is None or len(points_xy) == 0:
+            return 0.0
+        c, s = math.cos(xyt[2]), math.sin(xyt[2])
+        moved = points_xy @ np.array([[c, s], [-s, c]]) + xyt[:2]
+        d, _ = self._tree.query(moved, distance_upper_bound=distance)
+        return float(np.count_nonzero(d <= distance)) / len(points_xy)
+
     def refine(self, points_xy: np.ndarray, xyt: np.ndarray, prior_xyt: np.ndarray | None = None,
                iterations: int = 6) -> tuple[np.ndarray, int]:
         """Refine ``xyt`` (odometry frame) of a scan ``(N, 2)``; returns the pose and the inlier count.

@@ -1,0 +1,36 @@
+"""tools/bench_real2d.py on a tiny CARMEN log: the child's figures and the markdown table."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+from .test_no_returns import _write_log
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("bench_real2d", REPO / "tools" / "bench_real2d.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_child_measures_a_log_against_its_corrected_log_and_the_table_shows_it(bench, tmp_path):
+    log = tmp_path / "room.clf"
+    _write_log(log)  # its FLASER poses are the truth: the log is its own "corrected" log
+    result_json = tmp_path / "room.json"
+    bench.child(log, log, tmp_path / "out", None, result_json)
+    doc = json.loads(result_json.read_text())
+    assert doc["scans"] == 60 and doc["reference_poses"] == 60
+    assert doc["ate"] < 0.05 and doc["relations"] >= 59  # every pose with the next (no loops in 60 scans)
+    assert doc["relations_error"]["trans_mean"] < 0.05
+    assert doc["consistency"]["disagrees_with_odometry"] is False
+    doc.update(name="intel", wall_s=1.5, peak_rss_mib=200.0)
+    md = bench.table([doc])
+    head, rule, row = md.splitlines()
+    assert head.count("|") == rule.count("|") == row.count("|")
+    assert "| intel | 60 | 1.5 | 200 |" in row and "0.0229 m / 0.453°" in row

@@ -1,0 +1,132 @@
+"""Regression bench of the real 2D CARMEN logs: each at defaults, against its corrected log.
+
+Usage:
+    python tools/bench_real2d.py [--data ../shared/data/carmen] [--logs intel fr079 mit-csail]
+                                 [--config FILE] [--out DIR] [--json FILE] [--markdown FILE]
+
+Each log runs in its own child process (``submapslam.api.run_log``, all output files written);
+the parent measures the child's wall time and peak resident set (``os.wait4``). Reported per
+log: ATE (RMSE after SE(3) alignment) of the run and of its odometry before loop closure
+against the corrected log (scans matched by logger time, CSAIL's by identical ranges), loop
+hypotheses tested / accepted, and the relations error on relations *derived* from the corrected
+log (:func:`submapslam.evaluation.derived_relations.derive_relations`: pairs close in time plus
+pairs across loops; not the benchmark's own relation files). Prints one markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+#: log name -> (raw log file, corrected log file) inside the carmen data folder
+LOGS = {
+    "intel": ("intel.clf.bz2", "corrected/intel-corrected.log.gz"),
+    "fr079": ("fr079.clf.bz2", "corrected/freiburg-079-corrected.log.gz"),
+    "mit-csail": ("mit-csail.clf.bz2", "corrected/mit-csail-corrected.log.gz"),
+}
+#: Cartographer's published figures (Hess et al. 2016): ATE-like absolute error [m], rotation [deg]
+CARTOGRAPHER = {"intel": "0.0229 m / 0.453°", "fr079": "0.0452 m", "mit-csail": "0.0319 m"}
+
+
+def child(log: Path, ref: Path, out: Path, config: Path | None, result_json: Path) -> None:
+    """Run ``log`` at defaults (or ``config``) into ``out`` and write the figures to ``result_json``."""
+    from submapslam.api import run_log
+    from submapslam.evaluation.derived_relations import count_loop_relations, derive_relations
+    from submapslam.evaluation.metrics import ate, relations_error
+    from submapslam.io.trajectory import Trajectory, carmen_reference_trajectory
+
+    t0 = time.perf_counter()
+    result, _ = run_log(log, out, config=config, overwrite=True)
+    wall = time.perf_counter() - t0
+    s = result.summary()
+    reference = carmen_reference_trajectory(ref, log)
+    relations = derive_relations(reference)
+    est = Trajectory(result.timestamps, result.poses)
+    odo = Trajectory(result.timestamps, result.odometry_poses)
+    doc = {
+        "log": log.name, "wall_s_run": wall, "scans": s["scans"], "submaps": s["submaps"],
+        "loops_tested": s["loop_candidates_tested"], "loops_accepted": s["loop_closures_accepted"],
+        "reference_poses": len(reference), "relations": len(relations),
+        "loop_relations": count_loop_relations(relations),
+        "ate": ate(est, reference)["rmse"], "ate_odometry": ate(odo, reference)["rmse"],
+        "relations_error": relations_error(est, relations),
+        "relations_error_odometry": relations_error(odo, relations),
+        "consistency": s.get("consistency"),
+    }
+    result_json.write_text(json.dumps(doc, indent=1, default=float) + "\n")
+
+
+def run_child(name: str, data: Path, out: Path, config: Path | None) -> dict:
+    """One log in a child process; its figures plus ``wall_s`` and ``peak_rss_mib``."""
+    raw, ref = LOGS[name]
+    result_json = out / f"{name}.json"
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", str(data / raw), str(data / ref),
+           str(out / name), str(result_json)] + (["--config", str(config)] if config else [])
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        raise SystemExit(f"{name}: child exited with {proc.returncode}")
+    doc = json.loads(result_json.read_text())
+    doc.update(name=name, wall_s=wall, peak_rss_mib=usage.ru_maxrss / 1024.0)
+    return doc
+
+
+def table(rows: list[dict]) -> str:
+    """The markdown table of :func:`run_child` results."""
+    head = ("| log | scans | wall [s] | peak RSS [MiB] | loops accepted / tested | ATE [m] | odometry-only ATE [m] "
+            "| derived relations: trans [m] | rot [deg] | (count, across loops) | Cartographer (published) |")
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for d in rows:
+        rel = d["relations_error"]
+        lines.append(
+            f"| {d['name']} | {d['scans']} | {d['wall_s']:.1f} | {d['peak_rss_mib']:.0f} "
+            f"| {d['loops_accepted']} / {d['loops_tested']} | **{d['ate']:.3f}** | {d['ate_odometry']:.3f} "
+            f"| {rel['trans_mean']:.4f} ± {rel['trans_std']:.4f} | {rel['rot_mean_deg']:.3f} ± {rel['rot_std_deg']:.3f} "
+            f"| {d['relations']}, {d['loop_relations']} | {CARTOGRAPHER.get(d['name'], '–')} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", type=Path, default=ROOT.parent / "shared" / "data" / "carmen")
+    ap.add_argument("--logs", nargs="+", choices=sorted(LOGS), default=list(LOGS))
+    ap.add_argument("--config", type=Path)
+    ap.add_argument("--out", type=Path)
+    ap.add_argument("--json", type=Path)
+    ap.add_argument("--markdown", type=Path)
+    ap.add_argument("--child", nargs=4, metavar=("LOG", "REF", "OUT", "RESULT_JSON"), help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child:
+        log, ref, out, result_json = (Path(p) for p in args.child)
+        child(log, ref, out, args.config, result_json)
+        return 0
+    out = args.out or Path(tempfile.mkdtemp(prefix="bench_real2d_"))
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for name in args.logs:  # one after the other: the machine's cores are shared
+        rows.append(run_child(name, args.data, out, args.config))
+        print(f"{name}: ATE {rows[-1]['ate']:.3f} m, odometry {rows[-1]['ate_odometry']:.3f} m, "
+              f"{rows[-1]['wall_s']:.1f} s", file=sys.stderr)
+    md = table(rows)
+    print(md)
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1) + "\n")
+    if args.markdown:
+        args.markdown.write_text(md + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
