@@ -470,3 +470,5 @@ def test_final_check_lets_a_robust_prior_give_way_beside_a_stretched_edge():
         assert all(w["chi2"] > 0 and {"constraint", "i", "j", "loops_agreeing"} <= set(w) for w in g.gave_way)
         if kernel is None:  # the Gaussian priors bent the chain: something at the crest gave way
             assert g.gave_way and all(19 <= w["i"] <= 20 for w in g.gave_way)
+        g._excluded.add(next(iter(g._priors)))  # a prior that gave way leaves no edge behind
+        assert sum(e.kind == "loop" for e in g.active_edges()) == 3 and len(g.all_marginal_covariances()) == 40

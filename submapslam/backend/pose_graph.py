@@ -362,7 +362,7 @@ class PoseGraph:
 
     def active_edges(self) -> list[GraphEdge]:
         """The edges the solution keeps (loops rejected by GNC or the final check left out)."""
-        excluded = {self._factor_edges[idx] for idx in self._excluded}
+        excluded = {self._factor_edges[idx] for idx in self._excluded if idx in self._factor_edges}  # not priors
         return [e for k, e in enumerate(self.edges) if k not in excluded]
 
     def marginal_covariance(self, key: int) -> np.ndarray:
