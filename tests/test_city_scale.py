@@ -444,3 +444,31 @@ def test_robust_ground_priors_let_a_change_of_grade_through():
     gaussian, robust = _crest_chain(None), _crest_chain(BackendConfig().ground_prior_kernel)
     assert robust < 0.3
     assert gaussian > 3 * robust
+
+
+def test_final_check_lets_a_robust_prior_give_way_beside_a_stretched_edge():
+    """A change of grade that the Gaussian priors fight (no kernel) stretches odometry edge 19-20;
+    with the kernel on, no prior is a symptom, yet when an edge is stretched the priors on its
+    nodes are candidates too: either way the check ends without dropping a closure and reports
+    what gave way with its chi2."""
+    graphs = []
+    original = PoseGraph.optimize_batch
+
+    def keep(self, *args, **kwargs):
+        graphs.append(self)
+        return original(self, *args, **kwargs)
+
+    for kernel in (None, 1.0):
+        graphs.clear()
+        PoseGraph.optimize_batch = keep
+        try:
+            _crest_chain(kernel)
+        finally:
+            PoseGraph.optimize_batch = original
+        g = graphs[-1]
+        assert g.final_check() == []
+        assert all(w["chi2"] > 0 and {"constraint", "i", "j", "loops_agreeing"} <= set(w) for w in g.gave_way)
+        if kernel is None:  # the Gaussian priors bent the chain: something at the crest gave way
+            assert g.gave_way and all(19 <= w["i"] <= 20 for w in g.gave_way)
+        g._excluded.add(next(iter(g._priors)))  # a prior that gave way leaves no edge behind
+        assert sum(e.kind == "loop" for e in g.active_edges()) == 3 and len(g.all_marginal_covariances()) == 40

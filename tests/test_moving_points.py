@@ -145,19 +145,23 @@ def test_odometry_that_keeps_movers_out_is_not_worse(runs):
 
 
 def test_non_ground_follows_sloped_and_bending_ground():
-    """A scan on a 4 % climb that steepens to 8 % 20 m ahead (sensor 1.73 m over the road, its
-    axes along the road) with a car 12 m ahead: no ground point is taken for an obstacle (one
-    height for the whole scan took the uphill road for one), the car above the band is."""
+    """Ground tilted 4 % in the sensor frame (a change of grade under the vehicle, a banked road)
+    with a car 12 m ahead: the plane fitted to the low points takes none of the ground for an
+    obstacle (one height for the whole scan took 21 % of it), the car above the band is tested.
+    With ``cell`` the ground also bends where the grade changes again 20 m ahead."""
     from submapslam.mapping.moving_points import non_ground
 
     rng = np.random.default_rng(0)
     xy = rng.uniform(-45.0, 45.0, size=(40000, 2))
     x = xy[:, 0]
-    # heights in the sensor frame, which pitches with the local 4 % slope: extra grade beyond 20 m
-    z = -1.73 + np.where(x > 20.0, 0.04 * (x - 20.0), 0.0) + rng.normal(0.0, 0.03, len(x))
-    ground = np.column_stack([xy, z])
+    tilted = -1.73 + 0.04 * x + rng.normal(0.0, 0.03, len(x))
     car = np.column_stack([rng.uniform(10.0, 14.5, 600), rng.uniform(-1.0, 1.0, 600), rng.uniform(-1.5, -0.2, 600)])
-    pts = np.vstack([ground, car])
+    car[:, 2] += 0.04 * car[:, 0]
+    pts = np.vstack([np.column_stack([xy, tilted]), car])
     flags = non_ground(pts, 0.3)
-    assert flags[: len(ground)].mean() < 0.005
-    assert flags[len(ground):][car[:, 2] > -1.2].mean() > 0.9
+    assert flags[: len(xy)].mean() < 0.005
+    assert flags[len(xy):][car[:, 2] - 0.04 * car[:, 0] > -1.2].mean() > 0.9
+    bend = -1.73 + np.where(x > 20.0, 0.04 * (x - 20.0), 0.0) + rng.normal(0.0, 0.03, len(x))
+    bent = np.column_stack([xy, bend])
+    assert non_ground(bent, 0.3).mean() > 0.02  # the plane alone: the far climb looks like obstacles
+    assert non_ground(bent, 0.3, cell=5.0).mean() < 0.005

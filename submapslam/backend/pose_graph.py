@@ -392,7 +392,7 @@ class PoseGraph:
                 log.warning("final check: stops after dropping %d of %d loop closures (%s); the rest stay",
                             len(dropped), n_loops, symptom)
                 break
-            self._estimate = estimate
+            previous, self._estimate = self._estimate, estimate
             if what == "loop":
                 self._excluded.add(idx)
                 e = self.edges[self._factor_edges[idx]]
@@ -405,8 +405,9 @@ class PoseGraph:
                 kind, i, j, before = "odometry edge", e.i, e.j, odo[self._factor_edges[idx]]
             else:
                 self._excluded.add(idx)
-                kind, i, j, _ = self._priors[idx]
-                before = priors[idx]
+                kind, i, j, info = self._priors[idx]
+                residual = np.asarray(self._graph.at(idx).unwhitenedError(previous))
+                before = float(residual @ info @ residual)  # before it gave way
             entry = {"constraint": kind, "i": int(i), "j": int(j), "chi2": round(float(before), 2),
                      "loops_agreeing": len(loops), "symptom": symptom}
             self.gave_way.append(entry)
@@ -430,7 +431,7 @@ class PoseGraph:
 
     def active_edges(self) -> list[GraphEdge]:
         """The edges the solution keeps (loops rejected by GNC or the final check left out)."""
-        excluded = {self._factor_edges[idx] for idx in self._excluded}
+        excluded = {self._factor_edges[idx] for idx in self._excluded if idx in self._factor_edges}  # not priors
         return [e for k, e in enumerate(self.edges) if k not in excluded]
 
     def marginal_covariance(self, key: int) -> np.ndarray:

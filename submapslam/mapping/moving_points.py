@@ -129,16 +129,19 @@ class ViewStack:
 
 
 def non_ground(points_sensor: np.ndarray, band: float, radius: float = 15.0, percentile: float = 2.0,
-               cell: float = 4.0, rise: float = 0.3, rise_per_m: float = 0.02) -> np.ndarray:
+               cell: float | None = None, rise: float = 0.3, rise_per_m: float = 0.02) -> np.ndarray:
     """``(N,)`` bool: points more than ``band`` [m] above the scan's ground; all when no ground is near.
 
     The ground follows the terrain: a plane fitted (PCA) to the low points within ``radius`` [m]
-    (those within 0.5 m of the ``percentile`` of the heights there), tilted with the road, then
-    bent cell by cell: in each ``cell`` x ``cell`` [m] column the lowest point, when it lies within
-    ``rise + rise_per_m * range`` [m] of the plane, is that column's ground (a crest, a dip, a
-    change of grade far from the sensor); a column whose lowest point is higher (a canopy, a wall
-    seen above the ground) keeps the plane. Numpy only (the odometry's child process stays
-    without scipy). Heights are measured along the plane's normal.
+    (those within 0.5 m of the ``percentile`` of the heights there), tilted with the road, at the
+    height of that percentile (as the flat reference was). With ``cell`` (off by default: on the
+    labelled mover drive it lowered the movers' DA 0.969 -> 0.940) it is bent beyond ``radius`` cell by cell: in each ``cell`` x ``cell`` [m] column the lowest point,
+    when it lies within ``rise + rise_per_m * range`` [m] of the plane, is that column's ground (a
+    crest, a dip, a change of grade far from the sensor); a column whose lowest point is higher (a
+    canopy, a wall seen above the ground) keeps the plane. Within ``radius`` the plane alone
+    decides, so the movers near the sensor are tested down to ``band`` over the road as before.
+    Numpy only (the odometry's child process stays without scipy). Heights are measured along
+    the plane's normal.
     """
     pts = np.asarray(points_sensor, dtype=np.float64)
     horizontal = np.hypot(pts[:, 0], pts[:, 1])
@@ -154,6 +157,9 @@ def non_ground(points_sensor: np.ndarray, band: float, radius: float = 15.0, per
         normal = V[:, 0] if V[2, 0] > 0 else -V[:, 0]
         if w[1] > 1.0 and normal[2] > np.cos(np.deg2rad(20.0)):  # spread in two directions, not a wall
             h = (pts - centre) @ normal
+            h -= float(np.percentile(h[horizontal <= radius], percentile))  # the low reference, as on flat ground
+    if cell is None:
+        return h > band
     ij = np.floor(pts[:, :2] / cell).astype(np.int64)
     keys = (ij[:, 0] << 32) + ij[:, 1]  # one int64 per column (|index| < 2^31)
     _, inverse = np.unique(keys, return_inverse=True)
@@ -162,7 +168,7 @@ def non_ground(points_sensor: np.ndarray, band: float, radius: float = 15.0, per
     np.minimum.at(lowest, inverse, h)
     ground = lowest[inverse]
     allowed = rise + rise_per_m * horizontal
-    ground = np.where(np.abs(ground) <= allowed, ground, 0.0)
+    ground = np.where((np.abs(ground) <= allowed) & (horizontal > radius), ground, 0.0)
     return h > ground + band
 
 

@@ -1,0 +1,31 @@
+"""tools/bench_terrain.py on a tiny terrain log: the row it writes matches the run's own files."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+from pathlib import Path
+
+from .conftest import shared_data
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_bench_terrain_tiny_log(tmp_path, monkeypatch):
+    spec = importlib.util.spec_from_file_location("bench_terrain", REPO / "tools" / "bench_terrain.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    monkeypatch.setattr(bench, "KITTI_GT", shared_data("trajectories", "kitti_gt", "00.txt.xz").parent)
+    rc = bench.main(["--generate", "00:16:60", "--data-root", str(tmp_path / "data"), "--out", str(tmp_path / "out"),
+                     "--json", str(tmp_path / "b.json"), "--markdown", str(tmp_path / "b.md")])
+    assert rc == 0
+    (row,) = json.loads((tmp_path / "b.json").read_text())
+    assert row["log"] == "ter00_16_60" and row["scans"] == 60 and row["relief_m"] > 0
+    out = tmp_path / "out" / "ter00_16_60"
+    summary = json.loads((out / "summary.json").read_text())
+    assert row["map_points"] == summary["map_points"] and row["map_dynamic_points"] == summary["map_dynamic_points"]
+    assert 0 <= row["map_dynamic_pct"] < 100 and row["ate_m"] >= 0 and 0 < row["path_m"] < 60
+    with open(out / "loops.csv", newline="") as fh:
+        assert row["closures_accepted"] == sum(r["accepted"] == "1" for r in csv.DictReader(fh))
+    assert "| ter00_16_60 | 60 |" in (tmp_path / "b.md").read_text()
