@@ -16,7 +16,7 @@ import numpy as np
 
 from .config import OdometryConfig
 from .geometry import blend_poses, inverse, matrix_to_se2, se2_to_matrix
-from .registration.voxel_gicp import VoxelGicpSettings
+from .registration.voxel_gicp import VoxelGicpSettings, VoxelGicpTracker, azimuth_coverage_deg
 from .scan import Scan
 
 NARROW_FIELD_DEG = 180.0  # auto registration: a first scan seeing less than this around z is a narrow-field sensor
@@ -30,8 +30,6 @@ def resolve_registration(config: OdometryConfig, scan: Scan) -> OdometryConfig:
         return config
     method = "kiss_icp"
     if not scan.planar and len(scan.points):
-        from .registration.voxel_gicp import azimuth_coverage_deg
-
         if azimuth_coverage_deg(scan.points, min_range=max(config.min_range, 0.5)) < NARROW_FIELD_DEG:
             method = "voxel_gicp"
     return config.model_copy(update={"registration": method})
@@ -102,8 +100,6 @@ class Odometry:
         self.movers = None  # 3D: keeps what moved out of registration and the local map
         self._gicp = None  # 3D narrow-field sensors: voxelised GICP instead of KISS-ICP's registration
         if not planar and config.registration == "voxel_gicp":
-            from .registration.voxel_gicp import VoxelGicpTracker
-
             voxel = self.voxel_size
             self._gicp = VoxelGicpTracker(VoxelGicpSettings(fine_voxel=voxel, coarse_voxel=4.0 * voxel,
                                                             frame_voxel=self.frame_voxel,

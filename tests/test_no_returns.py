@@ -12,6 +12,8 @@ from submapslam.geometry import transform_points
 from submapslam.io.carmen import CarmenReader, detect_no_return_range
 from submapslam.mapping.global_map import build_global_grid
 
+from .planar_scenes import wall_ranges
+
 NO_RETURN = 50.0
 # a 10 x 8 m room, a 2 m doorway in its right wall (x = 5) and nothing beyond; a pillar and a
 # recess so that the scans constrain every direction
@@ -21,18 +23,7 @@ WALLS = [(-5, -4, 5, -4), (5, -4, 5, -1), (5, 1, 5, 4), (5, 4, -5, 4), (-5, 4, -
 
 
 def _ranges(x: float, y: float, th: float, beams: int = 181) -> np.ndarray:
-    out = np.full(beams, NO_RETURN)
-    for k, a in enumerate(np.linspace(-np.pi / 2, np.pi / 2, beams)):
-        d = np.array([np.cos(th + a), np.sin(th + a)])
-        for x0, y0, x1, y1 in WALLS:
-            e = np.array([x1 - x0, y1 - y0])
-            M = np.array([d, -e]).T
-            if abs(np.linalg.det(M)) < 1e-12:
-                continue
-            t, u = np.linalg.solve(M, np.array([x0 - x, y0 - y]))
-            if t > 0 and 0 <= u <= 1:
-                out[k] = min(out[k], t)
-    return np.round(out, 2)
+    return np.round(wall_ranges(WALLS, (x, y, th), beams, no_return=NO_RETURN), 2)
 
 
 def _write_log(path) -> None:
