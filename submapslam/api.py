@@ -72,6 +72,7 @@ def run_log(
     save_map: bool = True,
     session_name: str | None = None,
     on_progress: Callable[[int, int | None], None] | None = None,
+    recorded_as: str | None = None,
 ) -> tuple[SlamResult, dict[str, Path]]:
     """Open ``log_path``, run the pipeline, write results to ``out_dir`` (if given).
 
@@ -91,7 +92,9 @@ def run_log(
     ``save_map``: also write the run as a map that can be extended (``OUT/map/``, a one-session
     map named ``session_name``, default the log's file name without extensions).
     ``on_progress(scans done, scans in the log or None)`` is called after each scan (instead of
-    ``progress``' bar; e.g. ``batch``'s live view of every log).
+    ``progress``' bar; e.g. ``batch``'s live view of every log). ``recorded_as``: the log's path
+    as the results name it, when ``log_path`` is a copy (``batch`` shipping a log to a Ray
+    worker that does not see the original).
 
     Returns the result and the written paths. Input errors found mid-log keep what was
     computed: results are written and ``result.input_error`` says what stopped the reading.
@@ -138,7 +141,7 @@ def run_log(
         total = None
     if cfg.max_scans is not None and total is not None:
         total = min(total, cfg.max_scans)
-    source = str(log_path)
+    source = recorded_as or str(log_path)
     keep = None
     if out_dir is not None and cfg.checkpoint_every_submaps:
         from .io.checkpoint import write_checkpoint
@@ -186,7 +189,8 @@ def run_log(
             else:
                 maps = fuse()
             written.update(write_results(result, staging, maps, run_started=t_start))
-            written["input.json"] = write_provenance(staging, input_provenance(log_path, result.timestamps))
+            provenance = input_provenance(log_path, result.timestamps, recorded_as=recorded_as)
+            written["input.json"] = write_provenance(staging, provenance)
         paths = {name: Path(out_dir) / name for name in written}
         if not result.interrupted:
             from .io.checkpoint import remove_checkpoint

@@ -184,17 +184,44 @@ class BatchReport:
 
 
 def front_end(log_path: str, name: str, out_dir: str, config: PipelineConfig, format: str | None = None,
-              max_scans: int | None = None, on_progress: Callable[[int, int | None], None] | None = None) -> dict:
+              max_scans: int | None = None, on_progress: Callable[[int, int | None], None] | None = None,
+              recorded_as: str | None = None) -> dict:
     """One log's task: run it, write its results and its one-session map into ``out_dir``;
     return a small summary dict (what travels back from a Ray worker). ``on_progress(scans
-    done, scans in the log or None)`` after each scan."""
+    done, scans in the log or None)`` after each scan; ``recorded_as``: the log's path as the
+    results name it (:func:`~submapslam.api.run_log`)."""
     from .api import run_log
 
     t0 = time.perf_counter()
     result, _ = run_log(log_path, out_dir, config=config, format=format, max_scans=max_scans, session_name=name,
-                        overwrite=True, on_progress=on_progress)
+                        overwrite=True, on_progress=on_progress, recorded_as=recorded_as)
     return {"scans": result.n_scans, "submaps": result.n_submaps, "loops_accepted": result.loops_accepted,
             "seconds": time.perf_counter() - t0, "input_error": result.input_error}
+
+
+def shipped_front_end(log_bundle, log_path: str, name: str, out_dir: str, config: PipelineConfig,
+                      format: str | None = None, max_scans: int | None = None,
+                      on_progress: Callable[[int, int | None], None] | None = None) -> dict:
+    """:func:`front_end` on a machine that does not see the driver's files: the log arrives as
+    a bundle (:mod:`.io.bundle`; bytes, or their Ray object reference), is run from a temporary
+    folder, and its results folder goes back as a bundle (``"results"`` in the dict) for the
+    driver to put at ``out_dir``. The results name ``log_path``, the driver's path of the log."""
+    import tempfile
+
+    from .io.bundle import pack, unpack
+
+    if not isinstance(log_bundle, bytes):  # a reference inside the task's arguments is not resolved by Ray
+        import ray
+
+        log_bundle = ray.get(log_bundle)
+
+    with tempfile.TemporaryDirectory(prefix="submapslam-shipped-") as tmp:
+        log_copy = unpack(log_bundle, Path(tmp) / "log")
+        results = Path(tmp) / "out" / Path(out_dir).name
+        summary = front_end(str(log_copy), name, str(results), config, format, max_scans, on_progress,
+                            recorded_as=log_path)
+        summary["results"] = pack(results)
+    return summary
 
 
 def batch_logs(
@@ -215,6 +242,8 @@ def batch_logs(
     resume: bool = False,
     map_dir: str | Path | None = None,
     freeze_map: bool = False,
+    ship_logs: str = "auto",
+    verbose: bool = False,
 ) -> BatchReport:
     """Run every log's front end (a Ray task each, or one after another) and merge them.
 
@@ -233,6 +262,13 @@ def batch_logs(
     map, as ``run --map`` takes) the logs are added to that map instead, each placed against it
     (the map itself is read before any work and never written); ``freeze_map`` holds it where it
     is (:class:`~submapslam.fleet.SessionMerger`'s ``freeze_base``).
+
+    On a cluster (``address``: ``HOST:PORT`` or ``ray://HOST:PORT``, token authentication as
+    the cluster asks: :mod:`.ray_cluster`) the workers read the logs and write ``out_dir/<name>/``
+    themselves when every node sees them; ``ship_logs``: "auto" (ship when some node does not),
+    "always" or "never" — shipped, each log's bytes travel through Ray's object store and its
+    results come back to this process, which writes them (the same files). ``verbose``: Ray's
+    own start-up output in the terminal.
 
     ``out_dir`` is checked before any work (:mod:`.io.batch_folder`): new or empty, or an
     earlier batch's, replaced with ``overwrite`` or continued with ``resume`` (a log whose
@@ -259,6 +295,15 @@ def batch_logs(
     outcomes = [LogOutcome(str(p), n) for p, n in zip(logs, names)]
     if not cpus_per_log > 0:
         raise SubmapSlamError(f"CPUs per log must be more than 0, not {cpus_per_log:g}")
+    if ship_logs not in ("auto", "always", "never"):
+        raise SubmapSlamError(f"ship_logs is auto, always or never, not {ship_logs!r}")
+    if ship_logs == "always" and use_ray is False:
+        raise SubmapSlamError("logs are shipped to Ray workers: shipping them needs Ray (drop --no-ray)")
+    auth: tuple[dict[str, str], str] = ({}, "")  # a cluster's authentication, found before Ray is imported
+    if use_ray is not False and address is not None:
+        from .ray_cluster import auth_settings
+
+        auth = auth_settings(address)  # nothing answers, or a token is missing or refused: one line before any work
     ray = ray_module() if use_ray is not False else None
     if (use_ray or address) and ray is None:
         raise SubmapSlamError("Ray is not installed: pip install 'submapslam[ray]' (or run without --address)")
@@ -341,12 +386,17 @@ def batch_logs(
     if ray is not None and todo:
         from .fleet_ray import RayBatch
 
-        side = RayBatch(ray, address, num_cpus)
+        side = RayBatch(ray, address, num_cpus, verbose=verbose, auth=auth)
     merged = merged_dir = None
     try:
         if side is not None:
             verify_elsewhere = side.verifier()
-            side.run(front_end, [args[k] for k in todo], record=lambda j, value, error: record(todo[j], value, error),
+            task, task_args, on_result = front_end, [args[k] for k in todo], record
+            if ship_logs == "always" or (ship_logs == "auto" and address is not None
+                                         and not side.nodes_see([logs[k] for k in todo], out)):
+                task, on_result = shipped_front_end, partial(_unpack_results, out, outcomes, record)
+                task_args = [(side.ship(logs[k]), str(Path(logs[k]).resolve()), *args[k][1:]) for k in todo]
+            side.run(task, task_args, record=lambda j, value, error: on_result(todo[j], value, error),
                      merge_ready=merge_ready, cpus_per_task=cpus_per_log,
                      progress=None if on_progress is None else
                      lambda j, done, total: on_progress(outcomes[todo[j]], done, total))
@@ -380,6 +430,17 @@ def batch_logs(
                 o.placed, o.links, o.note = by_name[o.name].placed, by_name[o.name].links, by_name[o.name].note
     return BatchReport(outcomes, merged_dir, time.perf_counter() - t0, "sequential" if side is None else "ray",
                        merged, front_end_s)
+
+
+def _unpack_results(out: Path, outcomes: list[LogOutcome], record: Callable, k: int, value: dict | None,
+                    error: BaseException | None) -> None:
+    """A shipped log's results (:func:`shipped_front_end`) written to ``out/<name>/``, then
+    recorded as a log run in place."""
+    if value is not None:
+        from .io.bundle import replace_with
+
+        replace_with(value.pop("results"), out / outcomes[k].name)
+    record(k, value, error)
 
 
 def _one_line(exc: BaseException) -> str:

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import ExitStack
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -45,13 +47,22 @@ class RayBatch:
     """
 
     def __init__(self, ray, address: str | None = None, num_cpus: int | None = None,
-                 grids_budget_bytes: int = 256 * 2**20) -> None:
+                 grids_budget_bytes: int = 256 * 2**20, verbose: bool = False,
+                 auth: tuple[dict[str, str], str] = ({}, "")) -> None:
         """``grids_budget_bytes``: the local grids made ahead are kept on the actors up to about
-        this size; the others are made when the fusion asks for them."""
+        this size; the others are made when the fusion asks for them. ``address``: a cluster's
+        ``HOST:PORT`` or ``ray://HOST:PORT``, joined with ``auth``
+        (:func:`~submapslam.ray_cluster.auth_settings`: the environment it needs, and in words);
+        one line when it cannot be joined. Ray's own output is kept out of the terminal unless
+        ``verbose``."""
         self.ray = ray
+        self.address = address
+        self.client = address is not None and address.startswith("ray://")  # Ray Client
         self.started_here = not ray.is_initialized()
+        self._environment = ExitStack()  # the authentication settings, while joined
+        self.auth = "local instance" if address is None else "already joined"
         if self.started_here:
-            _init_ray_beside_imports(ray, address, num_cpus)
+            self.auth = self._join_or_start(address, num_cpus, verbose, auth)
         self.workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
         self._helpers: list = []  # the merge's helper actors (:class:`_MergeHelper`)
         self._made_ahead: dict[int, tuple] = {}  # submap key -> (helper holding its local grid, its make's ref)
@@ -60,6 +71,44 @@ class RayBatch:
         # every Ray object reference and actor handle kept between calls, dropped before the
         # shutdown (one let go while Ray shuts down in the background ends the process)
         self._holding: list[dict | list] = [self._made_ahead, self._helpers]
+
+    def _join_or_start(self, address: str | None, num_cpus: int | None, verbose: bool,
+                       auth: tuple[dict[str, str], str]) -> str:
+        """Start a local Ray, or join the cluster at ``address``; returns how it authenticated."""
+        from .ray_cluster import connect_error, environment, quiet_fds
+
+        self._environment.enter_context(environment(auth[0]))
+        failure = None
+        with quiet_fds(verbose) as said:
+            try:
+                _init_ray_beside_imports(self.ray, address, num_cpus)
+            except Exception as exc:  # Ray's errors are many kinds of exception: one line each
+                failure = exc
+        if failure is not None:
+            self._environment.close()
+            if address is None:
+                raise SubmapSlamError(f"Ray did not start here: {_last_line(failure)}") from None
+            raise connect_error(address, failure, "".join(said)) from None
+        return auth[1] or ("local instance" if address is None else "as Ray found it")
+
+    def nodes_see(self, paths: list[str | Path], folder: str | Path, timeout_s: float = 120.0) -> bool:
+        """Whether every node of the cluster sees each of ``paths`` as here (a file of the same
+        size, or a folder) and can write into ``folder``: a task pinned to each node looks."""
+        from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
+
+        ray = self.ray
+        expected = [(str(Path(p).resolve()), Path(p).stat().st_size if Path(p).is_file() else None) for p in paths]
+        look = ray.remote(num_cpus=0, max_retries=0)(sees_files)
+        refs = [look.options(scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False))
+                .remote(expected, str(Path(folder).resolve())) for n in ray.nodes() if n.get("Alive")]
+        return all(ray.get(refs, timeout=timeout_s))
+
+    def ship(self, path: str | Path):
+        """The log at ``path`` as a bundle in Ray's object store (its reference: a task given it
+        receives the bytes)."""
+        from .io.bundle import pack
+
+        return self.ray.put(pack(path))
 
     def verifier(self) -> Callable[[dict], VerifyMany]:
         """For :class:`~submapslam.fleet.SessionMerger`: its placement tests on the helpers, each
@@ -103,7 +152,10 @@ class RayBatch:
         if cpus_per_task > largest:
             raise SubmapSlamError(f"each log asks for {cpus_per_task:g} CPUs, but the largest Ray node has "
                                   f"{largest:g}: give fewer CPUs per log")
-        task = ray.remote(num_cpus=cpus_per_task, max_retries=0)(front_end_with_progress)
+        if self.client:  # Ray Client has no streaming tasks: each log's task returns at its end
+            task = ray.remote(num_cpus=cpus_per_task, max_retries=0)(front_end_at_once)
+        else:
+            task = ray.remote(num_cpus=cpus_per_task, max_retries=0)(front_end_with_progress)
         started = [task.remote(front_end, a) for a in args]
         # in the order given, as the merge takes them (the largest first was slower: the merge
         # then waited for the small logs before the large one; 55.1 s against 48.1 s)
@@ -120,7 +172,7 @@ class RayBatch:
                 ready, _ = ray.wait(list(pending), num_returns=1)
                 k = pending[ready[0]]
                 try:
-                    kind, *value = ray.get(next(ready[0]))
+                    kind, *value = ray.get(ready[0] if self.client else next(ready[0]))
                     if kind == "progress":
                         if progress is not None:
                             progress(k, *value)
@@ -204,10 +256,34 @@ class RayBatch:
             self._shutting_down.submit(self.ray.shutdown)
 
     def close(self) -> None:
-        """Shut down a Ray started here and wait for it."""
+        """Shut down a Ray started (or joined) here and wait for it."""
         self.release()
         if self._shutting_down is not None:
             self._shutting_down.shutdown(wait=True)
+        self._environment.close()
+
+
+def sees_files(expected: list[tuple[str, int | None]], folder: str) -> bool:
+    """On a node: each ``(path, size or None for a folder)`` of ``expected`` is there as
+    described, and ``folder`` is a folder it may write into."""
+    import os
+
+    for path, size in expected:
+        p = Path(path)
+        if not (p.is_dir() if size is None else (p.is_file() and p.stat().st_size == size)):
+            return False
+    return os.path.isdir(folder) and os.access(folder, os.W_OK)
+
+
+def _last_line(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    return text[-1] if text else type(exc).__name__
+
+
+def front_end_at_once(front_end: Callable[..., dict], args: tuple) -> tuple:
+    """``front_end(*args)`` as :func:`front_end_with_progress`'s last item, ``("done", value)``:
+    the task for Ray Client, which does not stream."""
+    return ("done", front_end(*args))
 
 
 def front_end_with_progress(front_end: Callable[..., dict], args: tuple, every_s: float = 0.5) -> Iterator[tuple]:

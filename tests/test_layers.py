@@ -25,7 +25,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("evaluation",),
     ("io",),
     ("viz",),  # live views (observers), above the engine and evaluation, below the CLI
-    ("api", "fleet_api", "fleet_ray", ""),  # "": the package's __init__, the public facade over api/io/pipeline
+    ("api", "fleet_api", "fleet_ray", "ray_cluster", ""),  # "": the package's __init__, the public facade over api/io/pipeline
     ("cli", "__main__"),
 ]
 

@@ -30,7 +30,15 @@ def register(app: typer.Typer) -> None:
         logs: Annotated[list[Path], typer.Argument(metavar="LOG...", help="Logs (any format `run` reads).")],
         out: OutFolder,
         address: Annotated[str | None, typer.Option(
-            "--address", help="Ray cluster address (default: a local Ray instance).")] = None,
+            "--address", help="A Ray cluster: the head's HOST:PORT (as `ray start --head` printed it) or "
+                              "ray://HOST:10001 (Ray Client). Default: a local Ray instance. A cluster with "
+                              "token authentication is joined with RAY_AUTH_TOKEN, RAY_AUTH_TOKEN_PATH or "
+                              "~/.ray/auth_token.")] = None,
+        ship_logs: Annotated[str, typer.Option(
+            "--ship-logs", help="auto, always or never: send each log through Ray's object store and its "
+                                "results back here, for clusters without a shared filesystem (auto: when some "
+                                "node does not see the logs or OUT).")] = "auto",
+        verbose: Annotated[bool, typer.Option("--verbose", help="Show Ray's own start-up output.")] = False,
         no_ray: Annotated[bool, typer.Option("--no-ray", help="Run the logs one after another in this process.")] = False,
         config: Annotated[Path | None, typer.Option("--config", "-c", help="YAML config (see dump-config).")] = None,
         format: Annotated[str | None, typer.Option("--format", "-f", help="Force the log format.")] = None,
@@ -91,7 +99,8 @@ def register(app: typer.Typer) -> None:
                 report = batch_logs(logs, out, address=address, use_ray=False if no_ray else None, config=config,
                                     format=format, max_scans=max_scans, on_done=done, num_cpus=num_cpus,
                                     cpus_per_log=cpus_per_log, overwrite=overwrite, resume=resume,
-                                    map_dir=map_dir, freeze_map=freeze_map, on_progress=running, on_merged=merged)
+                                    map_dir=map_dir, freeze_map=freeze_map, on_progress=running, on_merged=merged,
+                                    ship_logs=ship_logs, verbose=verbose)
             except SubmapSlamError as exc:
                 raise fail(exc) from None
         table = Table(title=f"batch: {len(logs)} logs ({report.executor}), {report.wall_time_s:.1f} s "

@@ -42,10 +42,13 @@ def log_fingerprint(log_path: str | Path) -> dict:
     return doc
 
 
-def input_provenance(log_path: str | Path, timestamps: np.ndarray) -> dict:
+def input_provenance(log_path: str | Path, timestamps: np.ndarray, recorded_as: str | None = None) -> dict:
     """Provenance of the log at ``log_path`` (:func:`log_fingerprint`) and the ``(N,)``
-    timestamps of the scans read from it."""
+    timestamps of the scans read from it; ``recorded_as``: the path to record instead, when
+    ``log_path`` is a copy of that log (its bytes are the same, so is the fingerprint)."""
     doc = log_fingerprint(log_path)
+    if recorded_as is not None:
+        doc.update(path=recorded_as, absolute_path=recorded_as)
     stamps = np.asarray(timestamps, dtype=np.float64)
     doc["scans"] = int(len(stamps))
     if len(stamps):
