@@ -218,7 +218,7 @@ def shipped_front_end(log_bundle, log_path: str, name: str, out_dir: str, config
     with tempfile.TemporaryDirectory(prefix="submapslam-shipped-") as tmp:
         log_copy = unpack(log_bundle, Path(tmp) / "log")
         results = Path(tmp) / "out" / Path(out_dir).name
-        summary = front_end(str(log_copy), name, str(results), config, format, max_scans, on_progress,
+        summary = front_end(str(log_copy), name, str(results), config, format, max_scans, on_progress=on_progress,
                             recorded_as=log_path)
         summary["results"] = pack(results)
     return summary
@@ -391,11 +391,15 @@ def batch_logs(
     try:
         if side is not None:
             verify_elsewhere = side.verifier()
-            task, task_args, on_result = front_end, [args[k] for k in todo], record
+            # a cluster's workers run in folders of their own: they are given absolute paths (which
+            # the results then name as the log)
+            task, on_result = front_end, record
+            task_args = [(str(Path(logs[k]).resolve()), args[k][1], str((out / args[k][1]).resolve()), *args[k][3:])
+                         for k in todo]
             if ship_logs == "always" or (ship_logs == "auto" and address is not None
                                          and not side.nodes_see([logs[k] for k in todo], out)):
                 task, on_result = shipped_front_end, partial(_unpack_results, out, outcomes, record)
-                task_args = [(side.ship(logs[k]), str(Path(logs[k]).resolve()), *args[k][1:]) for k in todo]
+                task_args = [(side.ship(logs[k]), *a) for k, a in zip(todo, task_args)]
             side.run(task, task_args, record=lambda j, value, error: on_result(todo[j], value, error),
                      merge_ready=merge_ready, cpus_per_task=cpus_per_log,
                      progress=None if on_progress is None else

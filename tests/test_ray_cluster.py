@@ -154,10 +154,11 @@ def halls(tmp_path_factory):
     return a, b
 
 
-def _batch(home: Path, *args: str, token: bool = True) -> subprocess.CompletedProcess:
+def _batch(home: Path, *args: str, token: bool = True, cwd: Path | None = None) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_AUTH")}
     env["HOME"] = str(home) if token else str(home / "nobody")  # where the token is, or no token at all
-    return subprocess.run([*CLI, "batch", *args], env=env, capture_output=True, text=True, timeout=600)
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).resolve().parents[1]), env.get("PYTHONPATH", "")])
+    return subprocess.run([*CLI, "batch", *args], env=env, capture_output=True, text=True, timeout=600, cwd=cwd)
 
 
 def test_batch_joins_a_cluster_with_token_auth_with_and_without_shipping_the_logs(cluster, halls, tmp_path):
@@ -168,7 +169,8 @@ def test_batch_joins_a_cluster_with_token_auth_with_and_without_shipping_the_log
     outs = {}
     for ship in ("never", "always"):
         out = tmp_path / ship
-        res = _batch(home, str(a), str(b), "--address", address, "--ship-logs", ship, "--out", str(out))
+        # the logs named relative to this folder: a cluster's workers run in folders of their own
+        res = _batch(home, a.name, b.name, "--address", address, "--ship-logs", ship, "--out", str(out), cwd=a.parent)
         assert res.returncode == 0, res.stdout + res.stderr
         assert "gcs_client" not in res.stdout + res.stderr and "Traceback" not in res.stderr  # Ray kept quiet
         outs[ship] = out

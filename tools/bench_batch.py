@@ -1,11 +1,15 @@
 """Benchmark of ``submapslam batch``: the same logs on Ray and one after another.
 
     python tools/bench_batch.py LOG1 LOG2 LOG3 LOG4 --out out/bench_batch [--max-scans N]
+    python tools/bench_batch.py LOG1 ... --out out/bench_cluster --address HOST:PORT
 
 Runs ``batch --no-ray`` and ``batch`` (a local Ray instance) as separate processes, wall clock
 around each whole command (and the front ends' share, as ``batch`` reports it), and checks that
 every log's ``poses_tum.txt`` and the merged one are byte-identical between the two. Prints a
-JSON summary.
+JSON summary. With ``--address`` (a cluster started apart with ``ray start``) it runs the local
+Ray instance, then ``batch --address`` with the logs read in place (``--ship-logs never``) and
+shipped through the object store (``always``); ratios are against the local instance. The
+cluster's own processes are not this process's descendants: their CPU time is not counted.
 
 Also the CPU time (user + system) of each whole process tree: this process is made the
 "subreaper" of its descendants (Linux), so Ray's daemons and workers, orphaned when Ray shuts
@@ -106,12 +110,16 @@ def main() -> None:
     ap.add_argument("logs", type=Path, nargs="+")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--max-scans", type=int)
+    ap.add_argument("--address", help="a Ray cluster's HOST:PORT: compare batch through it with the local default")
     args = ap.parse_args()
     extra = ["--max-scans", str(args.max_scans)] if args.max_scans else []
     counted = become_subreaper()
     tree = TreeCpu()
     walls, front, cpu = {}, {}, {}
-    for mode, flags in (("sequential", ["--no-ray"]), ("ray", [])):
+    modes = (("sequential", ["--no-ray"]), ("ray", [])) if args.address is None else (
+        ("ray", []), ("cluster", ["--address", args.address, "--ship-logs", "never"]),
+        ("cluster_shipped", ["--address", args.address, "--ship-logs", "always"]))
+    for mode, flags in modes:
         out = args.out / mode
         shutil.rmtree(out, ignore_errors=True)
         stdout, walls[mode], cpu[mode] = tree.run(
@@ -120,6 +128,18 @@ def main() -> None:
         print(stdout)
         found = re.search(r"front ends ([0-9.]+) s", stdout)
         front[mode] = float(found.group(1)) if found else None
+    if args.address is not None:
+        first = args.out / "ray"
+        names = sorted(p.name for p in first.iterdir() if (p / "poses_tum.txt").is_file())
+        print(json.dumps({"logs": len(args.logs), "address": args.address,
+                          **{f"wall_{m}_s": round(walls[m], 1) for m, _ in modes},
+                          **{f"front_ends_{m}_s": front[m] for m, _ in modes},
+                          "ratio_cluster": round(walls["cluster"] / walls["ray"], 3),
+                          "ratio_cluster_shipped": round(walls["cluster_shipped"] / walls["ray"], 3),
+                          "identical": {f"{m}/{n}": (args.out / m / n / "poses_tum.txt").read_bytes()
+                                        == (first / n / "poses_tum.txt").read_bytes()
+                                        for m in ("cluster", "cluster_shipped") for n in names}}, indent=1))
+        return
     names = sorted(p.name for p in (args.out / "sequential").iterdir() if (p / "poses_tum.txt").is_file())
     same = {n: (args.out / "ray" / n / "poses_tum.txt").read_bytes()
             == (args.out / "sequential" / n / "poses_tum.txt").read_bytes() for n in names}
