@@ -87,41 +87,49 @@ def _odometry_edges(odom_xyt: np.ndarray, keyframes: np.ndarray, cfg: ScanRefine
             for k in range(len(d))]
 
 
-def _match_edges(xyt: np.ndarray, keyframes: np.ndarray, node_of: dict[int, int], scans: dict[int, np.ndarray],
+def _match_edges(xyt: np.ndarray, odom_xyt: np.ndarray, keyframes: np.ndarray, scans: dict[int, np.ndarray],
                  owners: list[list[int]], anchors: list[int], clouds: list[tuple[np.ndarray, np.ndarray]],
-                 positions: list[np.ndarray], cfg: ScanRefineConfig) -> tuple[list[PlanarEdge], int]:
-    """Scan-to-submap between-factors of every keyframe at the node poses ``xyt`` ``(K, 3)``;
-    also the number of matches tried."""
-    pairs: dict[int, list[int]] = {}  # submap -> the nodes matched against it
-    counts = np.array([len(p) for p in positions])
+                 members: list[np.ndarray], cfg: ScanRefineConfig) -> tuple[list[PlanarEdge], int]:
+    """Scan-to-submap between-factors of every keyframe at the node poses ``xyt`` ``(K, 3)``, and
+    the number of matches tried. ``members``: each submap's keyframe nodes.
+
+    A keyframe is matched against a submap's whole cloud, but the factor ties it to that submap's
+    keyframe nearest to it (whose place in the cloud the odometry gave): a cloud is trusted
+    locally, so a submap the odometry bent inside is not imposed rigidly on its neighbours."""
+    pairs: dict[int, list[tuple[int, int]]] = {}  # submap -> (node, the submap's node nearest to it)
+    counts = np.array([len(p) for p in members])
     if not counts.sum():
         return [], 0
-    all_pos = np.concatenate([p for p in positions if len(p)])
-    which = np.repeat(np.arange(len(positions)), counts)
+    all_nodes = np.concatenate([p for p in members if len(p)])
+    all_pos = xyt[all_nodes, :2]
+    which = np.repeat(np.arange(len(members)), counts)
     hits_per_node = cKDTree(all_pos).query_ball_point(xyt[:, :2], cfg.match_radius_m)
     for k, hits in enumerate(hits_per_node):
         if not hits:
             continue
         hits = np.asarray(hits)
-        labels = which[hits]
         dist = (all_pos[hits, 0] - xyt[k, 0]) ** 2 + (all_pos[hits, 1] - xyt[k, 1]) ** 2
-        order = np.argsort(dist, kind="stable")
-        _, first = np.unique(labels[order], return_index=True)
-        nearest = labels[order][np.sort(first)]  # submaps by distance of their nearest keyframe
+        order = hits[np.argsort(dist, kind="stable")]
+        _, first = np.unique(which[order], return_index=True)
         own = owners[keyframes[k]]
-        chosen = [int(m) for m in nearest if m not in own][:cfg.max_submaps_per_scan]
-        for m in chosen:
-            pairs.setdefault(m, []).append(k)
+        chosen = [int(h) for h in order[np.sort(first)] if which[h] not in own][:cfg.max_submaps_per_scan]
+        for h in chosen:  # nearest first
+            pairs.setdefault(int(which[h]), []).append((k, int(all_nodes[h])))
     edges: list[PlanarEdge] = []
     tried = 0
     floor = np.diag([cfg.match_sigma_floor_m**2] * 2 + [np.deg2rad(cfg.match_sigma_floor_deg) ** 2])
-    for m, nodes in pairs.items():
-        a = node_of[anchors[m]]
-        guesses = _between(xyt[a][None, :], xyt[nodes])  # each scan in submap m's anchor frame
+    for m, items in pairs.items():
+        nodes = np.array([k for k, _ in items])
+        near = np.array([j for _, j in items])
+        a = anchors[m]
+        # each scan in submap m's anchor frame, as the current estimate places it
+        guesses = _between(xyt[near], xyt[nodes])
+        in_cloud = _between(odom_xyt[a][None, :], odom_xyt[keyframes[near]])  # the near keyframes in the cloud
+        guesses = _compose(in_cloud, guesses)
         tried += len(nodes)
         reach = cfg.max_correspondence_m
         res = match_scans(clouds[m][0], clouds[m][1], [scans[keyframes[k]] for k in nodes], guesses,
-                          reaches=(reach, reach, 0.5 * (reach + 0.1), 0.1, 0.1, 0.1), cell=cfg.grid_cell_m)
+                          reaches=(reach, 0.5 * (reach + 0.1), 0.1, 0.1), cell=cfg.grid_cell_m)
         jump = _between(guesses, res.xyt)
         ok = (res.fitness >= cfg.min_fitness) & (res.inlier_rmse <= cfg.max_inlier_rmse_m) \
             & (np.hypot(jump[:, 0], jump[:, 1]) <= cfg.max_correction_m) \
@@ -130,8 +138,9 @@ def _match_edges(xyt: np.ndarray, keyframes: np.ndarray, node_of: dict[int, int]
         info = res.information[keep]
         # the registration's covariance plus a floor: no match is trusted beyond a few mm / a tenth of a degree
         cov = np.linalg.inv(0.5 * (info + np.swapaxes(info, 1, 2)) + 1e-9 * np.eye(3)) + floor
-        for q, inf in zip(keep.tolist(), np.linalg.inv(cov)):
-            edges.append(PlanarEdge(a, nodes[q], res.xyt[q], inf, True))
+        measured = _between(in_cloud[keep], res.xyt[keep])  # the scan in the near keyframe's frame
+        for q, inf, meas in zip(keep.tolist(), np.linalg.inv(cov), measured):
+            edges.append(PlanarEdge(int(near[q]), int(nodes[q]), meas, inf, True))
     return edges, tried
 
 
@@ -165,6 +174,7 @@ def refine_scans(odom_xyt: np.ndarray, world_xyt: np.ndarray, submap_scan_indice
             xy = xy[np.linspace(0, len(xy) - 1, cfg.max_scan_points).astype(int)]
         scans[i] = xy
     odo_edges = _odometry_edges(odom_xyt, keyframes, cfg)
+    members = [np.array([node_of[i] for i in idx if i in node_of], dtype=int) for idx in submap_scan_indices]
     xyt = np.array(world_xyt[keyframes], dtype=np.float64)
     priors = []
     if cfg.anchor_sigma_m is not None:
@@ -172,10 +182,10 @@ def refine_scans(odom_xyt: np.ndarray, world_xyt: np.ndarray, submap_scan_indice
         priors = [(node_of[a], info) for a in anchors]
     n_edges = tried = 0
     for _ in range(cfg.rounds):
-        positions = [xyt[[node_of[i] for i in idx if i in node_of], :2] for idx in submap_scan_indices]
-        matches, tried = _match_edges(xyt, keyframes, node_of, scans, owners, anchors, clouds, positions, cfg)
+        matches, tried = _match_edges(xyt, odom_xyt, keyframes, scans, owners, anchors, clouds, members, cfg)
         n_edges = len(matches)
-        xyt = solve_planar_graph(xyt, odo_edges + matches, kernel=cfg.kernel, priors=priors)
+        xyt = solve_planar_graph(xyt, odo_edges + matches, kernel=cfg.kernel, priors=priors,
+                                 prior_kernel=cfg.anchor_kernel)
     # every scan: the correction of the keyframes around it, blended by scan index
     corr = _compose(xyt, _inverse(odom_xyt[keyframes]))  # world <- odometry, per keyframe
     k_next = np.clip(np.searchsorted(keyframes, np.arange(n), side="left"), 0, len(keyframes) - 1)

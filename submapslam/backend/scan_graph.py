@@ -29,10 +29,11 @@ class PlanarEdge:
 
 def solve_planar_graph(initial: np.ndarray, edges: list[PlanarEdge], *, fixed: int = 0,
                        kernel: float = 2.0, iterations: int = 10,
-                       priors: list[tuple[int, np.ndarray]] = ()) -> np.ndarray:
+                       priors: list[tuple[int, np.ndarray]] = (), prior_kernel: float | None = None) -> np.ndarray:
     """Levenberg-Marquardt (at most ``iterations``) over ``initial`` ``(K, 3)`` node poses with ``edges``; node ``fixed``
     is held by a tight prior; ``priors``: ``(node, information (3, 3))`` holding a node at its
-    initial pose. ``kernel``: Cauchy width [whitened units] of the robust edges.
+    initial pose (under a Cauchy kernel of width ``prior_kernel`` [whitened units] when given: a
+    prior the matches contradict by many sigmas gives way). ``kernel``: Cauchy width [whitened units] of the robust edges.
     Returns the ``(K, 3)`` optimised poses (``initial`` when GTSAM fails)."""
     import gtsam
 
@@ -42,10 +43,13 @@ def solve_planar_graph(initial: np.ndarray, edges: list[PlanarEdge], *, fixed: i
         values.insert(k, gtsam.Pose2(float(x), float(y), float(t)))
     x, y, t = (float(v) for v in initial[fixed])
     graph.add(gtsam.PriorFactorPose2(fixed, gtsam.Pose2(x, y, t), gtsam.noiseModel.Isotropic.Sigma(3, 1e-6)))
+    cauchy = gtsam.noiseModel.mEstimator.Cauchy.Create(kernel)
     for k, info in priors:
         x, y, t = (float(v) for v in initial[k])
-        graph.add(gtsam.PriorFactorPose2(k, gtsam.Pose2(x, y, t), gtsam.noiseModel.Gaussian.Information(info)))
-    cauchy = gtsam.noiseModel.mEstimator.Cauchy.Create(kernel)
+        noise = gtsam.noiseModel.Gaussian.Information(info)
+        if prior_kernel is not None:
+            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(prior_kernel), noise)
+        graph.add(gtsam.PriorFactorPose2(k, gtsam.Pose2(x, y, t), noise))
     for e in edges:
         info = 0.5 * (e.information + e.information.T)
         noise = gtsam.noiseModel.Gaussian.Information(info)

@@ -20,7 +20,8 @@ from scipy.ndimage import distance_transform_edt
 class BatchMatch:
     """Per scan ``(P, ...)``: pose ``xyt`` ``(P, 3)`` in the cloud's frame, point-to-line
     ``information`` ``(P, 3, 3)`` over ``(x, y, yaw)``, ``fitness`` ``(P,)`` (share of the scan's
-    points within the inlier distance of the cloud) and ``inlier_rmse`` ``(P,)`` [m]."""
+    points within the inlier distance of the cloud) and ``inlier_rmse`` ``(P,)`` [m] (point-to-line,
+    of the inliers on line-like cloud points; inf without any)."""
 
     xyt: np.ndarray
     information: np.ndarray
@@ -124,11 +125,9 @@ def match_scans(cloud: np.ndarray, normals: np.ndarray, scans: list[np.ndarray],
         xyt[live] += step
     k, r, J, d = residuals(inlier_distance, True)
     H, _, used = normal_equations(k, J, np.ones(len(k)), r)
-    within = d <= inlier_distance
-    fitness = np.bincount(owner[within], minlength=P) / np.maximum(counts, 1)
-    sq = np.bincount(owner[within], d[within] ** 2, minlength=P)
-    n_in = np.bincount(owner[within], minlength=P)
-    rmse = np.where(n_in > 0, np.sqrt(sq / np.maximum(n_in, 1)), np.inf)
+    fitness = np.bincount(owner[d <= inlier_distance], minlength=P) / np.maximum(counts, 1)
+    # across the walls (point-to-line), not to the nearest sample along them
+    rmse = np.where(used > 0, np.sqrt(np.bincount(owner[k], r**2, minlength=P) / np.maximum(used, 1)), np.inf)
     sigma2 = np.maximum(rmse, 0.02) ** 2
     scale = np.minimum(1.0, effective_points / np.maximum(used, 1))
     out_info = H * (scale / sigma2)[:, None, None]
