@@ -5,14 +5,17 @@ put it. Here every keyframe scan becomes a node of a planar pose graph
 (:mod:`submapslam.backend.scan_graph`), with
 
 * odometry between consecutive keyframes (the drift model of :class:`ScanRefineConfig`);
-* scan-to-submap matches: each keyframe against the *other* submaps near it, point-to-line
-  in the submap's cloud (:func:`~submapslam.registration.planar.match_scan`), from the current
-  estimate, gated by fitness and RMSE, under a robust kernel. A submap is rigid and its anchor
-  is a keyframe, so a match is a between-factor from that anchor to the scan.
+* a prior holding each submap anchor (a keyframe) where the submap solve put it, under a Cauchy
+  kernel: the global structure the loops gave stays, unless many matches contradict an anchor;
+* scan-to-submap matches: each keyframe against the *other* submaps near it, point-to-line in
+  the submap's cloud (:func:`~submapslam.registration.scan_to_submap.match_scans`), from the
+  current estimate, gated by fitness, RMSE and the size of the correction, under a robust
+  kernel. The factor ties the scan to the matched submap's keyframe nearest to it (where the
+  odometry placed that keyframe in the cloud): a cloud is trusted locally.
 
-Solved, matched again from the new estimate, solved again (``rounds``). Scans between
-keyframes take the correction of the keyframes around them, blended by scan index. Frames:
-world = the first scan's frame; poses ``(x, y, yaw)`` [m, rad].
+Matched and solved ``rounds`` times. Scans between keyframes take the correction of the
+keyframes around them, blended by scan index. Frames: world = the first scan's frame; poses
+``(x, y, yaw)`` [m, rad].
 """
 
 from __future__ import annotations
