@@ -139,7 +139,7 @@ def _match_edges(xyt: np.ndarray, odom_xyt: np.ndarray, keyframes: np.ndarray, s
             & (np.abs(jump[:, 2]) <= np.deg2rad(cfg.max_correction_deg))
         keep = np.flatnonzero(ok)
         info = res.information[keep]
-        # the registration's covariance plus a floor: no match is trusted beyond a few mm / a tenth of a degree
+        # the registration's covariance plus a floor (1 cm / 1 deg by default): the odometry holds rotation better
         cov = np.linalg.inv(0.5 * (info + np.swapaxes(info, 1, 2)) + 1e-9 * np.eye(3)) + floor
         measured = _between(in_cloud[keep], res.xyt[keep])  # the scan in the near keyframe's frame
         for q, inf, meas in zip(keep.tolist(), np.linalg.inv(cov), measured):
