@@ -446,7 +446,7 @@ class ScanRefineConfig(_Strict):
     keyframe_step_m: float = Field(0.3, gt=0, description="[m] a keyframe every this much odometry travel")
     keyframe_step_deg: float = Field(10.0, gt=0, description="[deg] or this much turn")
     rounds: int = Field(1, ge=1, description="match, solve; repeated from the new estimate")
-    match_radius_m: float = Field(3.0, gt=0, description="[m] a keyframe is matched against the submaps whose "
+    match_radius_m: float = Field(5.0, gt=0, description="[m] a keyframe is matched against the submaps whose "
                                   "scans passed within this distance of it")
     max_submaps_per_scan: int = Field(3, ge=1, description="at most this many (the nearest)")
     max_scan_points: int = Field(80, ge=20, description="each keyframe matched with at most this many of its "
