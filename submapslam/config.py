@@ -436,6 +436,44 @@ class SessionConfig(_Strict):
         "in its own frame; negligible for a placed one)")
 
 
+class ScanRefineConfig(_Strict):
+    """2D lasers: scan-level refinement after the submap solve (:mod:`submapslam.scan_refine`)."""
+
+    enabled: bool = Field(True, description="2D lasers: after the submap solve, keyframe scans become nodes of "
+                          "a planar pose graph with odometry between them and scan-to-submap matches against the "
+                          "other submaps near them, so every scan (not only each submap's anchor) takes the final "
+                          "map's accuracy; 3D logs: not used")
+    keyframe_step_m: float = Field(0.3, gt=0, description="[m] a keyframe every this much odometry travel")
+    keyframe_step_deg: float = Field(10.0, gt=0, description="[deg] or this much turn")
+    rounds: int = Field(1, ge=1, description="match, solve; repeated from the new estimate")
+    match_radius_m: float = Field(5.0, gt=0, description="[m] a keyframe is matched against the submaps whose "
+                                  "scans passed within this distance of it")
+    max_submaps_per_scan: int = Field(3, ge=1, description="at most this many (the nearest)")
+    max_scan_points: int = Field(80, ge=20, description="each keyframe matched with at most this many of its "
+                                 "points (evenly spread over the scan)")
+    grid_cell_m: float = Field(0.1, gt=0, description="[m] cell of each submap's nearest-point lookup grid")
+    max_correspondence_m: float = Field(0.3, gt=0, description="[m] first point-to-line correspondence distance")
+    min_fitness: float = Field(0.5, ge=0, le=1, description="share of scan points within 0.1 m of the submap")
+    max_inlier_rmse_m: float = Field(0.05, gt=0, description="[m] point-to-line RMSE of the matched points")
+    max_correction_m: float = Field(0.3, gt=0, description="[m] a match farther than this from the estimate is dropped")
+    max_correction_deg: float = Field(3.0, gt=0, description="[deg] the same in rotation")
+    match_sigma_floor_m: float = Field(0.01, gt=0, description="[m] a match's translation is trusted no further")
+    match_sigma_floor_deg: float = Field(
+        1.0, gt=0, description="[deg] a match's rotation is trusted no further: the odometry between keyframes holds "
+        "the rotation better (a floor of 0.2 deg made the derived relations of Intel worse, 0.425 -> 0.429 deg)")
+    odometry_sigma_m: float = Field(0.005, gt=0, description="[m] odometry between keyframes: sigma floor")
+    odometry_drift: float = Field(0.02, gt=0, description="[m/m] plus this per metre travelled")
+    odometry_sigma_deg: float = Field(0.1, gt=0, description="[deg] rotation sigma floor")
+    odometry_turn_fraction: float = Field(0.02, ge=0, description="plus this fraction of the turned angle")
+    anchor_sigma_m: float | None = Field(0.01, gt=0, description="[m] each submap anchor held at its pose from the "
+                                         "submap solve within this sigma; None: free")
+    anchor_sigma_deg: float = Field(0.1, gt=0, description="[deg] the same in rotation")
+    anchor_kernel: float | None = Field(
+        1.0, gt=0, description="Cauchy width [whitened units] of those anchor priors: an anchor the scans' matches "
+        "contradict by many sigmas (an odometry edge of the submap graph that went wrong) gives way; None: Gaussian")
+    kernel: float = Field(2.0, gt=0, description="Cauchy width of the match factors [whitened units]")
+
+
 class PipelineConfig(_Strict):
     """The whole run."""
 
@@ -444,6 +482,7 @@ class PipelineConfig(_Strict):
     loops: LoopConfig = Field(default_factory=LoopConfig)
     backend: BackendConfig = Field(default_factory=BackendConfig)
     mapping: MappingConfig = Field(default_factory=MappingConfig)
+    scan_refinement: ScanRefineConfig = Field(default_factory=ScanRefineConfig)
     max_scans: int | None = Field(None, ge=1, description="stop after this many scans")
     checkpoint_every_submaps: int | None = Field(
         20, ge=1, description="keep a checkpoint beside OUT every this many submaps (and when interrupted) for "

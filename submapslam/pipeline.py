@@ -426,6 +426,12 @@ class SubmapSLAM:
         timestamps, poses = self.trajectory()
         n = len(self.submaps)
         graph = self._graph_builder.graph
+        scan_poses = [s.T_anchor_scans for s in self.submaps]
+        refinement: dict = {}
+        if self.planar and self.config.scan_refinement.enabled and n >= 2 and failure is None:
+            with self.timer("scan_refinement"):
+                poses, refinement = self._refine_scans(poses)
+            scan_poses = [inverse(graph.pose(s.id)) @ poses[s.scan_indices] for s in self.submaps]
         return SlamResult(
             timestamps=timestamps,
             poses=poses,
@@ -434,7 +440,7 @@ class SubmapSLAM:
             submap_covariances=np.array([covs[k] for k in range(n)]).reshape(-1, 6, 6),
             submap_points=[s.points for s in self.submaps],
             submap_scan_indices=[s.scan_indices for s in self.submaps],
-            submap_scan_poses=[s.T_anchor_scans for s in self.submaps],
+            submap_scan_poses=scan_poses,
             submap_scan_points=[s.scan_points for s in self.submaps],
             submap_scan_no_returns=[s.scan_no_returns for s in self.submaps],
             edges=[(e.i, e.j, e.T_i_j, e.information, e.kind) for e in graph.active_edges()],
@@ -460,7 +466,25 @@ class SubmapSLAM:
             submap_descriptors=self._descriptors(n),
             submap_dynamic_points=[s.dynamic_points for s in self.submaps] if self._movers is not None else None,
             final_check=final_check,
+            scan_refinement=refinement,
         )
+
+    def _refine_scans(self, poses: np.ndarray) -> tuple[np.ndarray, dict]:
+        """Planar: every scan's ``T_world_base`` ``(N, 4, 4)`` after the scan-level refinement
+        (:mod:`.scan_refine`) of ``poses`` (the submap solve's), and its figures."""
+        from .geometry import matrix_to_se2
+        from .scan_refine import refine_scans
+
+        scan_points: list = [None] * len(poses)
+        for s in self.submaps:
+            for i, pts in zip(s.scan_indices, s.scan_points):
+                scan_points[i] = pts
+        if any(p is None for p in scan_points):  # scans not in any closed submap: nothing to refine
+            return poses, {}
+        refined = refine_scans(matrix_to_se2(np.array(self._odom_poses)), matrix_to_se2(poses),
+                               [s.scan_indices for s in self.submaps], [s.points for s in self.submaps],
+                               scan_points, self.config.scan_refinement)
+        return refined.poses, refined.stats
 
     def close(self) -> None:
         """End the registration stage (an odometry child process stops; scans in flight are

@@ -90,6 +90,9 @@ class SlamResult:
         submap_scan_no_returns: planar runs: per submap each scan's ``(m, 3)`` ends of the beams
             that returned nothing (free space in the grid; an empty list per submap when the log
             gives none, and for maps loaded from a map folder, which do not keep them).
+        scan_refinement: planar runs: the figures of the scan-level refinement after the submap
+            solve (:mod:`~submapslam.scan_refine`: keyframes, matches tried and kept, seconds);
+            empty when it did not run. ``poses`` and ``submap_scan_poses`` are the refined ones.
     """
 
     timestamps: np.ndarray
@@ -127,6 +130,7 @@ class SlamResult:
     submap_dynamic_points: list[np.ndarray] | None = None
     final_check: dict = field(default_factory=dict)
     submap_scan_no_returns: list[list[np.ndarray]] = field(default_factory=list)
+    scan_refinement: dict = field(default_factory=dict)
 
     @property
     def n_scans(self) -> int:
@@ -210,5 +214,6 @@ class SlamResult:
             "optimiser_recoveries": list(self.optimiser_recoveries),
             "failure": self.failure,
             **({"final_check": self.final_check} if self.final_check else {}),
+            **({"scan_refinement": self.scan_refinement} if self.scan_refinement else {}),
             "consistency": self.odometry_consistency(),
         }

@@ -20,7 +20,7 @@ LAYERS: list[tuple[str, ...]] = [
      "checkpoint", "observer", "session_map"),
     ("registration",),
     ("odometry", "odometry_stage", "submaps", "mapping", "topology", "backend", "ekf"),
-    ("graph_builder",),
+    ("graph_builder", "scan_refine"),
     ("pipeline", "localization", "fleet"),
     ("evaluation",),
     ("io",),

@@ -68,7 +68,11 @@ def test_run_writes_every_output(rectangle_run):
     np.testing.assert_allclose(tum.timestamps, result.timestamps, atol=1e-6)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["scans"] == result.n_scans and summary["loop_closures_accepted"] == result.loops_accepted
-    assert set(summary["wall_time_s"]) >= {"odometry", "submaps", "optimisation", "loop_testing"}
+    assert set(summary["wall_time_s"]) >= {"odometry", "submaps", "optimisation", "loop_testing", "scan_refinement"}
+    assert summary["scan_refinement"]["matches_kept"] > 0  # 2D: every scan refined after the submap solve
+    for T_anchor, idx, T_anchor_scans in zip(result.submap_poses, result.submap_scan_indices,
+                                             result.submap_scan_poses):  # the grid's scan poses are the refined ones
+        np.testing.assert_allclose(T_anchor @ T_anchor_scans, result.poses[idx], atol=1e-9)
     lines = (out / "loops.csv").read_text().splitlines()
     assert len(lines) == len(result.loops) + 1
     g2o = (out / "graph.g2o").read_text()
@@ -156,6 +160,7 @@ def test_outdoor_3d_two_laps_closes_loops_without_false_closures(tmp_path):
     result, _ = run_log(log, None)
     gt = read_tum(log / "groundtruth_tum.txt")
     assert not result.planar and result.loops_accepted >= 3
+    assert result.scan_refinement == {}  # 2D lasers only
     assert np.all(loop_errors(result, gt) < FALSE_CLOSURE_M)
     odo = ate(Trajectory(result.timestamps, result.odometry_poses), gt)["rmse"]
     slam = ate(Trajectory(result.timestamps, result.poses), gt)["rmse"]
