@@ -88,3 +88,13 @@ def test_the_same_street_still_loses_a_car_that_drove_off():
     assert car.sum() > 100
     assert moved[car].mean() > 0.8, moved[car].mean()
     assert moved[~car].mean() <= 0.005
+
+
+def test_a_return_within_the_radius_blocks_a_free_vote():
+    """RangeImage.returns_near: a voxel 0.2 m beside a pole's return is near it, 1 m beside is not."""
+    from submapslam.mapping.dynamic_removal import RangeImage
+
+    pole = np.column_stack([np.full(20, 10.0), np.zeros(20), np.linspace(-1.0, 1.0, 20)])
+    image = RangeImage(pole, 0.5, 0.4)
+    centres = np.array([[10.0, 0.2, 0.0], [10.0, 1.0, 0.0], [9.8, 0.0, 0.3]])
+    assert image.returns_near(centres, 0.3).tolist() == [True, False, True]

@@ -344,19 +344,15 @@ class RangeImage:
         n_cols = np.minimum(np.ceil(ang / (self.daz * np.maximum(np.cos(el), 0.1))).astype(np.int64) + 1, max_cols)
         r2 = radius * radius
         p32 = p.astype(np.float32)
-        for dr in range(-max_rows, max_rows + 1):
-            act_r = np.flatnonzero((n_rows >= abs(dr)) & (rows + dr >= 0) & (rows + dr < self.rows))
-            if not len(act_r):
+        dcs = np.arange(-max_cols, max_cols + 1)
+        for dr in range(-max_rows, max_rows + 1):  # all columns of a row offset at once
+            act = np.flatnonzero((n_rows >= abs(dr)) & (rows + dr >= 0) & (rows + dr < self.rows) & ~out)
+            if not len(act):
                 continue
-            for dc in range(-max_cols, max_cols + 1):
-                act = act_r[(n_cols[act_r] >= abs(dc)) & ~out[act_r]]
-                if not len(act):
-                    continue
-                flat = (rows[act] + dr) * self.cols + (cols[act] + dc) % self.cols
-                ok = self.range[flat] > 0
-                d = self._xyz[flat] - p32[act]
-                close = ok & (np.einsum("ij,ij->i", d, d) <= r2)
-                out[act[close]] = True
+            flat = (rows[act, None] + dr) * self.cols + (cols[act, None] + dcs) % self.cols  # (A, C)
+            d = self._xyz[flat] - p32[act, None, :]
+            close = (self.range[flat] > 0) & (np.abs(dcs) <= n_cols[act, None]) & (np.einsum("ijk,ijk->ij", d, d) <= r2)
+            out[act[close.any(axis=1)]] = True
         return out
 
 
