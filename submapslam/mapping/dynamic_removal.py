@@ -321,6 +321,40 @@ class RangeImage:
             hit |= passing & (np.abs(measured - r) <= m)
         return r, any_pass & ~short, hit
 
+    def returns_near(self, points_sensor: np.ndarray, radius: float, max_rows: int = 8,
+                     max_cols: int = 12) -> np.ndarray:
+        """``(M,)`` bool: this scan has a return within ``radius`` [m] (3D) of each sensor-frame
+        centre ``(M, 3)`` (DUFOMap's hit extension: a beam that passes beside a surface, over a
+        roof, under a canopy, beside a pole, is not evidence that the space *at* the surface is
+        free). Searched in the pixels within ``radius`` of the centre's direction, at most
+        ``max_rows`` x ``max_cols`` pixels either way (a centre very near the sensor sees less)."""
+        p = np.asarray(points_sensor, dtype=np.float64)
+        r, el, az = _spherical(p)
+        out = np.zeros(len(r), dtype=bool)
+        if not len(r):
+            return out
+        if not hasattr(self, "_xyz"):
+            ce = np.cos(self.el)
+            self._xyz = np.stack([ce * np.cos(self.az), ce * np.sin(self.az), np.sin(self.el)], 1) \
+                * self.range[:, None]
+        rows = np.floor((el - self.el_lo) / self.del_).astype(np.int64)
+        cols = self._col(az)
+        ang = radius / np.maximum(r, 1e-6)  # [rad] angular radius of the ball
+        n_rows = np.minimum(np.ceil(ang / self.del_).astype(np.int64) + 1, max_rows)
+        n_cols = np.minimum(np.ceil(ang / (self.daz * np.maximum(np.cos(el), 0.1))).astype(np.int64) + 1, max_cols)
+        r2 = radius * radius
+        p32 = p.astype(np.float32)
+        dcs = np.arange(-max_cols, max_cols + 1)
+        for dr in range(-max_rows, max_rows + 1):  # all columns of a row offset at once
+            act = np.flatnonzero((n_rows >= abs(dr)) & (rows + dr >= 0) & (rows + dr < self.rows) & ~out)
+            if not len(act):
+                continue
+            flat = (rows[act, None] + dr) * self.cols + (cols[act, None] + dcs) % self.cols  # (A, C)
+            d = self._xyz[flat] - p32[act, None, :]
+            close = (self.range[flat] > 0) & (np.abs(dcs) <= n_cols[act, None]) & (np.einsum("ijk,ijk->ij", d, d) <= r2)
+            out[act[close.any(axis=1)]] = True
+        return out
+
 
 def _wrap(a: np.ndarray) -> np.ndarray:
     """|angle| wrapped into [0, pi]."""

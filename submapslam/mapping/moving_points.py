@@ -14,9 +14,14 @@ Two users, both with bounded memory (a few recent range images, one submap's sca
   scans saw through (movers entering: a car driving into free space), and each scan goes into
   KISS-ICP's local map ``delay`` scans late, without the clusters the scans before *and after*
   it saw through (movers leaving: where a car was, later beams pass).
-* :func:`split_submap`: a closed submap's voxels that other scans of its window saw through
+* :class:`SubmapMovers`: a closed submap's voxels that other scans of its window saw through
   go to its dynamic cloud (``map_dynamic.ply``); the rest is the submap cloud that the map,
-  the place descriptors and loop registration use.
+  the place descriptors and loop registration use. A map keeps what several scans saw, so this
+  side asks for more evidence (:data:`SPLIT_PARAMS`, DUFOMap's hit extension among them): a
+  scan's beam that passed just over a roof, under a canopy or beside a pole, on a 16-ring
+  sensor, does not count when that scan has a return within ``near_radius`` of the voxel; a
+  voxel needs more scans that saw through it than scans whose beam ended at it; and an earlier
+  submap's voxel that the new submap's scans hit again stays.
 
 Frames: points ``(N, 3)`` in a scan's sensor frame (= base frame of the logs read here, or
 moved by ``T_base_sensor`` first), poses ``T_world_sensor`` ``(4, 4)``. Units: metres.
@@ -52,6 +57,18 @@ class MoverParams:
     max_range: float = 50.0  # [m] points farther from a scan get no evidence from it
     el_bin_deg: float = 0.5  # range-image pixel: elevation ...
     az_bin_deg: float = 0.4  # ... and azimuth
+    near_radius: float = 0.0  # [m] a scan with a return this close to a point did not see through it (0: off)
+    min_views: int = 1  # scans that must have seen a point through ...
+    hit_weight: float = 0.0  # ... and more of them than this x the scans whose beam ended at it (0: off)
+    protect_seen_again: bool = False  # submaps: an earlier submap's voxel the new one's scans hit again stays ...
+    protect_min_scans: int = 1  # ... when this many of them hit it (or a neighbour)
+
+
+SPLIT_PARAMS = MoverParams(near_radius=0.3, hit_weight=1.0, protect_seen_again=True, protect_min_scans=4)
+"""The submap split's settings (:class:`SubmapMovers`): the odometry's test (:class:`MoverFilter`) keeps
+the plain ones. A map keeps what several scans saw: a voxel leaves it only when a scan saw through
+it with no return of its own within ``near_radius``, more scans saw through it than ended their
+beam at it, and (earlier submaps) the new submap's scans did not hit it again."""
 
 
 class ViewStack:
@@ -100,14 +117,25 @@ class ViewStack:
                      allowed=None) -> tuple[np.ndarray, np.ndarray]:
         """``(tested, free)``, each ``(N,)`` bool, for world points ``(N, 3)`` and the scans in ``slots``.
 
-        ``free``: at least one of those scans saw through the point (RangeImage's test: a beam
-        within ``tolerance`` of it ended more than the margin beyond; within ``max_range``).
-        ``tested``: at least one was allowed to test it. ``allowed(slot, point_indices)`` ->
-        bool per point (None: every point).
+        ``free``: at least ``min_views`` of those scans saw through the point (:meth:`evidence`),
+        more than ``hit_weight`` times as many as ended their beam at it. ``tested``: at least
+        one was allowed to test it. ``allowed(slot, point_indices)`` -> bool per point (None: every point).
         """
         p = self.params
+        n_tested, n_free, n_hit = self.evidence(points_world, slots, allowed)
+        free = (n_free >= p.min_views) & (n_free > p.hit_weight * n_hit)
+        return n_tested > 0, free
+
+    def evidence(self, points_world: np.ndarray, slots: np.ndarray,
+                 allowed=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(tested, free, hit)`` counts ``(N,)`` over the scans in ``slots`` for world points ``(N, 3)``:
+        the scans allowed to test each point, those that saw through it (RangeImage's test: a
+        beam within ``tolerance`` of it ended more than the margin beyond; within ``max_range``;
+        with ``near_radius``: and no return of that scan within ``near_radius`` of it) and those
+        whose beam ended at it (within the margin)."""
+        p = self.params
         n = len(points_world)
-        tested, free = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
+        tested, free, hit = (np.zeros(n, dtype=np.int32) for _ in range(3))
         points_world = np.asarray(points_world, dtype=np.float64)
 
         def margin(r: np.ndarray) -> np.ndarray:
@@ -118,14 +146,19 @@ class ViewStack:
             cand = every if allowed is None else np.flatnonzero(allowed(k, every))
             if not len(cand):
                 continue
-            tested[cand] = True
+            tested[cand] += 1
             T = self.T_sensor_world[k]
             local = transform_points(T, points_world[cand])
             near = np.einsum("ij,ij->i", local, local) < p.max_range ** 2
             if near.any():
-                _, f, _ = self.images[k].passes(local[near], p.tolerance, margin)
-                free[cand[near][f]] = True
-        return tested, free
+                image = self.images[k]
+                local, idx = local[near], cand[near]
+                _, f, h = image.passes(local, p.tolerance, margin)
+                if p.near_radius > 0 and f.any():
+                    f[f] = ~image.returns_near(local[f], p.near_radius)
+                free[idx[f]] += 1
+                hit[idx[h]] += 1
+        return tested, free, hit
 
 
 def non_ground(points_sensor: np.ndarray, band: float, radius: float = 15.0, percentile: float = 2.0,
@@ -323,8 +356,8 @@ class SubmapMovers:
     scans saw through (:meth:`seen_through_later`). Memory: one submap's thinned scans and
     ``max_views`` range images."""
 
-    def __init__(self, params: MoverParams = MoverParams(), before: int = 10, max_views: int = 24,
-                 slack: int = 1, split_views: int = 8, later_views: int = 4, view_stride: int = 2) -> None:
+    def __init__(self, params: MoverParams = SPLIT_PARAMS, before: int = 10, max_views: int = 24,
+                 slack: int = 1, split_views: int = 16, later_views: int = 8, view_stride: int = 2) -> None:
         self.params = params
         self.view_stride = view_stride  # a range image of every view_stride-th scan
         self.before = before
@@ -332,6 +365,7 @@ class SubmapMovers:
         self.split_views = split_views  # scans (spread over the window) that test a closed submap ...
         self.later_views = later_views  # ... and of its scans, those that test each earlier submap
         self.views = ViewStack(max_views, params)
+        self._occupied: tuple[int, np.ndarray] | None = None  # (first scan, voxel keys) of the newest submap
         self._scans: list[tuple[int, np.ndarray, np.ndarray]] = []  # (scan index, T_odom_sensor, thinned points)
 
     def add(self, index: int, T_odom_sensor: np.ndarray, points_down: np.ndarray, scan_points: np.ndarray) -> None:
@@ -388,9 +422,35 @@ class SubmapMovers:
         ``T_odom_anchor``): the clusters the new submap's scans (after its first, which the
         earlier submap shares) saw through: a parked car that left, a car seen at the edge of
         its own submap's window. ``evidence``: the new submap's, from :meth:`take`."""
-        _, views, first = evidence
+        members, views, first = evidence
         later = views.slots(first + 1, 1 << 62, self.later_views)
-        return moving_in_scan(points, np.asarray(T_odom_anchor, dtype=np.float64), views, later, self.params)
+        T = np.asarray(T_odom_anchor, dtype=np.float64)
+        votes = scan_votes(points, T, views, later, self.params)
+        if self.params.protect_seen_again and votes.any():  # what the new submap's scans hit is still there
+            votes[votes] = ~self._seen_again(members, first, transform_points(T, points[votes]))
+        return clusters_moved(points, T, votes, self.params)
+
+    def _seen_again(self, members: list, first: int, points_odom: np.ndarray) -> np.ndarray:
+        """``(M,)`` bool: points ``(M, 3)`` (odometry frame) in or beside (26 neighbours) a voxel that
+        ``protect_min_scans`` scans of the submap starting at scan ``first`` (``members``) had a point in."""
+        if self._occupied is None or self._occupied[0] != first:
+            keys = [np.unique(voxel_keys(transform_points(T, np.asarray(pts, dtype=np.float64)), self.params.voxel))
+                    for index, T, pts in members if index > first and len(pts)]
+            occupied = np.zeros(0, dtype=np.int64)
+            if keys:  # hit by protect_min_scans of its scans: not a mover passing through
+                occupied, scans = np.unique(np.concatenate(keys), return_counts=True)
+                occupied = occupied[scans >= self.params.protect_min_scans]
+            self._occupied = (first, occupied)
+        occupied = self._occupied[1]
+        out = np.zeros(len(points_odom), dtype=bool)
+        if not len(occupied):
+            return out
+        k = voxel_keys(points_odom, self.params.voxel)
+        for off in np.concatenate([[0], _HALF_OFFSETS, -_HALF_OFFSETS]):
+            q = k + off
+            pos = np.minimum(np.searchsorted(occupied, q), len(occupied) - 1)
+            out |= occupied[pos] == q
+        return out
 
 
 def drop_from_slices(scan_points: list[np.ndarray], T_anchor_scans: np.ndarray, moved: np.ndarray,
