@@ -205,3 +205,21 @@ def test_a_missing_token_or_a_wrong_address_is_one_line(cluster, halls, tmp_path
     assert res.returncode == 1 and "no Ray cluster answers" in res.stderr, res.stdout + res.stderr
     assert "Traceback" not in res.stderr
     assert not any((tmp_path / d).exists() and any((tmp_path / d).iterdir()) for d in ("x", "y", "z"))
+
+
+def test_a_node_sees_the_logs_only_as_they_are_here(tmp_path):
+    """What ``--ship-logs auto`` asks each node (a task pinned to it runs this): every log there
+    with the same size (a folder as a folder), and the output folder writable."""
+    from submapslam.fleet_ray import sees_files
+
+    log = tmp_path / "a.clf"
+    log.write_text("FLASER 0\n")
+    folder_log = tmp_path / "scans"
+    folder_log.mkdir()
+    out = tmp_path / "out"
+    out.mkdir()
+    assert sees_files([(str(log), log.stat().st_size), (str(folder_log), None)], str(out))
+    assert not sees_files([(str(log), log.stat().st_size + 1)], str(out))  # another file of that name
+    assert not sees_files([(str(tmp_path / "elsewhere.clf"), 9)], str(out))
+    assert not sees_files([(str(log), None)], str(out))  # a file where a folder was
+    assert not sees_files([(str(log), log.stat().st_size)], str(tmp_path / "no_such_folder"))
