@@ -463,21 +463,58 @@ def report_run(run_dir: str | Path, out_path: str | Path | None = None, *, ref: 
         return write_run_report(record, out, reference.result, align=mode, reference_name=Path(ref).name)
 
 
+def map_picture(run_dir: str | Path, png: str | Path | None = None) -> Path:
+    """Write a PNG of the map and trajectory of the results folder ``run_dir`` (default
+    ``run_dir/map.png``); returns its path. An existing file is replaced only when it is a PNG."""
+    from .errors import InputError
+    from .evaluation.run_figures import save_map_picture
+    from .io.run_folder import read_run_folder
+
+    out = Path(png) if png is not None else Path(run_dir) / "map.png"
+    if out.is_dir():
+        raise InputError(out, "is a folder; give the path of the .png file to write")
+    if out.exists():
+        with open(out, "rb") as fh:
+            if fh.read(8) != b"\x89PNG\r\n\x1a\n":
+                raise InputError(out, "exists and is not a PNG picture; not overwriting it")
+    save_map_picture(read_run_folder(run_dir), out)
+    return out
+
+
 def evaluate_map_file(map_path: str | Path, log_path: str | Path, *, poses: str | Path | None = None,
                       voxel: float = 0.1, radius: float = 0.15) -> dict:
     """DynamicMap scores (SA, DA, AA) of a map file (PLY/PCD cloud or map_server grid) against a
-    labelled log (``labels/NNNNNN.label``) placed at ``poses`` (default: the log's ground truth).
+    labelled log (``labels/NNNNNN.label``) placed at ``poses``.
+
+    The frame rule ``clean`` shares: a map is in the frame of the poses it was made at, and is
+    scored there. ``poses`` None: for a map ``clean`` wrote, the poses it was cleaned at (its
+    ``summary.json``); for any other map, the log's ground truth. ``frame`` in the result names
+    the poses used; ``warnings`` says when ``poses`` differ from those a ``clean`` map was made at.
 
     For a grid the truth is voxelised into 2D cells of the grid's resolution and the radius is
     at least 0.75 cells (a wall point's cell centre is up to 0.71 cells from its centroid).
     """
     from .errors import SubmapSlamError
     from .evaluation.dynamic_map import LabelledVoxels, score_map
-    from .io.labels import count_scans, labelled_scans, read_map_points, scan_poses
+    from .io.labels import count_scans, labelled_scans, map_made_at, read_map_points, scan_poses
 
     if voxel <= 0 or radius <= 0:
         raise SubmapSlamError(f"--voxel and --radius must be > 0 (got {voxel}, {radius})")
     map_points, resolution = read_map_points(map_path)
+    made_at = map_made_at(map_path)
+    warnings = []
+    if poses is None and made_at is not None:
+        if not made_at.is_file():
+            raise SubmapSlamError(f"{map_path} was cleaned at {made_at}, which is gone; give --poses "
+                                  "(the map is in the frame of the poses it was made at)")
+        poses, frame = made_at, f"the poses it was cleaned at ({made_at})"
+    elif poses is None:
+        frame = "the log's ground truth"
+    else:
+        frame = f"--poses ({poses})"
+        if made_at is not None and made_at.resolve() != Path(poses).resolve():
+            warnings.append(f"{Path(map_path).name} was cleaned at {made_at}, not {poses}: if their frames "
+                            "differ the scores mean nothing (leave out --poses to use the map's own)")
     T = scan_poses(log_path, poses, count_scans(log_path))
     planar_grid = resolution is not None
     cell = resolution if planar_grid else voxel
@@ -491,7 +528,7 @@ def evaluate_map_file(map_path: str | Path, log_path: str | Path, *, poses: str 
     r = max(radius, 0.75 * resolution) if planar_grid else radius
     scores = score_map(truth, map_points, r).as_dict()
     return {"map": str(map_path), "log": str(log_path), "voxel": cell, "radius": r,
-            "grid": planar_grid, "gt_points": truth.points, **scores}
+            "grid": planar_grid, "gt_points": truth.points, "frame": frame, "warnings": warnings, **scores}
 
 
 def clean_log(log_path: str | Path, poses: str | Path, out_dir: str | Path, *, format: str | None = None,
@@ -545,7 +582,8 @@ def clean_log(log_path: str | Path, poses: str | Path, out_dir: str | Path, *, f
     if not len(result.keys):
         raise SubmapSlamError(f"{log_path}: the scans hold no points")
     summary = {
-        "log": str(log_path), "poses": str(poses), "scans": counted["scans"],
+        "log": str(log_path), "poses": str(poses), "poses_resolved": str(Path(poses).resolve()),
+        "frame": "the frame of the poses (--poses): eval-map scores this map there", "scans": counted["scans"],
         "points_kept": result.points_kept, "points_removed": result.points_removed,
         "voxels_kept": int((~result.dynamic).sum()), "voxels_removed": int(result.dynamic.sum()),
         "voxel_m": params.voxel, "output": "one point per voxel: the centroid of the scan points in it",

@@ -23,3 +23,18 @@ def fail(exc: BaseException | str) -> typer.Exit:
 Overwrite = Annotated[bool, typer.Option(
     "--overwrite", help="Replace the results of an earlier submapslam command in OUT (never a folder of yours).")]
 """The ``--overwrite`` option of the commands that write a results folder."""
+
+
+def next_steps(out: Path, paths: dict[str, Path]) -> list[str]:
+    """The lines that end a run: the files that matter in ``out`` and the ``report`` command."""
+    names = [n for n in ("poses_tum.txt", "map.pgm", "map.ply", "summary.json") if n in paths]
+    if not names:
+        names = sorted(p for p in paths if "/" not in p)[:4]
+    lines = [f"results in {out}: " + ", ".join(names) + (f" (+{len(paths) - len(names)} more)" if len(paths) > len(names) else "")]
+    lines.append(f"next: submapslam report {out}   (one HTML page: map, trajectory, loops, errors)")
+    return lines
+
+
+def plural(n: int, word: str) -> str:
+    """``"1 session"``, ``"2 sessions"``."""
+    return f"{n} {word}" if n == 1 else f"{n} {word}s"

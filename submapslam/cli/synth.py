@@ -66,6 +66,8 @@ def register(app: typer.Typer) -> None:
         from ..io.output_folder import staged_folder
 
         try:
+            if laps is not None and laps < 1:
+                raise SubmapSlamError(f"--laps must be 1 or more, not {laps}")
             landmark_opts = (("--vanish", vanish or None), ("--appear", appear or None),
                              ("--p-miss", p_miss or None), ("--clutter", clutter or None), ("--landmarks", landmarks))
             if world != "landmarks":

@@ -130,6 +130,29 @@ def map_figure(rec: RunRecord, dpi: int = 100) -> str:
     return png_data_uri(fig, dpi)
 
 
+def save_map_picture(rec: RunRecord, path, dpi: int = 110) -> None:
+    """Write a PNG of the map (grid, or the 3D cloud from above) with the optimised trajectory
+    (and the odometry before loop closure, dashed) to ``path``: the run at a glance, without the
+    report's anchors, ellipses and hypotheses."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(9, 9))
+    if rec.grid is not None and (rec.cloud is None or len(rec.cloud) == 0):
+        _draw_grid(ax, rec.grid)
+    elif rec.cloud is not None and len(rec.cloud):
+        _draw_cloud(fig, ax, rec.cloud, rec.poses.positions[:, :2] if rec.poses is not None else None)
+    if rec.odometry is not None:
+        ax.plot(rec.odometry.positions[:, 0], rec.odometry.positions[:, 1], color="0.55", lw=0.7, ls="--",
+                label="odometry (before loop closure)")
+    if rec.poses is not None:
+        ax.plot(rec.poses.positions[:, 0], rec.poses.positions[:, 1], color="#1f5fd0", lw=1.0, label="trajectory")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.legend(loc="upper right", fontsize=8, framealpha=0.85)
+    fig.savefig(path, dpi=dpi, bbox_inches="tight")
+    plt.close(fig)
+
+
 def _draw_grid(ax, grid: GridImage) -> None:
     img = grid.image
     known = np.argwhere(img != 205)

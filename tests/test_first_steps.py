@@ -1,0 +1,135 @@
+"""The first ten minutes of a new user (issue 28): what the demo and a run end with, and the
+one-line answers to the inputs a newcomer gets wrong."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from submapslam.cli import app
+
+from .cli_errors import assert_one_error_line
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def small_log(tmp_path_factory):
+    out = tmp_path_factory.mktemp("first") / "log"
+    r = runner.invoke(app, ["synth", "rectangle", "--out", str(out), "--laps", "1", "--max-scans", "60"])
+    assert r.exit_code == 0, r.output
+    return out
+
+
+@pytest.fixture(scope="module")
+def small_run(small_log, tmp_path_factory):
+    out = tmp_path_factory.mktemp("first") / "run"
+    r = runner.invoke(app, ["run", str(small_log), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    return out, r.output
+
+
+def _png_not_blank(path) -> None:
+    import matplotlib.image as mpimg
+
+    img = mpimg.imread(path)
+    assert img.ndim == 3 and img.shape[0] > 200 and img.shape[1] > 200
+    assert float(np.std(img[..., :3])) > 0.02  # a drawing, not one colour
+
+
+def test_demo_ends_with_report_and_picture(tmp_path, monkeypatch):
+    import submapslam.cli.demo as demo
+
+    real = demo.run_demo
+    monkeypatch.setattr(demo, "run_demo", lambda out, **kw: real(out, **{**kw, "laps": 1, "max_scans": 40}))
+    r = runner.invoke(app, ["demo", "--out", str(tmp_path / "d")])
+    assert r.exit_code == 0, r.output
+    report = tmp_path / "d" / "report.html"
+    picture = tmp_path / "d" / "map.png"
+    assert str(report) in r.output and str(picture) in r.output
+    assert "submapslam report" in r.output
+    assert report.stat().st_size > 10_000 and "ATE" in report.read_text()
+    _png_not_blank(picture)
+    saved = json.loads((tmp_path / "d" / "demo_report.json").read_text())
+    assert saved["report"] == str(report) and saved["picture"] == str(picture)
+
+
+def test_run_ends_naming_report_and_files(small_run):
+    out, output = small_run
+    assert f"submapslam report {out}" in output
+    assert "poses_tum.txt" in output and "summary.json" in output and "map." in output
+
+
+def test_map_picture_never_overwrites_a_file_of_yours(small_run, tmp_path):
+    from submapslam.api import map_picture
+    from submapslam.errors import InputError
+
+    out, _ = small_run
+    mine = tmp_path / "mine.png"
+    mine.write_text("my notes")
+    with pytest.raises(InputError, match="not a PNG"):
+        map_picture(out, mine)
+    assert mine.read_text() == "my notes"
+    png = map_picture(out, tmp_path / "p.png")
+    _png_not_blank(png)
+    assert map_picture(out, png) == png  # its own picture is replaced
+
+
+def _labelled_log(tmp_path):
+    """Two 3D scans 1 m apart along x: a static wall seen twice, a person seen in the first."""
+    from datasets_synth.writer import write_labels, write_ply_xyzt
+    from submapslam.geometry import se2_array_to_matrices
+    from submapslam.io.trajectory import Trajectory, write_tum
+
+    log = tmp_path / "log"
+    (log / "labels").mkdir(parents=True)
+    (log / "scans").mkdir()
+    wall = np.column_stack([np.full(50, 5.0), np.linspace(-2.45, 2.45, 50), np.full(50, 0.5)])
+    person = np.column_stack([np.full(10, 2.0), np.full(10, 0.05), np.linspace(0.05, 0.95, 10)])
+    T = se2_array_to_matrices(np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))
+    for k, pts in enumerate([np.vstack([wall, person]), wall]):
+        local = pts - T[k][:3, 3]
+        write_ply_xyzt(log / "scans" / f"{k:06d}.ply", local, np.zeros(len(local)))
+        write_labels(log / "labels" / f"{k:06d}.label", np.r_[np.full(50, 50), np.full(len(pts) - 50, 254)])
+    write_tum(log / "groundtruth_tum.txt", Trajectory(np.array([0.0, 0.1]), T))
+    # the same motion in another frame (a run's): 3 m to the side
+    write_tum(tmp_path / "run_poses.txt",
+              Trajectory(np.array([0.0, 0.1]), se2_array_to_matrices(np.array([[0.0, 3.0, 0.0], [1.0, 3.0, 0.0]]))))
+    return log
+
+
+def test_eval_map_scores_a_cleaned_map_in_the_frame_it_was_cleaned_in(tmp_path):
+    log = _labelled_log(tmp_path)
+    out = tmp_path / "clean"
+    r = runner.invoke(app, ["clean", str(log), "--poses", str(tmp_path / "run_poses.txt"), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert "frame" in r.output and "run_poses.txt" in r.output
+    r = runner.invoke(app, ["eval-map", str(out / "map_static.ply"), str(log), "--json", str(tmp_path / "s.json")])
+    assert r.exit_code == 0, r.output
+    s = json.loads((tmp_path / "s.json").read_text())
+    assert s["SA"] == 1.0 and "run_poses.txt" in s["frame"]  # not 0.0 from the log's ground-truth frame
+    assert "frame: the poses it was cleaned at" in r.output
+    # scoring it in another frame is allowed, with one warning line naming both
+    r = runner.invoke(app, ["eval-map", str(out / "map_static.ply"), str(log), "--poses",
+                            str(log / "groundtruth_tum.txt")])
+    assert r.exit_code == 0
+    warnings = [ln for ln in r.stderr.splitlines() if ln.startswith("warning:")]
+    assert len(warnings) == 1 and "run_poses.txt" in warnings[0] and "groundtruth_tum.txt" in warnings[0]
+
+
+def test_run_on_a_results_folder_is_one_red_line(small_run, tmp_path):
+    out, _ = small_run
+    for given in (out, out / "map.ply"):
+        r = runner.invoke(app, ["run", str(given), "--out", str(tmp_path / "again")])
+        assert_one_error_line(r, str(given), "results of `submapslam run`", "not a log")
+    assert not (tmp_path / "again").exists()
+
+
+@pytest.mark.parametrize("laps", ["-1", "0"])
+def test_synth_laps_below_one_is_one_red_line(tmp_path, laps):
+    r = runner.invoke(app, ["synth", "rectangle", "--laps", laps, "--out", str(tmp_path / "s")])
+    assert_one_error_line(r, "--laps", laps)
+    assert not (tmp_path / "s").exists()
