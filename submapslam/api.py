@@ -28,13 +28,12 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
-def progress_bar(total: int | None):
-    """A transient rich progress bar on stderr (scans done of ``total``, None: unknown)."""
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+def progress_bar(total: int | None = None):
+    """A transient rich progress bar on stderr: done of a total, elapsed time and ETA
+    (:func:`submapslam.progress.progress_bar`; the total is given to ``add_task``)."""
+    from .progress import progress_bar as bar
 
-    return Progress(TextColumn("[bold]scans"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                    console=Console(stderr=True), transient=True)
+    return bar()
 
 
 def fuse_beside_map_store(session_map: SessionMap, map_folder: Path,
@@ -132,12 +131,6 @@ def run_log(
         check_out_folder(out_dir, inputs=inputs, overwrite=overwrite)
     hint_pairs = read_hint_file(cfg.loops.hints_file) if cfg.loops.hints_file else None
     reader = open_log(log_path, format, **(reader_options or {}))
-    try:
-        total = len(reader)  # type: ignore[arg-type]
-    except TypeError:
-        total = None
-    if cfg.max_scans is not None and total is not None:
-        total = min(total, cfg.max_scans)
     source = str(log_path)
     keep = None
     if out_dir is not None and cfg.checkpoint_every_submaps:
@@ -151,11 +144,19 @@ def run_log(
     options = dict(source=source, hints=hint_pairs, stop=stop, resume_from=checkpoint,
                    checkpoint_every=cfg.checkpoint_every_submaps, on_checkpoint=keep, observer=observer)
     if progress:
-        with progress_bar(total) as bar:
-            task = bar.add_task("run", total=total)
-            result = run(reader, cfg, progress=lambda n: bar.update(task, completed=n), **options)
+        from .progress import ScanProgress
+
+        with ScanProgress(reader, limit=cfg.max_scans) as bar:
+            result = run(reader, cfg, progress=bar, **options)
     elif on_progress is not None:
-        result = run(reader, cfg, progress=lambda n: on_progress(n, total), **options)
+        from .progress import clip_total, reader_total
+
+        total, estimator = reader_total(reader)
+        if total is None and estimator is not None:
+            total = estimator()[0]
+        total = clip_total(total, 0, cfg.max_scans)
+        result = run(reader, cfg, progress=lambda n: on_progress(n, max(total, n) if total is not None else None),
+                     **options)
     else:
         result = run(reader, cfg, **options)
     if hint_pairs:
@@ -226,15 +227,11 @@ def localize_to_folder(
     points = load_map(map_path)
     reader = open_log(log_path, format)
     if progress:
-        try:
-            total = max(0, len(reader) - start)  # type: ignore[arg-type]
-            total = min(total, max_scans) if max_scans else total
-        except TypeError:
-            total = None
-        with progress_bar(total) as bar:
-            task = bar.add_task("localize", total=total)
+        from .progress import ScanProgress
+
+        with ScanProgress(reader, start=start, limit=max_scans) as bar:
             result = localize_log(reader, points, T0, config=config, start=start, max_scans=max_scans,
-                                  on_scan=lambda k: bar.update(task, completed=k + 1))
+                                  on_scan=lambda k: bar(k + 1))
     else:
         result = localize_log(reader, points, T0, config=config, start=start, max_scans=max_scans)
     with staged_folder(out_dir, "localize", overwrite=overwrite, inputs=[log_path, map_path]) as staging:

@@ -133,3 +133,40 @@ def test_synth_laps_below_one_is_one_red_line(tmp_path, laps):
     r = runner.invoke(app, ["synth", "rectangle", "--laps", laps, "--out", str(tmp_path / "s")])
     assert_one_error_line(r, "--laps", laps)
     assert not (tmp_path / "s").exists()
+
+
+def test_carmen_scan_count_is_exact_plain_and_close_compressed(small_log, tmp_path):
+    import bz2
+
+    from submapslam.io.carmen import CarmenReader
+
+    clf = small_log / "log.clf"
+    n = sum(1 for line in clf.read_text().splitlines() if line.startswith("FLASER "))
+    assert CarmenReader(clf).estimated_len() == (n, True)
+    # a longer compressed log (many copies of the text): estimated from a sample, within 15 %
+    big = tmp_path / "big.clf.bz2"
+    big.write_bytes(bz2.compress(clf.read_bytes() * 400))
+    count, exact = CarmenReader(big).estimated_len()
+    assert not exact and abs(count - 400 * n) < 0.15 * 400 * n
+
+
+def test_progress_has_a_total_and_an_eta(small_log):
+    import time
+
+    from submapslam.io.carmen import CarmenReader
+    from submapslam.progress import CountColumn, ScanProgress
+
+    reader = CarmenReader(small_log / "log.clf")
+    with ScanProgress(reader, limit=40) as bar:
+        for _ in range(100):  # the count runs beside the bar
+            if bar.bar.tasks[0].total is not None:
+                break
+            time.sleep(0.02)
+        bar(7)
+        task = bar.bar.tasks[0]
+        assert str(CountColumn().render(task)) == "7/40"
+        assert any(type(c).__name__ == "TimeRemainingColumn" for c in bar.bar.columns)
+        bar(45)  # a longer log than estimated: the total grows, never below what is done
+        assert bar.bar.tasks[0].total == 45
+    task.fields["estimated"] = True
+    assert str(CountColumn().render(task)).startswith("45/~")

@@ -16,10 +16,18 @@ def live_progress():
     """A rich progress view, a row per running log (scans done; of how many when the reader
     knows). On the results' console, so that the lines printed meanwhile stay above it;
     transient, and quiet when that is not a terminal."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import (
+        BarColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
-    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("scans"),
-                    TimeElapsedColumn(), console=console, transient=True)
+    from ..progress import CountColumn
+
+    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), CountColumn(), TextColumn("scans"),
+                    TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(), console=console, transient=True)
 
 
 def register(app: typer.Typer) -> None:

@@ -45,7 +45,7 @@ import numpy as np
 
 from ..errors import ConfigError, InputError
 from ..geometry import se2_to_matrix
-from .compression import base_suffix, open_text, open_text_prefetched
+from .compression import base_suffix, count_line_starts, open_text, open_text_prefetched
 from .registry import register_reader
 from .scan import Scan
 
@@ -349,6 +349,11 @@ class CarmenReader:
         the reading found to mean "no return" (None: none found)."""
         return {"log_format": self.name, "laser_record": self.tag, "skipped_records": self.skipped_records,
                 "skipped_record_lines": list(self.skipped_lines), "no_return_range_m": self.no_return_range}
+
+    def estimated_len(self) -> tuple[int, bool]:
+        """``(scans, exact)``: the log's lines of the record read, counted (plain file) or
+        estimated from a sample (compressed; see :func:`~.compression.count_line_starts`)."""
+        return count_line_starts(self.path, self.tag.encode() + b" ")
 
     def _find_no_return(self) -> float | None:
         """:func:`detect_no_return_range` over the first ``_NO_RETURN_SCAN_LINES`` records read
