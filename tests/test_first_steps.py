@@ -170,3 +170,19 @@ def test_progress_has_a_total_and_an_eta(small_log):
         assert bar.bar.tasks[0].total == 45
     task.fields["estimated"] = True
     assert str(CountColumn().render(task)).startswith("45/~")
+
+
+def test_ekf_recognises_a_synth_landmarks_folder_and_names_its_formats(small_log, tmp_path):
+    lm = tmp_path / "lm"
+    r = runner.invoke(app, ["synth", "landmarks", "--laps", "1", "--landmarks", "8", "--out", str(lm)])
+    assert r.exit_code == 0, r.output
+    r = runner.invoke(app, ["ekf", str(lm), "--out", str(tmp_path / "e")])  # the folder, not lm/landmarks.txt
+    assert r.exit_code == 0, r.output
+    assert "{" not in r.output and "'" not in r.output  # key: value lines, not a Python dict
+    # a laser log, or a folder of something else: one line naming what ekf reads
+    line = assert_one_error_line(runner.invoke(app, ["ekf", str(small_log / "log.clf"), "--out", str(tmp_path / "c")]),
+                                 "carmen", "ekf reads", "MR.CLAM", "victoria_park")
+    assert "unknown record" not in line
+    (tmp_path / "empty").mkdir()
+    assert_one_error_line(runner.invoke(app, ["ekf", str(tmp_path / "empty"), "--out", str(tmp_path / "x")]),
+                          "not a landmark log", "synth landmarks")
