@@ -91,6 +91,9 @@ class SubmapSLAM:
         self.loops: list[LoopRecord] = []
         self.dropped_nan_points = 0
         self.empty_scans = 0
+        self.nan_scans: list[str] = []  # scans whose every point was NaN/inf (their sources)
+        self.backwards: list[tuple[int, float, float]] = []  # (scan, its time, the time before it)
+        self._last_time: float | None = None
         # graph work of the last closed submap (odometry edge, loop tests, iSAM2), running in a
         # worker thread while the next scans are registered; waited for before anything reads
         # or extends the graph, so every graph operation happens in the same order as inline
@@ -127,8 +130,13 @@ class SubmapSLAM:
             scan.points = points[finite]
             if scan.point_times is not None:
                 scan.point_times = scan.point_times[finite]
+            if len(scan.points) == 0:
+                self.nan_scans.append(scan.source or f"scan {self._submitted}")
         if len(scan.points) == 0:
             self.empty_scans += 1
+        if self._last_time is not None and scan.timestamp < self._last_time:
+            self.backwards.append((self._submitted, scan.timestamp, self._last_time))
+        self._last_time = scan.timestamp
         index = self._submitted
         known = self._replay.known_pose(index) if self._replay is not None else None
         if known is not None and scan.timestamp != self._replay.timestamps[index]:
@@ -377,6 +385,19 @@ class SubmapSLAM:
         return fuse_clouds(clouds, voxel or self.map_voxel)
 
     # ------------------------------------------------------------------ finishing
+    def input_warnings(self) -> list[str]:
+        """One line per kind of doubtful input seen: timestamps that run backwards, scans whose
+        every point was NaN/inf."""
+        lines = []
+        if self.backwards:
+            k, t, before = self.backwards[0]
+            lines.append(f"the log's timestamps run backwards {len(self.backwards)} time(s) (first at scan {k}: "
+                         f"{t:.6f} after {before:.6f}); the poses keep the log's order, so their times do too")
+        if self.nan_scans:
+            lines.append(f"{len(self.nan_scans)} scan(s) hold only NaN/inf points (first: {self.nan_scans[0]}); "
+                         "each got the pose odometry predicts")
+        return lines
+
     def finish(self, input_error: str | None = None, source: str = "", interrupted: bool = False,
                failure: str | None = None) -> SlamResult:
         """Close the last submap, run the final batch optimisation and build the result
@@ -578,6 +599,14 @@ def run(
         on_checkpoint(slam.checkpoint(source))
     result = slam.finish(input_error=input_error, source=source, interrupted=interrupted, failure=failure)
     result.log_info = dict(getattr(scans, "log_info", None) or {})  # the reader's account (record, skips)
+    result.input_warnings = slam.input_warnings()
+    if result.log_info.get("nan_only_scans"):
+        files = result.log_info.get("nan_only_files") or ["?"]
+        result.input_warnings.append(f"{result.log_info['nan_only_scans']} scan file(s) hold only NaN/inf points "
+                                     f"(first: {files[0]}); each got the pose odometry predicts")
+    if result.log_info.get("nan_ranges"):
+        result.input_warnings.append(f"{result.log_info['nan_ranges']} NaN beam range(s) in the log, read as "
+                                     "no return")
     return result
 
 

@@ -186,3 +186,41 @@ def test_ekf_recognises_a_synth_landmarks_folder_and_names_its_formats(small_log
     (tmp_path / "empty").mkdir()
     assert_one_error_line(runner.invoke(app, ["ekf", str(tmp_path / "empty"), "--out", str(tmp_path / "x")]),
                           "not a landmark log", "synth landmarks")
+
+
+def _warnings(result) -> list[str]:
+    return [ln for ln in result.stderr.splitlines() if ln.startswith("warning:")]
+
+
+def test_backwards_time_and_nan_ranges_are_one_line_each(small_log, tmp_path):
+    lines = (small_log / "log.clf").read_text().splitlines()
+    flaser = [i for i, ln in enumerate(lines) if ln.startswith("FLASER ")]
+    tok = lines[flaser[20]].split()
+    tok[-3] = f"{float(tok[-3]) - 5.0:.6f}"  # scan 20 is 5 s before scan 19
+    tok[5] = tok[6] = "nan"  # two NaN beam ranges
+    lines[flaser[20]] = " ".join(tok)
+    log = tmp_path / "odd.clf"
+    log.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "out"
+    r = runner.invoke(app, ["run", str(log), "--out", str(out), "--max-scans", "30", "--no-loops"])
+    assert r.exit_code == 0, r.output
+    warnings = _warnings(r)
+    assert any("run backwards 1 time(s)" in w and "scan 20" in w for w in warnings), r.stderr
+    assert any("2 NaN beam range(s)" in w for w in warnings), r.stderr
+    assert len(warnings) == 2
+    summary = json.loads((out / "summary.json").read_text())
+    assert len(summary["input_warnings"]) == 2 and summary["nan_ranges"] == 2
+
+
+def test_an_all_nan_scan_is_one_line(small_log, tmp_path):
+    import shutil
+
+    from datasets_synth.writer import write_ply_xyzt
+
+    log = tmp_path / "log"
+    shutil.copytree(small_log, log, ignore=shutil.ignore_patterns("*.clf*", "labels"))
+    write_ply_xyzt(log / "scans" / "000010.ply", np.full((50, 3), np.nan), np.zeros(50))
+    r = runner.invoke(app, ["run", str(log), "--out", str(tmp_path / "out"), "--max-scans", "25", "--no-loops"])
+    assert r.exit_code == 0, r.output
+    warnings = _warnings(r)
+    assert len(warnings) == 1 and "1 scan file(s) hold only NaN/inf points (first: 000010.ply)" in warnings[0]

@@ -118,6 +118,8 @@ def register(app: typer.Typer) -> None:
         if consistency.get("disagrees_with_odometry"):
             err_console.print(f"[yellow]warning:[/yellow] {escape(consistency['message'])}", highlight=False,
                               soft_wrap=True)
+        for problem in result.input_warnings:
+            err_console.print(f"[yellow]warning:[/yellow] {escape(problem)}", highlight=False, soft_wrap=True)
         for problem in result.hint_problems:  # shown without -v: the user asked for these loops
             err_console.print(f"[yellow]warning:[/yellow] {escape(problem)}", highlight=False, soft_wrap=True)
         if s.get("skipped_records"):

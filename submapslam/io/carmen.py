@@ -342,13 +342,15 @@ class CarmenReader:
         self.skipped_records = 0
         self.skipped_lines: list[int] = []
         self.no_return_range: float | None = None  # found in the data when the scans are read
+        self.nan_ranges = 0  # NaN beam ranges read (as no return)
 
     @property
     def log_info(self) -> dict:
         """What ``summary.json`` reports about the reading: record used, damaged records skipped,
         the reading found to mean "no return" (None: none found)."""
         return {"log_format": self.name, "laser_record": self.tag, "skipped_records": self.skipped_records,
-                "skipped_record_lines": list(self.skipped_lines), "no_return_range_m": self.no_return_range}
+                "skipped_record_lines": list(self.skipped_lines), "no_return_range_m": self.no_return_range,
+                "nan_ranges": self.nan_ranges}
 
     def estimated_len(self) -> tuple[int, bool]:
         """``(scans, exact)``: the log's lines of the record read, counted (plain file) or
@@ -388,6 +390,7 @@ class CarmenReader:
         limit = min(self.max_valid_range, reading.max_range)
         if self.no_return_range is not None:
             limit = min(limit, self.no_return_range)
+        self.nan_ranges += int(np.isnan(reading.ranges).sum())
         finite = np.isfinite(reading.ranges) & (reading.ranges > 0.0)
         valid = finite & (reading.ranges < limit)
         points = self._points(reading, reading.ranges[valid], reading.angles[valid])
@@ -413,6 +416,7 @@ class CarmenReader:
     def __iter__(self) -> Iterator[Scan]:
         self.skipped_records = 0
         self.skipped_lines = []
+        self.nan_ranges = 0
         self.no_return_range = self._find_no_return()
         parse = _PARSERS[self.tag]
         needs_odom = self.tag.startswith("RAWLASER")
