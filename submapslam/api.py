@@ -377,6 +377,8 @@ def _pairing_warnings(est: Path, ref: Path, e, r, raw_log, max_diff: float) -> l
     """Warnings about how EST and REF were paired: KITTI files of different lengths (paired by
     line), a CARMEN reference whose timestamps match few of the estimate's (none: an error that
     suggests the raw log)."""
+    import numpy as np
+
     from .evaluation.metrics import associate
     from .io.trajectory import trajectory_format
 
@@ -386,6 +388,17 @@ def _pairing_warnings(est: Path, ref: Path, e, r, raw_log, max_diff: float) -> l
         warnings.append(f"{est.name} has {len(e.timestamps)} poses and {ref.name} {len(r.timestamps)}: "
                         f"KITTI files ({', '.join(kitti)}) have no timestamps, so poses are paired by line "
                         f"and only the first {min(len(e.timestamps), len(r.timestamps))} are compared")
+    if not kitti:
+        try:
+            i_r = associate(e, r, max_diff)[1]
+        except SubmapSlamError:
+            i_r = np.zeros(0, dtype=int)
+        span = float(np.ptp(r.timestamps)) if len(r.timestamps) > 1 else 0.0
+        if len(i_r) and span > 0:
+            covered = float(np.ptp(r.timestamps[i_r])) / span
+            if covered < 0.9:
+                warnings.append(f"{est.name} ({len(e.timestamps)} poses) covers {covered:.0%} of {ref.name}'s "
+                                f"time ({len(r.timestamps)} poses): the figures are for that part only")
     hint = _raw_log_hint(ref, raw_log)
     if hint:
         try:

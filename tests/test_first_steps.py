@@ -224,3 +224,51 @@ def test_an_all_nan_scan_is_one_line(small_log, tmp_path):
     assert r.exit_code == 0, r.output
     warnings = _warnings(r)
     assert len(warnings) == 1 and "1 scan file(s) hold only NaN/inf points (first: 000010.ply)" in warnings[0]
+
+
+def test_help_keeps_units_and_names_plain_types():
+    r = runner.invoke(app, ["eval", "--help"])
+    assert "tolerance [s]" in r.output
+    r = runner.invoke(app, ["compare", "--help"])
+    assert "list[" not in r.output and "<path>..." in r.output
+    r = runner.invoke(app, ["run", "--help"])
+    assert "<bool>" not in r.output and "--no-loops" in r.output
+
+
+def test_output_is_not_wrapped_at_80_columns_when_piped(tmp_path):
+    r = runner.invoke(app, ["synth", "rectangle", "--laps", "1", "--max-scans", "20", "--out", str(tmp_path / "s")])
+    assert r.exit_code == 0, r.output
+    lines = [ln for ln in r.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and len(lines[0]) > 80 and "1 lap," in lines[0]
+
+
+def test_batch_ctrl_c_says_what_is_kept(small_log, tmp_path, monkeypatch):
+    import submapslam.fleet_api as fleet_api
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fleet_api, "batch_logs", interrupted)
+    r = runner.invoke(app, ["batch", str(small_log), "--out", str(tmp_path / "b"), "--no-ray"])
+    assert r.exit_code == 130
+    assert r.stderr.startswith("interrupted:") and "--resume" in r.stderr
+
+
+def test_a_rejection_shows_the_digits_that_differ():
+    from submapslam.registration.correspondence import below
+
+    assert below("fitness", 0.4499, 0.45) == "fitness 0.4499 < 0.4500"
+    assert below("fitness", 0.2, 0.45) == "fitness 0.20 < 0.45"
+
+
+def test_eval_warns_when_the_estimate_covers_part_of_the_reference(small_log, tmp_path):
+    from submapslam.io.trajectory import read_tum, write_tum
+
+    est = read_tum(small_log / "odometry_tum.txt")
+    write_tum(tmp_path / "short.txt", est.subset(np.arange(10)))
+    r = runner.invoke(app, ["eval", str(tmp_path / "short.txt"), str(small_log / "groundtruth_tum.txt")])
+    assert r.exit_code == 0, r.output
+    warnings = _warnings(r)
+    assert len(warnings) == 1 and "short.txt (10 poses) covers" in warnings[0] and "that part only" in warnings[0]
+    r = runner.invoke(app, ["eval", str(small_log / "odometry_tum.txt"), str(small_log / "groundtruth_tum.txt")])
+    assert not _warnings(r)

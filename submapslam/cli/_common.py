@@ -11,8 +11,28 @@ from rich.console import Console
 OutFolder = Annotated[Path, typer.Option("--out", "-o", help="Output folder.")]
 """The ``--out`` option of the commands that write a results folder."""
 
-console = Console(markup=False)  # results are printed as they are: "[m]" in a table is a unit, not markup
-err_console = Console(stderr=True)
+class _Console(Console):
+    """A rich console that does not wrap at 80 columns when its output is not a terminal (a file,
+    a pipe, a test): tables and long names stay whole there; a terminal keeps its own width."""
+
+    @property
+    def size(self):  # type: ignore[override]
+        from rich.console import ConsoleDimensions
+
+        size = Console.size.fget(self)  # type: ignore[attr-defined]
+        if self.is_terminal or self._width is not None:
+            return size
+        return ConsoleDimensions(max(size.width, _PIPED_WIDTH), size.height)
+
+    @size.setter
+    def size(self, new_size) -> None:
+        Console.size.fset(self, new_size)  # type: ignore[attr-defined]
+
+
+_PIPED_WIDTH = 240  # columns when not a terminal
+
+console = _Console(markup=False)  # results are printed as they are: "[m]" in a table is a unit, not markup
+err_console = _Console(stderr=True)
 
 
 def fail(exc: BaseException | str) -> typer.Exit:

@@ -9,7 +9,8 @@ import typer
 from rich.markup import escape
 
 from ..errors import SubmapSlamError
-from ._common import OutFolder, console, fail
+from ._common import OutFolder, console, err_console, fail
+from ._interrupt import EXIT_INTERRUPTED
 
 
 def live_progress():
@@ -102,6 +103,11 @@ def register(app: typer.Typer) -> None:
                                     map_dir=map_dir, freeze_map=freeze_map, on_progress=running, on_merged=merged)
             except SubmapSlamError as exc:
                 raise fail(exc) from None
+            except KeyboardInterrupt:
+                err_console.print(f"[red]interrupted:[/red] the logs finished so far are kept in {escape(str(out))} "
+                                  "(batch.json); the same command with --resume runs the others and merges",
+                                  highlight=False, soft_wrap=True)
+                raise typer.Exit(EXIT_INTERRUPTED) from None
         table = Table(title=f"batch: {len(logs)} logs ({report.executor}), {report.wall_time_s:.1f} s "
                             f"(front ends {report.front_end_s:.1f} s, merge and writing the rest)")
         for col in ("log", "status", "scans", "submaps", "loops", "seconds", "merged", "results"):

@@ -155,7 +155,7 @@ def _world(world, out, seed, laps, sensor, max_scans, odometry_noise, poles, mov
                     odometry_noise=odometry_noise, movers=movers, doors=doors, **extra)
     meta = yaml.safe_load((path / "meta.yaml").read_text())
     return (f"{meta['n_scans']} scans of {world} ({meta['sensor']['type']}), loop {meta['loop_length_m']:.0f} m "
-            f"x {meta['laps']} laps, wheel odometry end drift {meta['odometry_end_drift_m']:.2f} m{_movers_text(meta)}")
+            f"x {meta['laps']} lap{'' if meta['laps'] == 1 else 's'}, wheel odometry end drift {meta['odometry_end_drift_m']:.2f} m{_movers_text(meta)}")
 
 
 def _kitti(out, path, rings, seed, max_scans, odometry_noise, movers=0, *, terrain=False, keyframes=False) -> str:
