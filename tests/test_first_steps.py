@@ -272,3 +272,33 @@ def test_eval_warns_when_the_estimate_covers_part_of_the_reference(small_log, tm
     assert len(warnings) == 1 and "short.txt (10 poses) covers" in warnings[0] and "that part only" in warnings[0]
     r = runner.invoke(app, ["eval", str(small_log / "odometry_tum.txt"), str(small_log / "groundtruth_tum.txt")])
     assert not _warnings(r)
+
+
+def test_new_poses_streams_each_scan_once_without_waiting(small_log):
+    from submapslam import SubmapSLAM, load_config, open_log
+    from submapslam.config import with_updates
+    from submapslam.geometry import inverse
+
+    slam = SubmapSLAM(with_updates(load_config(None), {"submaps": {"max_scans": 15}}, "test"))
+    waited = []
+    settle = slam._settle
+    slam._settle = lambda: (waited.append(1), settle())[1]
+    stamps, got = [], []
+    for scan in open_log(small_log):
+        slam.process_scan(scan)
+        before = len(waited)
+        t, T = slam.new_poses()
+        assert len(waited) == before  # never waits for the graph work
+        assert T.shape == (1, 4, 4) and t[0] == scan.timestamp  # one new scan, O(new scans)
+        stamps.append(t[0])
+        got.append(T[0])
+    assert slam.new_poses()[1].shape == (0, 4, 4)
+    all_t, all_T = slam.trajectory()
+    assert np.array_equal(all_t, stamps)
+    # the live estimate of the newest scan is trajectory()'s once the graph work is in
+    assert len(slam.submaps) >= 2
+    slam._settle()
+    C = slam._graph_builder.graph.pose(slam.submaps[-1].id) @ inverse(slam.submaps[-1].T_odom_anchor)
+    assert np.allclose(C @ slam._odom_poses[-1], all_T[-1], atol=1e-9)
+    assert np.linalg.norm(got[-1][:3, 3] - all_T[-1][:3, 3]) < 0.5
+    slam.finish()
