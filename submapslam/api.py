@@ -388,7 +388,8 @@ def _pairing_warnings(est: Path, ref: Path, e, r, raw_log, max_diff: float) -> l
         warnings.append(f"{est.name} has {len(e.timestamps)} poses and {ref.name} {len(r.timestamps)}: "
                         f"KITTI files ({', '.join(kitti)}) have no timestamps, so poses are paired by line "
                         f"and only the first {min(len(e.timestamps), len(r.timestamps))} are compared")
-    if not kitti:
+    hint = _raw_log_hint(ref, raw_log)
+    if not kitti and not hint:  # (with a hint, the warning below says what went wrong)
         try:
             i_r = associate(e, r, max_diff)[1]
         except SubmapSlamError:
@@ -399,7 +400,6 @@ def _pairing_warnings(est: Path, ref: Path, e, r, raw_log, max_diff: float) -> l
             if covered < 0.9:
                 warnings.append(f"{est.name} ({len(e.timestamps)} poses) covers {covered:.0%} of {ref.name}'s "
                                 f"time ({len(r.timestamps)} poses): the figures are for that part only")
-    hint = _raw_log_hint(ref, raw_log)
     if hint:
         try:
             matched = len(associate(e, r, max_diff)[0])

@@ -302,3 +302,10 @@ def test_new_poses_streams_each_scan_once_without_waiting(small_log):
     assert np.allclose(C @ slam._odom_poses[-1], all_T[-1], atol=1e-9)
     assert np.linalg.norm(got[-1][:3, 3] - all_T[-1][:3, 3]) < 0.5
     slam.finish()
+
+
+def test_a_garbled_bag_error_prints_no_raw_bytes(tmp_path):
+    bag = tmp_path / "bad.bag"
+    bag.write_bytes(bytes(np.random.default_rng(3).integers(0, 256, 100, dtype=np.uint8)))
+    line = assert_one_error_line(runner.invoke(app, ["run", str(bag), "--out", str(tmp_path / "o")]), "bad.bag")
+    assert "\\x" not in line and len(line) < 300
