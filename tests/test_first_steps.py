@@ -309,3 +309,29 @@ def test_a_garbled_bag_error_prints_no_raw_bytes(tmp_path):
     bag.write_bytes(bytes(np.random.default_rng(3).integers(0, 256, 100, dtype=np.uint8)))
     line = assert_one_error_line(runner.invoke(app, ["run", str(bag), "--out", str(tmp_path / "o")]), "bad.bag")
     assert "\\x" not in line and len(line) < 300
+
+
+def test_dump_config_says_what_each_key_means_and_reads_back(tmp_path):
+    from submapslam.config import dump_config, load_config
+
+    r = runner.invoke(app, ["dump-config"])
+    assert r.exit_code == 0
+    lines = r.output.splitlines()
+    at = next(i for i, ln in enumerate(lines) if ln.strip().startswith("max_range:"))
+    assert lines[at - 1].strip().startswith("# drop points farther than this [m]")
+    (tmp_path / "c.yaml").write_text(r.output)
+    assert dump_config(load_config(tmp_path / "c.yaml")) == dump_config(load_config(None))
+    plain = runner.invoke(app, ["dump-config", "--no-comments"]).output
+    assert "#" not in plain and "odometry:" in plain
+
+
+def test_view_without_a_display_is_one_line(small_log, tmp_path, monkeypatch):
+    import sys
+
+    if sys.platform in ("darwin", "win32"):
+        pytest.skip("windows open without DISPLAY there")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    r = runner.invoke(app, ["run", str(small_log), "--out", str(tmp_path / "o"), "--view"])
+    assert_one_error_line(r, "--view needs a display", "--record")
+    assert not (tmp_path / "o").exists()
