@@ -335,3 +335,44 @@ def test_view_without_a_display_is_one_line(small_log, tmp_path, monkeypatch):
     r = runner.invoke(app, ["run", str(small_log), "--out", str(tmp_path / "o"), "--view"])
     assert_one_error_line(r, "--view needs a display", "--record")
     assert not (tmp_path / "o").exists()
+
+
+def _figure_png(html: str, ident: str):
+    import base64
+    import io
+    import re
+
+    import matplotlib.image as mpimg
+
+    m = re.search(rf'<img id="{ident}" src="data:image/png;base64,([^"]+)"', html)
+    assert m, f"no figure {ident}"
+    return mpimg.imread(io.BytesIO(base64.b64decode(m.group(1))), format="png")
+
+
+def test_report_evaluates_against_the_shipped_ground_truth_with_evo_plots(small_log, small_run, tmp_path):
+    out, _ = small_run
+    page = tmp_path / "r.html"
+    r = runner.invoke(app, ["report", str(out), "--out", str(page)])
+    assert r.exit_code == 0, r.output
+    html = page.read_text()
+    assert "groundtruth_tum.txt (shipped with the log)" in html
+    for ident in ("evo-xyz", "evo-ape", "evo-hist"):
+        img = _figure_png(html, ident)
+        assert img.shape[0] > 150 and float(np.std(img[..., :3])) > 0.02, ident
+    from submapslam.evaluation.run_figures import degenerate_alignment
+    from submapslam.io.trajectory import read_tum
+
+    straight = degenerate_alignment(read_tum(small_log / "groundtruth_tum.txt"), "se3")
+    assert ("degenerate-alignment" in html) == (straight is not None)
+
+
+def test_a_straight_reference_path_flags_the_alignment():
+    from submapslam.evaluation.run_figures import degenerate_alignment
+    from submapslam.geometry import se2_array_to_matrices
+    from submapslam.trajectory import Trajectory
+
+    line = Trajectory(np.arange(50.0), se2_array_to_matrices(np.c_[np.arange(50.0), np.zeros(50), np.zeros(50)]))
+    assert "straight line" in degenerate_alignment(line, "se3")
+    assert degenerate_alignment(line, "none") is None
+    square = Trajectory(np.arange(4.0), se2_array_to_matrices(np.array([[0, 0, 0], [5, 0, 0], [5, 5, 0], [0, 5, 0.0]])))
+    assert degenerate_alignment(square, "se3") is None

@@ -184,8 +184,13 @@ def build_run_report(rec: RunRecord, reference: Trajectory | Callable[[], Trajec
             header = ["trajectory", *next(iter(rows.values()))]
             table = hp.table(header, [[name, *row.values()] for name, row in rows.items()])
             figs = "".join(hp.figure(uri, cap) for uri, cap in rf.error_figures(reference, ates, segments, mode))
+            first = next(iter(ates))
+            figs += "".join(hp.figure(uri, cap, ident) for uri, cap, ident
+                            in rf.evo_figures(reference, ates[first][0], first, mode))
+            degenerate = rf.degenerate_alignment(reference, mode)
+            warn = f'<p class="note" id="degenerate-alignment">warning: {hp.esc(degenerate)}</p>' if degenerate else ""
             sections.append((f"Error against {reference_name} ({mode} alignment)",
-                             table + f'<div class="figs">{figs}</div>'))
+                             warn + table + f'<div class="figs">{figs}</div>'))
     if rec.kind != "ekf":
         n_ok = sum(r.get("accepted") == "1" for r in rec.loops)
         sections.append((f"Loop hypotheses ({len(rec.loops)} tested, {n_ok} accepted)", _loop_table(rec)))

@@ -234,6 +234,85 @@ def error_figures(reference: Trajectory, series: dict[str, tuple[Trajectory, dic
     return out
 
 
+def degenerate_alignment(reference: Trajectory, mode: AlignMode) -> str | None:
+    """A warning when the alignment's rotation is not determined by the reference path: a path
+    (nearly) along a straight line leaves the rotation about it free, so the aligned estimate's
+    rotation error means nothing. None when the path spans a plane or more (or no alignment)."""
+    if str(mode) == "none" or len(reference.positions) < 3:
+        return None
+    P = reference.positions - reference.positions.mean(axis=0)
+    sv = np.linalg.svd(P, compute_uv=False)
+    if sv[0] <= 0 or sv[1] / sv[0] >= 0.02:
+        return None
+    return (f"the reference path is nearly a straight line (its second extent is {sv[1] / sv[0]:.1%} of the first): "
+            f"the {mode} alignment cannot fix the rotation about it, so the ATE rotation figures are not "
+            "meaningful (the position errors are)")
+
+
+def evo_figures(reference: Trajectory, traj: Trajectory, name: str, mode: AlignMode,
+                dpi: int = 100) -> list[tuple[str, str, str]]:
+    """evo's standard plots of ``traj`` against ``reference`` after ``mode`` alignment, against
+    time from the reference's first pose: x, y, z and yaw of both; the position error (APE) with
+    its mean, median and ±1 std band; the relative error between consecutive poses (RPE); and
+    histograms of both. Returns ``[(data URI, caption, element id)]``."""
+    from ..geometry import inverse, rotation_angle
+    from .metrics import associate as assoc
+
+    plt = _plt()
+    i_e, i_r = assoc(traj, reference)
+    if len(i_e) < 2:
+        return []
+    e, r = traj.subset(i_e), reference.subset(i_r)
+    T, s = align_fn(e, r, mode)
+    A = np.array([T @ p for p in e.poses])
+    A[:, :3, 3] = s * e.poses[:, :3, 3] @ T[:3, :3].T + T[:3, 3]
+    t = r.timestamps - r.timestamps[0]
+    out = []
+    fig, axes = plt.subplots(4, 1, figsize=(9, 8), sharex=True)
+    yaw = lambda P: np.degrees(np.unwrap(np.arctan2(P[:, 1, 0], P[:, 0, 0])))  # noqa: E731
+    for ax, label, a, b in ((axes[0], "x [m]", A[:, 0, 3], r.poses[:, 0, 3]),
+                            (axes[1], "y [m]", A[:, 1, 3], r.poses[:, 1, 3]),
+                            (axes[2], "z [m]", A[:, 2, 3], r.poses[:, 2, 3]),
+                            (axes[3], "yaw [deg]", yaw(A), yaw(r.poses))):
+        ax.plot(t, b, color="0.5", lw=1.0, ls="--", label="reference")
+        ax.plot(t, a, color="#1f5fd0", lw=0.9, label=name)
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8, loc="upper right")
+    axes[-1].set_xlabel("time [s]")
+    out.append((png_data_uri(fig, dpi), f"{name}: x, y, z and yaw against time ({mode} aligned)", "evo-xyz"))
+    ape = np.linalg.norm(A[:, :3, 3] - r.positions, axis=1)
+    rel = [inverse(r.poses[k]) @ r.poses[k + 1] for k in range(len(r.poses) - 1)]
+    rel_e = [inverse(A[k]) @ A[k + 1] for k in range(len(A) - 1)]
+    rpe = np.array([np.linalg.norm((inverse(a) @ b)[:3, 3]) for a, b in zip(rel, rel_e)])
+    rpe_rot = np.degrees([rotation_angle(inverse(a) @ b) for a, b in zip(rel, rel_e)])
+    fig, axes = plt.subplots(2, 1, figsize=(9, 5.6), sharex=True)
+    mean, med, std = float(ape.mean()), float(np.median(ape)), float(ape.std())
+    axes[0].plot(t, ape, color="#c0392b", lw=0.8, label="APE")
+    axes[0].axhline(mean, color="k", lw=0.9, label=f"mean {mean:.3f} m")
+    axes[0].axhline(med, color="#1a9a1a", lw=0.9, ls="--", label=f"median {med:.3f} m")
+    axes[0].axhspan(mean - std, mean + std, color="0.6", alpha=0.25, label=f"±1 std {std:.3f} m")
+    axes[0].set_ylabel("APE [m]")
+    axes[0].legend(fontsize=8, loc="upper left")
+    axes[1].plot(t[1:], rpe, color="#7a1fa0", lw=0.8, label="RPE trans (consecutive poses)")
+    axes[1].set_ylabel("RPE [m/frame]")
+    axes[1].set_xlabel("time [s]")
+    axes[1].legend(fontsize=8, loc="upper left")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    out.append((png_data_uri(fig, dpi), f"{name}: absolute position error (APE) and relative error (RPE) "
+                "against time", "evo-ape"))
+    fig, axes = plt.subplots(1, 3, figsize=(11, 3.2))
+    for ax, values, label in ((axes[0], ape, "APE [m]"), (axes[1], rpe, "RPE [m/frame]"),
+                              (axes[2], rpe_rot, "RPE [deg/frame]")):
+        ax.hist(values, bins=40, color="#1f5fd0", alpha=0.8)
+        ax.set_xlabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("poses")
+    out.append((png_data_uri(fig, dpi), f"{name}: histograms of the errors", "evo-hist"))
+    return out
+
+
 def landmarks_figure(rec: RunRecord, dpi: int = 100) -> str:
     """EKF runs: the robot path and every feature with its 3σ ellipse, coloured by credibility."""
     plt = _plt()
