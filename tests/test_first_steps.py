@@ -376,3 +376,30 @@ def test_a_straight_reference_path_flags_the_alignment():
     assert degenerate_alignment(line, "none") is None
     square = Trajectory(np.arange(4.0), se2_array_to_matrices(np.array([[0, 0, 0], [5, 0, 0], [5, 5, 0], [0, 5, 0.0]])))
     assert degenerate_alignment(square, "se3") is None
+
+
+def test_the_loop_table_is_paginated_in_headless_chromium(tmp_path):
+    import re
+    import shutil
+    import subprocess
+
+    from submapslam.evaluation import html_page as hp
+    from submapslam.evaluation.html_report import _loop_table
+    from submapslam.evaluation.run_record import RunRecord
+
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None:
+        pytest.skip("headless chromium not installed")
+    loops = [{"submap_i": str(k), "submap_j": str(k + 3), "source": "spatial", "accepted": "1" if k % 3 else "0",
+              "fitness": "0.5", "overlap": "0.5", "inlier_rmse": "0.05", "reason": "r"} for k in range(120)]
+    page = tmp_path / "p.html"
+    page.write_text(hp.page("t", "s", [("loops", _loop_table(RunRecord(folder="x", loops=loops)))]))
+    proc = subprocess.run([chromium, "--headless", "--no-sandbox", "--disable-gpu", "--enable-logging=stderr", "--v=0",
+                           f"--user-data-dir={tmp_path / 'profile'}", "--dump-dom", page.as_uri()],
+                          capture_output=True, text=True, timeout=120)
+    dom = proc.stdout
+    assert not [ln for ln in proc.stderr.splitlines() if ":CONSOLE" in ln]
+    body = re.search(r'<table id="loops".*?<tbody>(.*?)</tbody>', dom, re.S).group(1)
+    rows = re.findall(r"<tr [^>]*>", body)
+    assert len(rows) == 120 and sum('display: none' not in r for r in rows) == 50
+    assert '<span class="count" id="lcount">120 shown</span>' in dom and "page 1 of 3" in dom

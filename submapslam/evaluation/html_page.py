@@ -38,13 +38,19 @@ function sortTable(th){const t=th.closest('table'),b=t.tBodies[0],k=th.cellIndex
  asc=th.dataset.dir!=='asc';th.dataset.dir=asc?'asc':'desc';
  const rows=[...b.rows];const v=r=>{const s=r.cells[k].dataset.v??r.cells[k].textContent;const n=parseFloat(s);return isNaN(n)?s:n};
  rows.sort((a,c)=>{const x=v(a),y=v(c);return (x<y?-1:x>y?1:0)*(asc?1:-1)});rows.forEach(r=>b.appendChild(r))}
-function filterLoops(){const q=document.getElementById('lq').value.toLowerCase(),
- st=document.getElementById('ls').value,src=document.getElementById('lsrc').value;let n=0;
+let loopPage=0;const LOOP_PAGE=50;
+function filterLoops(keepPage){if(keepPage!==true)loopPage=0;const q=document.getElementById('lq').value.toLowerCase(),
+ st=document.getElementById('ls').value,src=document.getElementById('lsrc').value;const hit=[];
  for(const r of document.querySelectorAll('#loops tbody tr')){const ok=(st==='all'||r.dataset.accepted===st)&&
- (src==='all'||r.dataset.source===src)&&r.textContent.toLowerCase().includes(q);r.style.display=ok?'':'none';n+=ok}
- document.getElementById('lcount').textContent=n+' shown'}
+ (src==='all'||r.dataset.source===src)&&r.textContent.toLowerCase().includes(q);r.style.display='none';if(ok)hit.push(r)}
+ const pages=Math.max(1,Math.ceil(hit.length/LOOP_PAGE));loopPage=Math.min(Math.max(loopPage,0),pages-1);
+ hit.slice(loopPage*LOOP_PAGE,(loopPage+1)*LOOP_PAGE).forEach(r=>r.style.display='');
+ document.getElementById('lcount').textContent=hit.length+' shown';const p=document.getElementById('lpage');
+ if(p)p.textContent=pages>1?'page '+(loopPage+1)+' of '+pages+' ('+LOOP_PAGE+' rows each)':''}
+function loopPageStep(d){loopPage+=d;filterLoops(true)}
 document.addEventListener('DOMContentLoaded',()=>{for(const th of document.querySelectorAll('table.sortable th'))
- th.addEventListener('click',()=>sortTable(th));if(document.getElementById('lq'))filterLoops()});
+ th.addEventListener('click',()=>{sortTable(th);if(th.closest('#loops'))filterLoops(true)});
+ if(document.getElementById('lq'))filterLoops()});
 """
 
 

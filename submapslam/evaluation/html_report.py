@@ -86,7 +86,10 @@ def _loop_table(rec: RunRecord) -> str:
                ' <select id="ls" onchange="filterLoops()"><option value="all">all</option>'
                '<option value="1">accepted</option><option value="0">rejected</option></select>'
                f' <select id="lsrc" onchange="filterLoops()"><option value="all">any source</option>{options}</select>'
-               '<span class="count" id="lcount"></span></div>')
+               '<span class="count" id="lcount"></span>'
+               ' <button type="button" onclick="loopPageStep(-1)">&lsaquo; previous</button>'
+               '<span class="count" id="lpage"></span>'
+               ' <button type="button" onclick="loopPageStep(1)">next &rsaquo;</button></div>')
     rows, attrs = [], []
     for r in rec.loops:
         ok = r.get("accepted") == "1"
