@@ -403,3 +403,23 @@ def test_the_loop_table_is_paginated_in_headless_chromium(tmp_path):
     rows = re.findall(r"<tr [^>]*>", body)
     assert len(rows) == 120 and sum('display: none' not in r for r in rows) == 50
     assert '<span class="count" id="lcount">120 shown</span>' in dom and "page 1 of 3" in dom
+
+
+def test_the_map_view_is_large_with_layers_to_toggle(small_run, tmp_path):
+    import re
+
+    out, _ = small_run
+    page = tmp_path / "r.html"
+    assert runner.invoke(app, ["report", str(out), "--out", str(page), "--align", "none"]).exit_code == 0
+    html = page.read_text()
+    base = _figure_png(html, "map")
+    assert base.shape[1] >= 1100  # about 1200 px wide, not 800
+    for key, shown in (("accepted", True), ("rejected", False), ("submaps", False)):
+        tag = re.search(rf'<img id="layer-{key}"[^>]*>', html).group(0)
+        assert ("display:none" not in tag) == shown, key
+        assert f"getElementById('layer-{key}')" in html  # its checkbox
+        layer = _figure_png(html, f"layer-{key}")
+        assert layer.shape == base.shape  # stacked pixel for pixel on the map
+        assert layer.shape[2] == 4 and float(np.mean(layer[..., 3] == 0)) > 0.5  # transparent around its lines
+    anchors = _figure_png(html, "layer-submaps")
+    assert float(np.mean(anchors[..., 3] > 0)) > 1e-4  # the anchors are drawn

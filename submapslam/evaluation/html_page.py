@@ -30,7 +30,7 @@ tr.ok td:first-child{border-left:4px solid #2a2}tr.no td:first-child{border-left
 .kv td:first-child{text-align:left;color:#555}.kv td{text-align:left}
 pre{background:#f7f7f7;border:1px solid #ddd;padding:8px;font-size:.8em;max-height:420px;overflow:auto}
 .filters{margin:8px 0;font-size:.9em}.filters input{width:220px}.count{color:#555;margin-left:8px}
-.note{color:#a60}
+.note{color:#a60}.layers{margin:8px 0;font-size:.9em}.layers label{margin-right:14px}
 """
 
 _JS = """
@@ -73,6 +73,24 @@ def figure(uri: str, caption: str, ident: str = "") -> str:
     """An ``<img>`` with its caption; ``ident`` becomes the image's id."""
     id_attr = f' id="{esc(ident)}"' if ident else ""
     return f'<figure><img{id_attr} src="{uri}" alt="{esc(caption)}"><figcaption>{esc(caption)}</figcaption></figure>'
+
+
+def layered_figure(layers: Sequence[tuple[str, str, str, bool]], caption: str) -> str:
+    """Images of the same size stacked on the first (``layers``: ``(key, label, data URI, shown)``),
+    each after the first with a checkbox that shows or hides it; the first image's id is its key."""
+    boxes, imgs = [], []
+    for k, (key, label, uri, shown) in enumerate(layers):
+        ident = esc(key if k == 0 else f"layer-{key}")
+        if k == 0:
+            imgs.append(f'<img id="{ident}" src="{uri}" alt="{esc(caption)}" style="width:100%;display:block">')
+            continue
+        style = "position:absolute;left:0;top:0;width:100%;border-color:transparent" + ("" if shown else ";display:none")
+        imgs.append(f'<img id="{ident}" src="{uri}" alt="{esc(label)}" style="{style}">')
+        boxes.append(f'<label><input type="checkbox" {"checked " if shown else ""}'
+                     f"onchange=\"document.getElementById('{ident}').style.display=this.checked?'':'none'\"> "
+                     f"{esc(label)}</label>")
+    return (f'<div class="layers">{" ".join(boxes)}</div><figure><div style="position:relative">{"".join(imgs)}'
+            f"</div><figcaption>{esc(caption)}</figcaption></figure>")
 
 
 def fmt(value: object, digits: int = 4) -> str:

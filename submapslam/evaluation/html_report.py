@@ -169,10 +169,10 @@ def build_run_report(rec: RunRecord, reference: Trajectory | Callable[[], Trajec
     else:
         what = ("occupancy grid" if rec.grid is not None and rec.cloud is None
                 else "map.ply from above (grey: ground, colour: height)")
-        sections.append(("Map, trajectory, submaps and loops", hp.figure(
-            rf.map_figure(rec), f"The {what}; blue: trajectory, dashed grey: odometry before loop closure, "
-            "purple: submap anchors with 3σ ellipses, green: accepted loops, red: rejected hypotheses "
-            "(reasons in the table below)", "map")))
+        sections.append(("Map, trajectory, submaps and loops", hp.layered_figure(
+            rf.map_layers(rec), f"The {what}; blue: trajectory, dashed grey: odometry before loop closure, "
+            "green: accepted loops, red: rejected hypotheses (reasons in the table below), purple: submap "
+            "anchors with 3σ ellipses; the boxes above show and hide the layers")))
     if callable(reference):
         reference = reference()
     if reference is not None and rec.poses is not None:

@@ -80,7 +80,7 @@ def top_down_image(points: np.ndarray, max_pixels: int = 1400, min_cell: float =
     return height.reshape(rows, cols)[::-1], (lo[0], lo[0] + cols * cell, lo[1], lo[1] + rows * cell), cell
 
 
-def _draw_cloud(fig, ax, cloud: np.ndarray, path_xy: np.ndarray | None) -> None:
+def _draw_cloud(fig, ax, cloud: np.ndarray, path_xy: np.ndarray | None, cax=None) -> None:
     """The 3D map from above: cells whose highest point stands < 0.3 m over the ground in grey,
     the rest coloured by that height; cropped to 20 m around the path when it is known."""
     bounds = None
@@ -97,7 +97,10 @@ def _draw_cloud(fig, ax, cloud: np.ndarray, path_xy: np.ndarray | None) -> None:
     top = max(float(np.percentile(rel[np.isfinite(rel)], 99)), 1.0)
     im = ax.imshow(np.where(rel >= 0.3, rel, np.nan), extent=extent, cmap="viridis", vmin=0.3, vmax=top,
                    interpolation="nearest")
-    fig.colorbar(im, ax=ax, shrink=0.6, label="height over the ground of the highest map point [m]")
+    if cax is not None:
+        fig.colorbar(im, cax=cax, label="height over the ground of the highest map point [m]")
+    else:
+        fig.colorbar(im, ax=ax, shrink=0.6, label="height over the ground of the highest map point [m]")
 
 
 def map_figure(rec: RunRecord, dpi: int = 100) -> str:
@@ -128,6 +131,88 @@ def map_figure(rec: RunRecord, dpi: int = 100) -> str:
     ax.set_ylabel("y [m]")
     ax.legend(loc="upper right", fontsize=8, framealpha=0.85)
     return png_data_uri(fig, dpi)
+
+
+_MAP_RECT = (0.08, 0.06, 0.80, 0.90)  # the map axes' place in every layer (same pixels in each)
+
+
+def map_layers(rec: RunRecord, dpi: int = 100, size: float = 12.0) -> list[tuple[str, str, str, bool]]:
+    """The map view as stacked layers of the same size and axes: the map with the trajectory and
+    the odometry (the base), then transparent overlays of the accepted loops, the rejected
+    hypotheses and the submap anchors with their 3σ ellipses, for the page to toggle. Returns
+    ``[(key, label, data URI, shown at first)]``, the base first."""
+    plt = _plt()
+
+    height = size
+
+    def canvas(transparent: bool):
+        fig = plt.figure(figsize=(size, height))
+        ax = fig.add_axes(_MAP_RECT)
+        if transparent:
+            fig.patch.set_alpha(0.0)
+            ax.patch.set_alpha(0.0)
+            ax.set_axis_off()
+        return fig, ax
+
+    fig, ax = canvas(False)
+    if rec.grid is not None and (rec.cloud is None or len(rec.cloud) == 0):
+        _draw_grid(ax, rec.grid)
+    elif rec.cloud is not None and len(rec.cloud):
+        _draw_cloud(fig, ax, rec.cloud, rec.poses.positions[:, :2] if rec.poses is not None else None,
+                    cax=fig.add_axes((0.90, 0.25, 0.02, 0.5)))
+    if rec.odometry is not None:
+        ax.plot(rec.odometry.positions[:, 0], rec.odometry.positions[:, 1], color="0.55", lw=0.7, ls="--",
+                label="odometry (before loop closure)")
+    if rec.poses is not None:
+        ax.plot(rec.poses.positions[:, 0], rec.poses.positions[:, 1], color="#1f5fd0", lw=1.0, label="trajectory")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="upper right", fontsize=8, framealpha=0.85)
+    limits = ax.get_xlim(), ax.get_ylim()
+    # the figure takes the map's shape (no empty bands above and below a wide map)
+    (x0, x1), (y0, y1) = limits
+    w_in, h_in = _MAP_RECT[2] * size, _MAP_RECT[3] * size
+    height = size * float(np.clip((y1 - y0) / max(x1 - x0, 1e-9) * w_in / h_in, 0.35, 1.0))
+    fig.set_size_inches(size, height)
+    layers = [("map", "map and trajectory", _png_exact(fig, dpi), True)]
+    if rec.submaps is None or not len(rec.submaps.get("x", [])):
+        return layers
+    xy = np.stack([rec.submaps["x"], rec.submaps["y"]], axis=1)
+
+    def overlay(key: str, label: str, draw, shown: bool) -> None:
+        fig, ax = canvas(True)
+        draw(ax)
+        ax.set_xlim(*limits[0])
+        ax.set_ylim(*limits[1])
+        ax.set_aspect("equal")
+        layers.append((key, label, _png_exact(fig, dpi), shown))
+
+    n_ok = sum(r.get("accepted") == "1" for r in rec.loops)
+    overlay("accepted", f"accepted loops ({n_ok})",
+            lambda ax: _draw_loops(ax, [r for r in rec.loops if r.get("accepted") == "1"], xy), True)
+    overlay("rejected", f"rejected hypotheses ({len(rec.loops) - n_ok})",
+            lambda ax: _draw_loops(ax, [r for r in rec.loops if r.get("accepted") != "1"], xy), False)
+
+    def anchors(ax) -> None:
+        covs = anchor_covariances_xy(rec.submaps)
+        ax.scatter(xy[:, 0], xy[:, 1], color="#7a1fa0", s=12, zorder=5)
+        _ellipses(ax, xy, covs, 3.0, edgecolors="#7a1fa0", linewidths=0.8, zorder=4)
+
+    overlay("submaps", f"submap anchors and 3σ ellipses ({len(xy)})", anchors, False)
+    return layers
+
+
+def _png_exact(fig, dpi: int) -> str:
+    """A figure as a PNG data URI at its exact size (no tight bounding box: layers stay aligned)."""
+    import base64
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, transparent=fig.patch.get_alpha() not in (None, 1.0))
+    _plt().close(fig)
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
 
 def save_map_picture(rec: RunRecord, path, dpi: int = 110) -> None:
