@@ -423,3 +423,13 @@ def test_the_map_view_is_large_with_layers_to_toggle(small_run, tmp_path):
         assert layer.shape[2] == 4 and float(np.mean(layer[..., 3] == 0)) > 0.5  # transparent around its lines
     anchors = _figure_png(html, "layer-submaps")
     assert float(np.mean(anchors[..., 3] > 0)) > 1e-4  # the anchors are drawn
+
+
+def test_a_run_worse_than_its_odometry_is_flagged():
+    from submapslam.evaluation.html_report import worse_than_odometry
+
+    rows = {"submapslam": {"ATE RMSE [m]": 0.30}, "odometry (before loop closure)": {"ATE RMSE [m]": 0.20}}
+    assert "worse than its odometry" in worse_than_odometry(rows)
+    rows["submapslam"]["ATE RMSE [m]"] = 0.10
+    assert worse_than_odometry(rows) is None
+    assert worse_than_odometry({"submapslam": {"ATE RMSE [m]": 0.3}}) is None

@@ -56,6 +56,20 @@ def trajectory_errors(reference: Trajectory, series: dict[str, Trajectory], mode
     return rows, ates, segments
 
 
+def worse_than_odometry(rows: dict[str, dict]) -> str | None:
+    """A warning when the run's ATE is more than 5 % above its own odometry's (before loop
+    closure): the loop closures made the trajectory worse. None otherwise."""
+    run = next((r for name, r in rows.items() if not name.startswith("odometry")), None)
+    odo = next((r for name, r in rows.items() if name.startswith("odometry")), None)
+    if run is None or odo is None or not odo["ATE RMSE [m]"] > 0:
+        return None
+    if run["ATE RMSE [m]"] <= 1.05 * odo["ATE RMSE [m]"]:
+        return None
+    return (f"this run's ATE ({run['ATE RMSE [m]']:.3f} m) is worse than its odometry's before loop closure "
+            f"({odo['ATE RMSE [m]']:.3f} m): a wrong loop closure, or one that was right but badly weighted; "
+            "the loop table below says which were accepted")
+
+
 def _overview(rec: RunRecord) -> str:
     s = rec.summary
     if rec.kind == "ekf":
@@ -192,6 +206,8 @@ def build_run_report(rec: RunRecord, reference: Trajectory | Callable[[], Trajec
                             in rf.evo_figures(reference, ates[first][0], first, mode))
             degenerate = rf.degenerate_alignment(reference, mode)
             warn = f'<p class="note" id="degenerate-alignment">warning: {hp.esc(degenerate)}</p>' if degenerate else ""
+            worse = worse_than_odometry(rows)
+            warn += f'<p class="note" id="worse-than-odometry">warning: {hp.esc(worse)}</p>' if worse else ""
             sections.append((f"Error against {reference_name} ({mode} alignment)",
                              warn + table + f'<div class="figs">{figs}</div>'))
     if rec.kind != "ekf":

@@ -103,36 +103,6 @@ def _draw_cloud(fig, ax, cloud: np.ndarray, path_xy: np.ndarray | None, cax=None
         fig.colorbar(im, ax=ax, shrink=0.6, label="height over the ground of the highest map point [m]")
 
 
-def map_figure(rec: RunRecord, dpi: int = 100) -> str:
-    """The map (occupancy grid, or a top-down render of the 3D cloud) with the optimised
-    trajectory, the odometry before loop closure, submap anchors with 3σ ellipses, accepted
-    loops in green and rejected hypotheses in red."""
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(10, 10))
-    if rec.grid is not None and (rec.cloud is None or len(rec.cloud) == 0):
-        _draw_grid(ax, rec.grid)
-    elif rec.cloud is not None and len(rec.cloud):
-        _draw_cloud(fig, ax, rec.cloud, rec.poses.positions[:, :2] if rec.poses is not None else None)
-    if rec.odometry is not None:
-        ax.plot(rec.odometry.positions[:, 0], rec.odometry.positions[:, 1], color="0.55", lw=0.7, ls="--",
-                label="odometry (before loop closure)")
-    if rec.poses is not None:
-        ax.plot(rec.poses.positions[:, 0], rec.poses.positions[:, 1], color="#1f5fd0", lw=1.0, label="trajectory")
-    if rec.submaps is not None and len(rec.submaps.get("x", [])):
-        xy = np.stack([rec.submaps["x"], rec.submaps["y"]], axis=1)
-        _draw_loops(ax, rec.loops, xy)
-        covs = anchor_covariances_xy(rec.submaps)
-        r3 = 3 * np.sqrt(np.clip(np.linalg.eigvalsh(covs)[:, -1], 0, None))
-        sc = ax.scatter(xy[:, 0], xy[:, 1], c=r3, cmap="plasma", s=14, zorder=5, label="submap anchors")
-        _ellipses(ax, xy, covs, 3.0, edgecolors="#7a1fa0", linewidths=0.8, zorder=4)
-        fig.colorbar(sc, ax=ax, shrink=0.6, label="anchor 3σ (largest axis) [m]; ellipses: 3σ to scale")
-    ax.set_aspect("equal")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.legend(loc="upper right", fontsize=8, framealpha=0.85)
-    return png_data_uri(fig, dpi)
-
-
 _MAP_RECT = (0.08, 0.06, 0.80, 0.90)  # the map axes' place in every layer (same pixels in each)
 
 
