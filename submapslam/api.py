@@ -281,6 +281,9 @@ def run_ekf_log(
     summary = ekf_summary(data, run, compare=compare, incremental=incremental)
     with staged_folder(out_dir, "ekf", overwrite=overwrite, inputs=[log_path]) as staging:
         write_ekf_results(staging, run, summary)
+        if data.truth_landmarks:  # for the report's map (landmarks.png draws them too)
+            lines = ["id,x,y"] + [f"{k},{xy[0]:.6f},{xy[1]:.6f}" for k, xy in sorted(data.truth_landmarks.items())]
+            (staging / "landmarks_truth.csv").write_text("\n".join(lines) + "\n")
         plot_stochastic_map(staging / "landmarks.png", run, data.truth_landmarks or None, data.truth_poses)
         from .io.provenance import input_provenance, write_provenance
 

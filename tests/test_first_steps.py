@@ -183,6 +183,13 @@ def test_ekf_recognises_a_synth_landmarks_folder_and_names_its_formats(small_log
     line = assert_one_error_line(runner.invoke(app, ["ekf", str(small_log / "log.clf"), "--out", str(tmp_path / "c")]),
                                  "carmen", "ekf reads", "MR.CLAM", "victoria_park")
     assert "unknown record" not in line
+    # the report overlays the true landmarks the synthetic log knows
+    from submapslam.io.run_folder import read_run_folder
+
+    assert read_run_folder(tmp_path / "e").truth_landmarks.shape == (8, 2)
+    r = runner.invoke(app, ["report", str(tmp_path / "e")])
+    assert r.exit_code == 0, r.output
+    assert "black crosses: the true landmarks" in (tmp_path / "e" / "report.html").read_text()
     (tmp_path / "empty").mkdir()
     assert_one_error_line(runner.invoke(app, ["ekf", str(tmp_path / "empty"), "--out", str(tmp_path / "x")]),
                           "not a landmark log", "synth landmarks")

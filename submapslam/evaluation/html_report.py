@@ -168,7 +168,9 @@ def build_run_report(rec: RunRecord, reference: Trajectory | Callable[[], Trajec
     if rec.kind == "ekf":
         sections.append(("Stochastic map: landmarks",
                          hp.figure(rf.landmarks_figure(rec), "Features with 3σ ellipses coloured by credibility "
-                                   "(red: about to be removed, green: confirmed)", "map")))
+                                   "(red: about to be removed, green: confirmed)"
+                                   + ("; black crosses: the true landmarks" if rec.truth_landmarks is not None else ""),
+                                   "map")))
         if rec.pose_nees is not None:
             t, nees = rec.pose_nees
             sections.append(("NEES of the robot pose against the truth", hp.figure(

@@ -369,7 +369,8 @@ def evo_figures(reference: Trajectory, traj: Trajectory, name: str, mode: AlignM
 
 
 def landmarks_figure(rec: RunRecord, dpi: int = 100) -> str:
-    """EKF runs: the robot path and every feature with its 3σ ellipse, coloured by credibility."""
+    """EKF runs: the robot path and every feature with its 3σ ellipse, coloured by credibility;
+    the true landmarks as black crosses when the log knows them."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(9, 9))
     if rec.poses is not None:
@@ -382,6 +383,9 @@ def landmarks_figure(rec: RunRecord, dpi: int = 100) -> str:
         colors = cmap(np.clip([lm["credibility"] for lm in lms], 0, 1))
         _ellipses(ax, xy, C, 3.0, edgecolors=colors, linewidths=1.1)
         ax.scatter(xy[:, 0], xy[:, 1], marker="+", c=colors, s=30, label="features")
+    if rec.truth_landmarks is not None and len(rec.truth_landmarks):
+        ax.scatter(rec.truth_landmarks[:, 0], rec.truth_landmarks[:, 1], marker="x", color="k", s=22, lw=0.9,
+                   label=f"true landmarks ({len(rec.truth_landmarks)})")
     sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, 1))
     fig.colorbar(sm, ax=ax, shrink=0.7, label="credibility c_t")
     ax.set_aspect("equal")

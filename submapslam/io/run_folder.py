@@ -100,6 +100,9 @@ def read_run_folder(folder: str | Path, *, with_cloud: bool = True) -> RunRecord
         rec.loops = _csv_rows(root / "loops.csv")
     if (root / "landmarks.csv").is_file():
         rec.landmarks = [{k: float(v) for k, v in r.items()} for r in _csv_rows(root / "landmarks.csv")]
+    if (root / "landmarks_truth.csv").is_file():
+        rows = _csv_rows(root / "landmarks_truth.csv")
+        rec.truth_landmarks = np.array([[float(r["x"]), float(r["y"])] for r in rows]).reshape(-1, 2)
     if (root / "nees.csv").is_file():
         from .nees_csv import read_nees_csv
 
