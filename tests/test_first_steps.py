@@ -426,3 +426,11 @@ def test_a_run_worse_than_its_odometry_is_flagged():
     rows["submapslam"]["ATE RMSE [m]"] = 0.10
     assert worse_than_odometry(rows) is None
     assert worse_than_odometry({"submapslam": {"ATE RMSE [m]": 0.3}}) is None
+
+
+def test_synth_reports_progress_with_a_total(tmp_path):
+    from datasets_synth import generate
+
+    calls = []
+    generate("rectangle", tmp_path / "s", laps=1, max_scans=30, progress=lambda done, total: calls.append((done, total)))
+    assert calls and calls[-1] == (30, 30) and all(total == 30 for _, total in calls)
