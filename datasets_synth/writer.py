@@ -163,7 +163,7 @@ def write_landmarks(out: Path, cylinders: np.ndarray | None) -> None:
 def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, sensor: str | None = None,
              speed: float | None = None, rate: float = 10.0, odometry_noise: float = 1.0,
              max_scans: int | None = None, sensor_options: dict | None = None, movers: int = 0,
-             doors: int = 0, **world_options) -> Path:
+             doors: int = 0, progress: Callable[[int, int], None] | None = None, **world_options) -> Path:
     """Write a synthetic log of ``world`` into ``out_dir``; returns ``out_dir``.
 
     Args:
@@ -173,6 +173,7 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
         sensor: ``"laser2d"`` or ``"lidar3d"`` (default: the world's own).
         speed: [m/s] (default 1.0 indoors, 8.0 outdoors); ``rate``: scans per second.
         odometry_noise: multiplies the default :class:`OdometryNoise` (0 = perfect odometry).
+        progress: called as ``progress(done, total)`` while the scans are cast.
         max_scans: cut the log after this many scans (small test logs).
         sensor_options: overrides of :class:`Laser2D` / :class:`Lidar3D` fields (e.g. max_range).
         movers: planar worlds: people walking the hallways (some standing, then leaving) and
@@ -227,8 +228,10 @@ def generate(world: str, out_dir: str | Path, *, seed: int = 0, laps: int = 2, s
         door = door_tracks(w.doorways, len(truth_xyt), rate, doors, np.random.default_rng([seed, 6007]))
         tracks = door if tracks is None else MoverTracks.concat([tracks, door])
     mesh, triangle_labels = w.labelled_mesh()
+    total = len(T_cast)
     cast = cast_scans(out, RayCaster(mesh), dev, T_cast, rng, keep_ranges=sensor == "laser2d",
-                      triangle_labels=triangle_labels, movers=tracks)
+                      triangle_labels=triangle_labels, movers=tracks,
+                      progress=None if progress is None else (lambda k: progress(k, total)))
     carmen_ranges = [r for r, _ in cast]
     stamps = write_trajectories(out, truth, odom, rate)
     summary = odometry_summary(truth, odom)

@@ -28,13 +28,12 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
-def progress_bar(total: int | None):
-    """A transient rich progress bar on stderr (scans done of ``total``, None: unknown)."""
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+def progress_bar(total: int | None = None):
+    """A transient rich progress bar on stderr: done of a total, elapsed time and ETA
+    (:func:`submapslam.progress.progress_bar`; the total is given to ``add_task``)."""
+    from .progress import progress_bar as bar
 
-    return Progress(TextColumn("[bold]scans"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                    console=Console(stderr=True), transient=True)
+    return bar()
 
 
 def fuse_beside_map_store(session_map: SessionMap, map_folder: Path,
@@ -135,12 +134,6 @@ def run_log(
         check_out_folder(out_dir, inputs=inputs, overwrite=overwrite)
     hint_pairs = read_hint_file(cfg.loops.hints_file) if cfg.loops.hints_file else None
     reader = open_log(log_path, format, **(reader_options or {}))
-    try:
-        total = len(reader)  # type: ignore[arg-type]
-    except TypeError:
-        total = None
-    if cfg.max_scans is not None and total is not None:
-        total = min(total, cfg.max_scans)
     source = recorded_as or str(log_path)
     keep = None
     if out_dir is not None and cfg.checkpoint_every_submaps:
@@ -154,11 +147,19 @@ def run_log(
     options = dict(source=source, hints=hint_pairs, stop=stop, resume_from=checkpoint,
                    checkpoint_every=cfg.checkpoint_every_submaps, on_checkpoint=keep, observer=observer)
     if progress:
-        with progress_bar(total) as bar:
-            task = bar.add_task("run", total=total)
-            result = run(reader, cfg, progress=lambda n: bar.update(task, completed=n), **options)
+        from .progress import ScanProgress
+
+        with ScanProgress(reader, limit=cfg.max_scans) as bar:
+            result = run(reader, cfg, progress=bar, **options)
     elif on_progress is not None:
-        result = run(reader, cfg, progress=lambda n: on_progress(n, total), **options)
+        from .progress import clip_total, reader_total
+
+        total, estimator = reader_total(reader)
+        if total is None and estimator is not None:
+            total = estimator()[0]
+        total = clip_total(total, 0, cfg.max_scans)
+        result = run(reader, cfg, progress=lambda n: on_progress(n, max(total, n) if total is not None else None),
+                     **options)
     else:
         result = run(reader, cfg, **options)
     if hint_pairs:
@@ -230,15 +231,11 @@ def localize_to_folder(
     points = load_map(map_path)
     reader = open_log(log_path, format)
     if progress:
-        try:
-            total = max(0, len(reader) - start)  # type: ignore[arg-type]
-            total = min(total, max_scans) if max_scans else total
-        except TypeError:
-            total = None
-        with progress_bar(total) as bar:
-            task = bar.add_task("localize", total=total)
+        from .progress import ScanProgress
+
+        with ScanProgress(reader, start=start, limit=max_scans) as bar:
             result = localize_log(reader, points, T0, config=config, start=start, max_scans=max_scans,
-                                  on_scan=lambda k: bar.update(task, completed=k + 1))
+                                  on_scan=lambda k: bar(k + 1))
     else:
         result = localize_log(reader, points, T0, config=config, start=start, max_scans=max_scans)
     with staged_folder(out_dir, "localize", overwrite=overwrite, inputs=[log_path, map_path]) as staging:
@@ -288,6 +285,9 @@ def run_ekf_log(
     summary = ekf_summary(data, run, compare=compare, incremental=incremental)
     with staged_folder(out_dir, "ekf", overwrite=overwrite, inputs=[log_path]) as staging:
         write_ekf_results(staging, run, summary)
+        if data.truth_landmarks:  # for the report's map (landmarks.png draws them too)
+            lines = ["id,x,y"] + [f"{k},{xy[0]:.6f},{xy[1]:.6f}" for k, xy in sorted(data.truth_landmarks.items())]
+            (staging / "landmarks_truth.csv").write_text("\n".join(lines) + "\n")
         plot_stochastic_map(staging / "landmarks.png", run, data.truth_landmarks or None, data.truth_poses)
         from .io.provenance import input_provenance, write_provenance
 
@@ -384,6 +384,8 @@ def _pairing_warnings(est: Path, ref: Path, e, r, raw_log, max_diff: float) -> l
     """Warnings about how EST and REF were paired: KITTI files of different lengths (paired by
     line), a CARMEN reference whose timestamps match few of the estimate's (none: an error that
     suggests the raw log)."""
+    import numpy as np
+
     from .evaluation.metrics import associate
     from .io.trajectory import trajectory_format
 
@@ -394,6 +396,17 @@ def _pairing_warnings(est: Path, ref: Path, e, r, raw_log, max_diff: float) -> l
                         f"KITTI files ({', '.join(kitti)}) have no timestamps, so poses are paired by line "
                         f"and only the first {min(len(e.timestamps), len(r.timestamps))} are compared")
     hint = _raw_log_hint(ref, raw_log)
+    if not kitti and not hint:  # (with a hint, the warning below says what went wrong)
+        try:
+            i_r = associate(e, r, max_diff)[1]
+        except SubmapSlamError:
+            i_r = np.zeros(0, dtype=int)
+        span = float(np.ptp(r.timestamps)) if len(r.timestamps) > 1 else 0.0
+        if len(i_r) and span > 0:
+            covered = float(np.ptp(r.timestamps[i_r])) / span
+            if covered < 0.9:
+                warnings.append(f"{est.name} ({len(e.timestamps)} poses) covers {covered:.0%} of {ref.name}'s "
+                                f"time ({len(r.timestamps)} poses): the figures are for that part only")
     if hint:
         try:
             matched = len(associate(e, r, max_diff)[0])
@@ -431,7 +444,8 @@ def report_run(run_dir: str | Path, out_path: str | Path | None = None, *, ref: 
                raw_log: str | Path | None = None, align: str = "se3") -> Path:
     """Write the self-contained HTML report of the results folder ``run_dir`` (default
     ``run_dir/report.html``); with ``ref`` (``raw_log``: the raw CARMEN log when ``ref`` is a
-    corrected one) the error against it. Returns the page's path.
+    corrected one) the error against it; without ``ref``, against the ground truth the log ships
+    (``groundtruth_tum.txt`` beside it), if any. Returns the page's path.
 
     An existing file at ``out_path`` is replaced only when it is a report this function wrote;
     anything else is an error, so no file of the user's is overwritten.
@@ -453,7 +467,13 @@ def report_run(run_dir: str | Path, out_path: str | Path | None = None, *, ref: 
     if not out.parent.is_dir():
         raise InputError(out.parent, "no such folder for the report")
     if ref is None:
-        return write_run_report(read_run_folder(run_dir), out, None, align=mode)
+        from .io.run_folder import shipped_ground_truth
+
+        ref = shipped_ground_truth(run_dir)  # a log that ships its ground truth is evaluated against it
+        if ref is None:
+            return write_run_report(read_run_folder(run_dir), out, None, align=mode)
+        return write_run_report(read_run_folder(run_dir), out, _reference(ref, None), align=mode,
+                                reference_name=f"{Path(ref).name} (shipped with the log)")
     from concurrent.futures import ThreadPoolExecutor
 
     # the reference is read (decompressed: bz2/gzip release the GIL) while the map is drawn
@@ -467,21 +487,58 @@ def report_run(run_dir: str | Path, out_path: str | Path | None = None, *, ref: 
         return write_run_report(record, out, reference.result, align=mode, reference_name=Path(ref).name)
 
 
+def map_picture(run_dir: str | Path, png: str | Path | None = None) -> Path:
+    """Write a PNG of the map and trajectory of the results folder ``run_dir`` (default
+    ``run_dir/map.png``); returns its path. An existing file is replaced only when it is a PNG."""
+    from .errors import InputError
+    from .evaluation.run_figures import save_map_picture
+    from .io.run_folder import read_run_folder
+
+    out = Path(png) if png is not None else Path(run_dir) / "map.png"
+    if out.is_dir():
+        raise InputError(out, "is a folder; give the path of the .png file to write")
+    if out.exists():
+        with open(out, "rb") as fh:
+            if fh.read(8) != b"\x89PNG\r\n\x1a\n":
+                raise InputError(out, "exists and is not a PNG picture; not overwriting it")
+    save_map_picture(read_run_folder(run_dir), out)
+    return out
+
+
 def evaluate_map_file(map_path: str | Path, log_path: str | Path, *, poses: str | Path | None = None,
                       voxel: float = 0.1, radius: float = 0.15) -> dict:
     """DynamicMap scores (SA, DA, AA) of a map file (PLY/PCD cloud or map_server grid) against a
-    labelled log (``labels/NNNNNN.label``) placed at ``poses`` (default: the log's ground truth).
+    labelled log (``labels/NNNNNN.label``) placed at ``poses``.
+
+    The frame rule ``clean`` shares: a map is in the frame of the poses it was made at, and is
+    scored there. ``poses`` None: for a map ``clean`` wrote, the poses it was cleaned at (its
+    ``summary.json``); for any other map, the log's ground truth. ``frame`` in the result names
+    the poses used; ``warnings`` says when ``poses`` differ from those a ``clean`` map was made at.
 
     For a grid the truth is voxelised into 2D cells of the grid's resolution and the radius is
     at least 0.75 cells (a wall point's cell centre is up to 0.71 cells from its centroid).
     """
     from .errors import SubmapSlamError
     from .evaluation.dynamic_map import LabelledVoxels, score_map
-    from .io.labels import count_scans, labelled_scans, read_map_points, scan_poses
+    from .io.labels import count_scans, labelled_scans, map_made_at, read_map_points, scan_poses
 
     if voxel <= 0 or radius <= 0:
         raise SubmapSlamError(f"--voxel and --radius must be > 0 (got {voxel}, {radius})")
     map_points, resolution = read_map_points(map_path)
+    made_at = map_made_at(map_path)
+    warnings = []
+    if poses is None and made_at is not None:
+        if not made_at.is_file():
+            raise SubmapSlamError(f"{map_path} was cleaned at {made_at}, which is gone; give --poses "
+                                  "(the map is in the frame of the poses it was made at)")
+        poses, frame = made_at, f"the poses it was cleaned at ({made_at})"
+    elif poses is None:
+        frame = "the log's ground truth"
+    else:
+        frame = f"--poses ({poses})"
+        if made_at is not None and made_at.resolve() != Path(poses).resolve():
+            warnings.append(f"{Path(map_path).name} was cleaned at {made_at}, not {poses}: if their frames "
+                            "differ the scores mean nothing (leave out --poses to use the map's own)")
     T = scan_poses(log_path, poses, count_scans(log_path))
     planar_grid = resolution is not None
     cell = resolution if planar_grid else voxel
@@ -495,7 +552,7 @@ def evaluate_map_file(map_path: str | Path, log_path: str | Path, *, poses: str 
     r = max(radius, 0.75 * resolution) if planar_grid else radius
     scores = score_map(truth, map_points, r).as_dict()
     return {"map": str(map_path), "log": str(log_path), "voxel": cell, "radius": r,
-            "grid": planar_grid, "gt_points": truth.points, **scores}
+            "grid": planar_grid, "gt_points": truth.points, "frame": frame, "warnings": warnings, **scores}
 
 
 def clean_log(log_path: str | Path, poses: str | Path, out_dir: str | Path, *, format: str | None = None,
@@ -549,7 +606,8 @@ def clean_log(log_path: str | Path, poses: str | Path, out_dir: str | Path, *, f
     if not len(result.keys):
         raise SubmapSlamError(f"{log_path}: the scans hold no points")
     summary = {
-        "log": str(log_path), "poses": str(poses), "scans": counted["scans"],
+        "log": str(log_path), "poses": str(poses), "poses_resolved": str(Path(poses).resolve()),
+        "frame": "the frame of the poses (--poses): eval-map scores this map there", "scans": counted["scans"],
         "points_kept": result.points_kept, "points_removed": result.points_removed,
         "voxels_kept": int((~result.dynamic).sum()), "voxels_removed": int(result.dynamic.sum()),
         "voxel_m": params.voxel, "output": "one point per voxel: the centroid of the scan points in it",

@@ -589,6 +589,31 @@ def _yaml_line(text: str, loc: tuple) -> int | None:
     return line
 
 
-def dump_config(config: PipelineConfig) -> str:
-    """The config as YAML text (every key, defaults included)."""
-    return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)
+def dump_config(config: PipelineConfig, comments: bool = False) -> str:
+    """The config as YAML text (every key, defaults included); ``comments``: each section and key
+    preceded by what it means (the models' docstrings and field descriptions) as ``#`` lines."""
+    if not comments:
+        return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)
+    return "\n".join(_commented(config, 0)) + "\n"
+
+
+def _commented(model: BaseModel, depth: int) -> list[str]:
+    """YAML lines of ``model`` with a comment above every field (recursing into sub-models)."""
+    import textwrap
+
+    pad = "  " * depth
+    lines: list[str] = []
+    for name, info in type(model).model_fields.items():
+        value = getattr(model, name)
+        text = info.description or (type(value).__doc__ if isinstance(value, BaseModel) else None) or ""
+        text = " ".join(text.split())
+        if isinstance(value, BaseModel) and depth == 0 and lines:
+            lines.append("")
+        lines += [f"{pad}# {ln}" for ln in textwrap.wrap(text, max(40, 98 - len(pad)), break_on_hyphens=False)]
+        if isinstance(value, BaseModel):
+            lines.append(f"{pad}{name}:")
+            lines += _commented(value, depth + 1)
+        else:
+            dumped = yaml.safe_dump({name: model.model_dump(mode="json")[name]}, sort_keys=False).rstrip("\n")
+            lines += [pad + ln for ln in dumped.splitlines()]
+    return lines

@@ -91,6 +91,11 @@ class SubmapSLAM:
         self.loops: list[LoopRecord] = []
         self.dropped_nan_points = 0
         self.empty_scans = 0
+        self.nan_scans: list[str] = []  # scans whose every point was NaN/inf (their sources)
+        self.backwards: list[tuple[int, float, float]] = []  # (scan, its time, the time before it)
+        self._last_time: float | None = None
+        self._streamed = 0  # scans new_poses() has handed out
+        self._live_correction = np.eye(4)  # T_world_odom of the newest optimised submap anchor
         # graph work of the last closed submap (odometry edge, loop tests, iSAM2), running in a
         # worker thread while the next scans are registered; waited for before anything reads
         # or extends the graph, so every graph operation happens in the same order as inline
@@ -127,8 +132,13 @@ class SubmapSLAM:
             scan.points = points[finite]
             if scan.point_times is not None:
                 scan.point_times = scan.point_times[finite]
+            if len(scan.points) == 0:
+                self.nan_scans.append(scan.source or f"scan {self._submitted}")
         if len(scan.points) == 0:
             self.empty_scans += 1
+        if self._last_time is not None and scan.timestamp < self._last_time:
+            self.backwards.append((self._submitted, scan.timestamp, self._last_time))
+        self._last_time = scan.timestamp
         index = self._submitted
         known = self._replay.known_pose(index) if self._replay is not None else None
         if known is not None and scan.timestamp != self._replay.timestamps[index]:
@@ -258,6 +268,8 @@ class SubmapSLAM:
             self.loops.extend(records)
             self._graph_builder.add_loops(records)
         self._records_by_submap[submap.id] = records
+        # what new_poses() applies from now on (one reference assignment: safe to read meanwhile)
+        self._live_correction = self._graph_builder.graph.pose(submap.id) @ inverse(submap.T_odom_anchor)
         if self._observer is not None:
             notify_closed_submap(self._observer, submap.id, submap.T_odom_anchor, submap.points, records,
                                  self._graph_builder.graph.pose)
@@ -331,8 +343,28 @@ class SubmapSLAM:
         graph = self._graph_builder.graph
         return {s.id: graph.pose(s.id) @ inverse(s.T_odom_anchor) for s in self.submaps}
 
+    def new_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(timestamps (K,), T_world_base (K, 4, 4))`` of the K scans completed since the last
+        call: the cheap streaming read, O(K), that never waits for the graph work running beside.
+
+        Each pose is the scan's odometry corrected by the newest optimised submap anchor known
+        when it is read (the live estimate a robot acts on). Earlier poses are not revised here:
+        :meth:`trajectory` gives every scan's current, smoothed estimate (O(all scans), after
+        waiting for the graph work); :meth:`finish` the final one.
+        """
+        start, end = self._streamed, len(self._odom_poses)
+        self._streamed = end
+        if end == start:
+            return np.zeros(0), np.zeros((0, 4, 4))
+        C = self._live_correction
+        odom = np.asarray(self._odom_poses[start:end]).reshape(-1, 4, 4)
+        return np.asarray(self.timestamps[start:end], dtype=np.float64), C @ odom
+
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """Current ``(timestamps (N,), T_world_base (N, 4, 4))`` of every scan so far.
+
+        O(all scans), and it waits for the graph work of the last closed submap: a call after
+        every scan slows a long run down; :meth:`new_poses` is the cheap streaming read.
 
         A scan takes its submap's correction (optimised anchor vs odometry), blended towards the
         next submap's by the share of the odometry path between the two anchors it has covered:
@@ -377,6 +409,19 @@ class SubmapSLAM:
         return fuse_clouds(clouds, voxel or self.map_voxel)
 
     # ------------------------------------------------------------------ finishing
+    def input_warnings(self) -> list[str]:
+        """One line per kind of doubtful input seen: timestamps that run backwards, scans whose
+        every point was NaN/inf."""
+        lines = []
+        if self.backwards:
+            k, t, before = self.backwards[0]
+            lines.append(f"the log's timestamps run backwards {len(self.backwards)} time(s) (first at scan {k}: "
+                         f"{t:.6f} after {before:.6f}); the poses keep the log's order, so their times do too")
+        if self.nan_scans:
+            lines.append(f"{len(self.nan_scans)} scan(s) hold only NaN/inf points (first: {self.nan_scans[0]}); "
+                         "each got the pose odometry predicts")
+        return lines
+
     def finish(self, input_error: str | None = None, source: str = "", interrupted: bool = False,
                failure: str | None = None) -> SlamResult:
         """Close the last submap, run the final batch optimisation and build the result
@@ -602,6 +647,14 @@ def run(
         on_checkpoint(slam.checkpoint(source))
     result = slam.finish(input_error=input_error, source=source, interrupted=interrupted, failure=failure)
     result.log_info = dict(getattr(scans, "log_info", None) or {})  # the reader's account (record, skips)
+    result.input_warnings = slam.input_warnings()
+    if result.log_info.get("nan_only_scans"):
+        files = result.log_info.get("nan_only_files") or ["?"]
+        result.input_warnings.append(f"{result.log_info['nan_only_scans']} scan file(s) hold only NaN/inf points "
+                                     f"(first: {files[0]}); each got the pose odometry predicts")
+    if result.log_info.get("nan_ranges"):
+        result.input_warnings.append(f"{result.log_info['nan_ranges']} NaN beam range(s) in the log, read as "
+                                     "no return")
     return result
 
 

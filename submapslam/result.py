@@ -79,6 +79,8 @@ class SlamResult:
         log_info: what the reader reports about the log (its ``log_info``: e.g. the CARMEN
             record read, damaged records skipped), written into ``summary.json``.
         hint_problems: one message per manual loop hint the log could not use.
+        input_warnings: one line per kind of doubtful input the run accepted (timestamps running
+            backwards, all-NaN scans, NaN beam ranges).
         optimiser_recoveries: one line per GTSAM failure the back end recovered from (the graph
             regularised, or the batch pass skipped).
         failure: the message of an optimiser failure that could not be recovered: the run
@@ -124,6 +126,7 @@ class SlamResult:
     submap_descriptors: np.ndarray | None = None
     log_info: dict = field(default_factory=dict)
     hint_problems: list[str] = field(default_factory=list)
+    input_warnings: list[str] = field(default_factory=list)
     optimiser_recoveries: list[str] = field(default_factory=list)
     failure: str | None = None
     odometry_registration: str = ""
@@ -210,6 +213,7 @@ class SlamResult:
             "interrupted": self.interrupted,
             **self.log_info,
             "hint_problems": list(self.hint_problems),
+            "input_warnings": list(self.input_warnings),
             "odometry_registration": self.odometry_registration or None,
             "optimiser_recoveries": list(self.optimiser_recoveries),
             "failure": self.failure,

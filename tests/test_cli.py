@@ -144,3 +144,13 @@ def test_demo_command(tmp_path, monkeypatch):
     assert "submapslam" in r.output and "wheel odometry" in r.output
     report = json.loads((tmp_path / "d" / "demo_report.json").read_text())
     assert report["ate"]["submapslam"]["rmse"] < report["ate"]["wheel odometry"]["rmse"]
+    # it ends with the report (against the world's ground truth) and a picture, and says where they are
+    import matplotlib.image as mpimg
+    import numpy as np
+
+    page, picture = tmp_path / "d" / "report.html", tmp_path / "d" / "map.png"
+    assert report["report"] == str(page) and report["picture"] == str(picture)
+    assert str(page) in r.output and str(picture) in r.output and "submapslam report" in r.output
+    assert "Error against groundtruth_tum.txt" in page.read_text()
+    img = mpimg.imread(picture)
+    assert img.shape[0] > 200 and float(np.std(img[..., :3])) > 0.02  # a drawing, not one colour

@@ -15,6 +15,9 @@ def open_live_view(view: bool, record: Path | None):
     ``.rrd``; an existing file is replaced only when it is a Rerun recording."""
     if not view and record is None:
         return None
+    if view and _headless():  # the viewer would die printing its windowing errors: say it in one line
+        raise ConfigError("--view needs a display (no DISPLAY or WAYLAND_DISPLAY here); use --record FILE.rrd "
+                          "and open it with `rerun FILE.rrd` where there is one")
     if record is not None:
         if record.suffix != ".rrd":
             raise ConfigError(f"--record {record}: the recording file must end in .rrd")
@@ -29,3 +32,13 @@ def open_live_view(view: bool, record: Path | None):
     from ..viz.rerun_view import RerunView
 
     return RerunView(spawn=view, record=record)
+
+
+def _headless() -> bool:
+    """Linux (or another X11/Wayland system) without a display to open a window on."""
+    import os
+    import sys
+
+    if sys.platform in ("darwin", "win32"):
+        return False
+    return not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))

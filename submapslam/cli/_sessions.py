@@ -7,7 +7,7 @@ from pathlib import Path
 from rich.markup import escape
 
 from ..errors import SubmapSlamError
-from ._common import console, fail
+from ._common import console, fail, plural
 
 
 def print_sessions(session_map) -> None:
@@ -21,7 +21,8 @@ def print_sessions(session_map) -> None:
     if unplaced:
         console.print(f"[yellow]{len(unplaced)} session(s) not placed in the map frame: {', '.join(unplaced)}; "
                       "poses_tum.txt and the map hold the placed sessions only[/yellow]", highlight=False, markup=True)
-    console.print(f"{r.n_scans} scans in {session_map.n_sessions} sessions, {r.n_submaps} submaps", highlight=False)
+    console.print(f"{plural(r.n_scans, 'scan')} in {plural(session_map.n_sessions, 'session')}, "
+                  f"{plural(r.n_submaps, 'submap')}", highlight=False)
 
 
 def print_held(held: list) -> None:
@@ -43,3 +44,4 @@ def run_many(logs: list[Path], out: Path, *, map_dir: Path | None, freeze_map: b
     if freeze_map:
         print_held(merged.sessions[:len(merged.sessions) - len(logs)])  # each log added one session
     console.print(f"results in {out} (per session: poses_tum_<session>.txt; sessions.csv; the map in {out}/map)")
+    console.print(f"next: submapslam report {out}   (one HTML page: map, trajectory, loops, errors)")

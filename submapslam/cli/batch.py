@@ -9,17 +9,26 @@ import typer
 from rich.markup import escape
 
 from ..errors import SubmapSlamError
-from ._common import OutFolder, console, fail
+from ._common import OutFolder, console, err_console, fail
+from ._interrupt import EXIT_INTERRUPTED
 
 
 def live_progress():
     """A rich progress view, a row per running log (scans done; of how many when the reader
     knows). On the results' console, so that the lines printed meanwhile stay above it;
     transient, and quiet when that is not a terminal."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+    from rich.progress import (
+        BarColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
-    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("scans"),
-                    TimeElapsedColumn(), console=console, transient=True)
+    from ..progress import CountColumn
+
+    return Progress(TextColumn("[bold]{task.description}"), BarColumn(), CountColumn(), TextColumn("scans"),
+                    TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(), console=console, transient=True)
 
 
 def register(app: typer.Typer) -> None:
@@ -103,6 +112,11 @@ def register(app: typer.Typer) -> None:
                                     ship_logs=ship_logs, verbose=verbose)
             except SubmapSlamError as exc:
                 raise fail(exc) from None
+            except KeyboardInterrupt:
+                err_console.print(f"[red]interrupted:[/red] the logs finished so far are kept in {escape(str(out))} "
+                                  "(batch.json); the same command with --resume runs the others and merges",
+                                  highlight=False, soft_wrap=True)
+                raise typer.Exit(EXIT_INTERRUPTED) from None
         table = Table(title=f"batch: {len(logs)} logs ({report.executor}), {report.wall_time_s:.1f} s "
                             f"(front ends {report.front_end_s:.1f} s, merge and writing the rest)")
         for col in ("log", "status", "scans", "submaps", "loops", "seconds", "merged", "results"):

@@ -25,7 +25,8 @@ def register(app: typer.Typer) -> None:
         overwrite: Overwrite = False,
     ) -> None:
         """Split the scans into a static map and what moved (free-space evidence by ray casting):
-        OUT/map_static.ply, OUT/map_dynamic.ply (world frame) and OUT/summary.json."""
+        OUT/map_static.ply, OUT/map_dynamic.ply and OUT/summary.json, in the frame of POSES
+        (`eval-map OUT/map_static.ply LOG` scores them in that frame)."""
         from ..api import clean_log
         from ..mapping.dynamic_removal import RemovalParams
 
@@ -39,3 +40,4 @@ def register(app: typer.Typer) -> None:
         console.print(f"{s['scans']} scans: {s['points_kept']} points kept, {s['points_removed']} removed "
                       f"({s['voxels_removed']} of {s['voxels_kept'] + s['voxels_removed']} voxels); "
                       f"{s['wall_time_s']:.1f} s, peak {s['peak_memory_mb']:.0f} MiB -> {out}", highlight=False)
+        console.print(f"frame: the maps are in the frame of {poses}; `eval-map` scores them there", highlight=False)

@@ -66,7 +66,8 @@ def register(app: typer.Typer) -> None:
                                   compare=compare, incremental=incremental, overwrite=overwrite)
         except SubmapSlamError as exc:
             raise fail(exc) from None
-        console.print({k: (round(v, 4) if isinstance(v, float) else v) for k, v in summary.items()})
+        for line in summary_lines(summary):
+            console.print(line, highlight=False)
 
     @app.command("ekf-nees")
     def ekf_nees_cmd(
@@ -119,3 +120,22 @@ def synthetic_nees_trials(workdir: str | Path, runs: int = 50, seed: int = 100,
         c, s = np.cos(-raw[0, 2]), np.sin(-raw[0, 2])
         rel = raw - raw[0]
         yield log, np.c_[c * rel[:, 0] - s * rel[:, 1], s * rel[:, 0] + c * rel[:, 1], rel[:, 2]]
+
+
+def summary_lines(summary: dict) -> list[str]:
+    """``key: value`` lines of a summary dict (floats to 4 significant places, nested dicts indented)."""
+    def text(v) -> str:
+        if isinstance(v, float):
+            return f"{v:.4g}"
+        if isinstance(v, list | tuple):
+            return ", ".join(text(x) for x in v)
+        return str(v)
+
+    lines = []
+    for key, value in summary.items():
+        if isinstance(value, dict):
+            lines.append(f"{key.replace('_', ' ')}:")
+            lines += [f"  {k.replace('_', ' ')}: {text(v)}" for k, v in value.items()]
+        else:
+            lines.append(f"{key.replace('_', ' ')}: {text(value)}")
+    return lines

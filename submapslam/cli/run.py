@@ -10,7 +10,7 @@ import typer
 from rich.markup import escape
 
 from ..errors import SubmapSlamError
-from ._common import Overwrite, console, err_console, fail
+from ._common import Overwrite, console, err_console, fail, next_steps
 from ._interrupt import EXIT_INTERRUPTED, quit_now, stop_requests
 
 
@@ -118,6 +118,8 @@ def register(app: typer.Typer) -> None:
         if consistency.get("disagrees_with_odometry"):
             err_console.print(f"[yellow]warning:[/yellow] {escape(consistency['message'])}", highlight=False,
                               soft_wrap=True)
+        for problem in result.input_warnings:
+            err_console.print(f"[yellow]warning:[/yellow] {escape(problem)}", highlight=False, soft_wrap=True)
         for problem in result.hint_problems:  # shown without -v: the user asked for these loops
             err_console.print(f"[yellow]warning:[/yellow] {escape(problem)}", highlight=False, soft_wrap=True)
         if s.get("skipped_records"):
@@ -125,7 +127,8 @@ def register(app: typer.Typer) -> None:
             where = f"line(s) {', '.join(map(str, lines[:5]))}" if lines else f"{', '.join(files[:5])}"
             console.print(f"skipped {s['skipped_records']} damaged record(s): {where}"
                           f"{' ...' if s['skipped_records'] > 5 else ''}")
-        console.print(f"results in {out}")
+        for line in next_steps(out, paths):
+            console.print(line)
         if result.failure:
             raise fail(f"{result.failure} (results cover the first {s['scans']} scans)")
         if result.interrupted:

@@ -66,6 +66,8 @@ def register(app: typer.Typer) -> None:
         from ..io.output_folder import staged_folder
 
         try:
+            if laps is not None and laps < 1:
+                raise SubmapSlamError(f"--laps must be 1 or more, not {laps}")
             landmark_opts = (("--vanish", vanish or None), ("--appear", appear or None),
                              ("--p-miss", p_miss or None), ("--clutter", clutter or None), ("--landmarks", landmarks))
             if world != "landmarks":
@@ -148,12 +150,17 @@ def _world(world, out, seed, laps, sensor, max_scans, odometry_noise, poles, mov
 
     from datasets_synth import generate
 
+    from ..api import progress_bar
+
     extra = {"poles": poles} if poles else {}
-    path = generate(world, out, seed=seed, laps=laps, sensor=sensor, max_scans=max_scans,
-                    odometry_noise=odometry_noise, movers=movers, doors=doors, **extra)
+    with progress_bar(None) as bar:
+        task = bar.add_task("scans", total=None)
+        path = generate(world, out, seed=seed, laps=laps, sensor=sensor, max_scans=max_scans,
+                        odometry_noise=odometry_noise, movers=movers, doors=doors,
+                        progress=lambda done, total: bar.update(task, completed=done, total=total), **extra)
     meta = yaml.safe_load((path / "meta.yaml").read_text())
     return (f"{meta['n_scans']} scans of {world} ({meta['sensor']['type']}), loop {meta['loop_length_m']:.0f} m "
-            f"x {meta['laps']} laps, wheel odometry end drift {meta['odometry_end_drift_m']:.2f} m{_movers_text(meta)}")
+            f"x {meta['laps']} lap{'' if meta['laps'] == 1 else 's'}, wheel odometry end drift {meta['odometry_end_drift_m']:.2f} m{_movers_text(meta)}")
 
 
 def _kitti(out, path, rings, seed, max_scans, odometry_noise, movers=0, *, terrain=False, keyframes=False) -> str:

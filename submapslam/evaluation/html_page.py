@@ -30,7 +30,7 @@ tr.ok td:first-child{border-left:4px solid #2a2}tr.no td:first-child{border-left
 .kv td:first-child{text-align:left;color:#555}.kv td{text-align:left}
 pre{background:#f7f7f7;border:1px solid #ddd;padding:8px;font-size:.8em;max-height:420px;overflow:auto}
 .filters{margin:8px 0;font-size:.9em}.filters input{width:220px}.count{color:#555;margin-left:8px}
-.note{color:#a60}
+.note{color:#a60}.layers{margin:8px 0;font-size:.9em}.layers label{margin-right:14px}
 """
 
 _JS = """
@@ -38,13 +38,19 @@ function sortTable(th){const t=th.closest('table'),b=t.tBodies[0],k=th.cellIndex
  asc=th.dataset.dir!=='asc';th.dataset.dir=asc?'asc':'desc';
  const rows=[...b.rows];const v=r=>{const s=r.cells[k].dataset.v??r.cells[k].textContent;const n=parseFloat(s);return isNaN(n)?s:n};
  rows.sort((a,c)=>{const x=v(a),y=v(c);return (x<y?-1:x>y?1:0)*(asc?1:-1)});rows.forEach(r=>b.appendChild(r))}
-function filterLoops(){const q=document.getElementById('lq').value.toLowerCase(),
- st=document.getElementById('ls').value,src=document.getElementById('lsrc').value;let n=0;
+let loopPage=0;const LOOP_PAGE=50;
+function filterLoops(keepPage){if(keepPage!==true)loopPage=0;const q=document.getElementById('lq').value.toLowerCase(),
+ st=document.getElementById('ls').value,src=document.getElementById('lsrc').value;const hit=[];
  for(const r of document.querySelectorAll('#loops tbody tr')){const ok=(st==='all'||r.dataset.accepted===st)&&
- (src==='all'||r.dataset.source===src)&&r.textContent.toLowerCase().includes(q);r.style.display=ok?'':'none';n+=ok}
- document.getElementById('lcount').textContent=n+' shown'}
+ (src==='all'||r.dataset.source===src)&&r.textContent.toLowerCase().includes(q);r.style.display='none';if(ok)hit.push(r)}
+ const pages=Math.max(1,Math.ceil(hit.length/LOOP_PAGE));loopPage=Math.min(Math.max(loopPage,0),pages-1);
+ hit.slice(loopPage*LOOP_PAGE,(loopPage+1)*LOOP_PAGE).forEach(r=>r.style.display='');
+ document.getElementById('lcount').textContent=hit.length+' shown';const p=document.getElementById('lpage');
+ if(p)p.textContent=pages>1?'page '+(loopPage+1)+' of '+pages+' ('+LOOP_PAGE+' rows each)':''}
+function loopPageStep(d){loopPage+=d;filterLoops(true)}
 document.addEventListener('DOMContentLoaded',()=>{for(const th of document.querySelectorAll('table.sortable th'))
- th.addEventListener('click',()=>sortTable(th));if(document.getElementById('lq'))filterLoops()});
+ th.addEventListener('click',()=>{sortTable(th);if(th.closest('#loops'))filterLoops(true)});
+ if(document.getElementById('lq'))filterLoops()});
 """
 
 
@@ -67,6 +73,24 @@ def figure(uri: str, caption: str, ident: str = "") -> str:
     """An ``<img>`` with its caption; ``ident`` becomes the image's id."""
     id_attr = f' id="{esc(ident)}"' if ident else ""
     return f'<figure><img{id_attr} src="{uri}" alt="{esc(caption)}"><figcaption>{esc(caption)}</figcaption></figure>'
+
+
+def layered_figure(layers: Sequence[tuple[str, str, str, bool]], caption: str) -> str:
+    """Images of the same size stacked on the first (``layers``: ``(key, label, data URI, shown)``),
+    each after the first with a checkbox that shows or hides it; the first image's id is its key."""
+    boxes, imgs = [], []
+    for k, (key, label, uri, shown) in enumerate(layers):
+        ident = esc(key if k == 0 else f"layer-{key}")
+        if k == 0:
+            imgs.append(f'<img id="{ident}" src="{uri}" alt="{esc(caption)}" style="width:100%;display:block">')
+            continue
+        style = "position:absolute;left:0;top:0;width:100%;border-color:transparent" + ("" if shown else ";display:none")
+        imgs.append(f'<img id="{ident}" src="{uri}" alt="{esc(label)}" style="{style}">')
+        boxes.append(f'<label><input type="checkbox" {"checked " if shown else ""}'
+                     f"onchange=\"document.getElementById('{ident}').style.display=this.checked?'':'none'\"> "
+                     f"{esc(label)}</label>")
+    return (f'<div class="layers">{" ".join(boxes)}</div><figure><div style="position:relative">{"".join(imgs)}'
+            f"</div><figcaption>{esc(caption)}</figcaption></figure>")
 
 
 def fmt(value: object, digits: int = 4) -> str:

@@ -56,6 +56,20 @@ def trajectory_errors(reference: Trajectory, series: dict[str, Trajectory], mode
     return rows, ates, segments
 
 
+def worse_than_odometry(rows: dict[str, dict]) -> str | None:
+    """A warning when the run's ATE is more than 5 % above its own odometry's (before loop
+    closure): the loop closures made the trajectory worse. None otherwise."""
+    run = next((r for name, r in rows.items() if not name.startswith("odometry")), None)
+    odo = next((r for name, r in rows.items() if name.startswith("odometry")), None)
+    if run is None or odo is None or not odo["ATE RMSE [m]"] > 0:
+        return None
+    if run["ATE RMSE [m]"] <= 1.05 * odo["ATE RMSE [m]"]:
+        return None
+    return (f"this run's ATE ({run['ATE RMSE [m]']:.3f} m) is worse than its odometry's before loop closure "
+            f"({odo['ATE RMSE [m]']:.3f} m): a wrong loop closure, or one that was right but badly weighted; "
+            "the loop table below says which were accepted")
+
+
 def _overview(rec: RunRecord) -> str:
     s = rec.summary
     if rec.kind == "ekf":
@@ -86,7 +100,10 @@ def _loop_table(rec: RunRecord) -> str:
                ' <select id="ls" onchange="filterLoops()"><option value="all">all</option>'
                '<option value="1">accepted</option><option value="0">rejected</option></select>'
                f' <select id="lsrc" onchange="filterLoops()"><option value="all">any source</option>{options}</select>'
-               '<span class="count" id="lcount"></span></div>')
+               '<span class="count" id="lcount"></span>'
+               ' <button type="button" onclick="loopPageStep(-1)">&lsaquo; previous</button>'
+               '<span class="count" id="lpage"></span>'
+               ' <button type="button" onclick="loopPageStep(1)">next &rsaquo;</button></div>')
     rows, attrs = [], []
     for r in rec.loops:
         ok = r.get("accepted") == "1"
@@ -151,7 +168,9 @@ def build_run_report(rec: RunRecord, reference: Trajectory | Callable[[], Trajec
     if rec.kind == "ekf":
         sections.append(("Stochastic map: landmarks",
                          hp.figure(rf.landmarks_figure(rec), "Features with 3σ ellipses coloured by credibility "
-                                   "(red: about to be removed, green: confirmed)", "map")))
+                                   "(red: about to be removed, green: confirmed)"
+                                   + ("; black crosses: the true landmarks" if rec.truth_landmarks is not None else ""),
+                                   "map")))
         if rec.pose_nees is not None:
             t, nees = rec.pose_nees
             sections.append(("NEES of the robot pose against the truth", hp.figure(
@@ -166,10 +185,10 @@ def build_run_report(rec: RunRecord, reference: Trajectory | Callable[[], Trajec
     else:
         what = ("occupancy grid" if rec.grid is not None and rec.cloud is None
                 else "map.ply from above (grey: ground, colour: height)")
-        sections.append(("Map, trajectory, submaps and loops", hp.figure(
-            rf.map_figure(rec), f"The {what}; blue: trajectory, dashed grey: odometry before loop closure, "
-            "purple: submap anchors with 3σ ellipses, green: accepted loops, red: rejected hypotheses "
-            "(reasons in the table below)", "map")))
+        sections.append(("Map, trajectory, submaps and loops", hp.layered_figure(
+            rf.map_layers(rec), f"The {what}; blue: trajectory, dashed grey: odometry before loop closure, "
+            "green: accepted loops, red: rejected hypotheses (reasons in the table below), purple: submap "
+            "anchors with 3σ ellipses; the boxes above show and hide the layers")))
     if callable(reference):
         reference = reference()
     if reference is not None and rec.poses is not None:
@@ -184,8 +203,15 @@ def build_run_report(rec: RunRecord, reference: Trajectory | Callable[[], Trajec
             header = ["trajectory", *next(iter(rows.values()))]
             table = hp.table(header, [[name, *row.values()] for name, row in rows.items()])
             figs = "".join(hp.figure(uri, cap) for uri, cap in rf.error_figures(reference, ates, segments, mode))
+            first = next(iter(ates))
+            figs += "".join(hp.figure(uri, cap, ident) for uri, cap, ident
+                            in rf.evo_figures(reference, ates[first][0], first, mode))
+            degenerate = rf.degenerate_alignment(reference, mode)
+            warn = f'<p class="note" id="degenerate-alignment">warning: {hp.esc(degenerate)}</p>' if degenerate else ""
+            worse = worse_than_odometry(rows)
+            warn += f'<p class="note" id="worse-than-odometry">warning: {hp.esc(worse)}</p>' if worse else ""
             sections.append((f"Error against {reference_name} ({mode} alignment)",
-                             table + f'<div class="figs">{figs}</div>'))
+                             warn + table + f'<div class="figs">{figs}</div>'))
     if rec.kind != "ekf":
         n_ok = sum(r.get("accepted") == "1" for r in rec.loops)
         sections.append((f"Loop hypotheses ({len(rec.loops)} tested, {n_ok} accepted)", _loop_table(rec)))

@@ -80,7 +80,7 @@ def top_down_image(points: np.ndarray, max_pixels: int = 1400, min_cell: float =
     return height.reshape(rows, cols)[::-1], (lo[0], lo[0] + cols * cell, lo[1], lo[1] + rows * cell), cell
 
 
-def _draw_cloud(fig, ax, cloud: np.ndarray, path_xy: np.ndarray | None) -> None:
+def _draw_cloud(fig, ax, cloud: np.ndarray, path_xy: np.ndarray | None, cax=None) -> None:
     """The 3D map from above: cells whose highest point stands < 0.3 m over the ground in grey,
     the rest coloured by that height; cropped to 20 m around the path when it is known."""
     bounds = None
@@ -97,15 +97,100 @@ def _draw_cloud(fig, ax, cloud: np.ndarray, path_xy: np.ndarray | None) -> None:
     top = max(float(np.percentile(rel[np.isfinite(rel)], 99)), 1.0)
     im = ax.imshow(np.where(rel >= 0.3, rel, np.nan), extent=extent, cmap="viridis", vmin=0.3, vmax=top,
                    interpolation="nearest")
-    fig.colorbar(im, ax=ax, shrink=0.6, label="height over the ground of the highest map point [m]")
+    if cax is not None:
+        fig.colorbar(im, cax=cax, label="height over the ground of the highest map point [m]")
+    else:
+        fig.colorbar(im, ax=ax, shrink=0.6, label="height over the ground of the highest map point [m]")
 
 
-def map_figure(rec: RunRecord, dpi: int = 100) -> str:
-    """The map (occupancy grid, or a top-down render of the 3D cloud) with the optimised
-    trajectory, the odometry before loop closure, submap anchors with 3σ ellipses, accepted
-    loops in green and rejected hypotheses in red."""
+_MAP_RECT = (0.08, 0.06, 0.80, 0.90)  # the map axes' place in every layer (same pixels in each)
+
+
+def map_layers(rec: RunRecord, dpi: int = 100, size: float = 12.0) -> list[tuple[str, str, str, bool]]:
+    """The map view as stacked layers of the same size and axes: the map with the trajectory and
+    the odometry (the base), then transparent overlays of the accepted loops, the rejected
+    hypotheses and the submap anchors with their 3σ ellipses, for the page to toggle. Returns
+    ``[(key, label, data URI, shown at first)]``, the base first."""
     plt = _plt()
-    fig, ax = plt.subplots(figsize=(10, 10))
+
+    height = size
+
+    def canvas(transparent: bool):
+        fig = plt.figure(figsize=(size, height))
+        ax = fig.add_axes(_MAP_RECT)
+        if transparent:
+            fig.patch.set_alpha(0.0)
+            ax.patch.set_alpha(0.0)
+            ax.set_axis_off()
+        return fig, ax
+
+    fig, ax = canvas(False)
+    if rec.grid is not None and (rec.cloud is None or len(rec.cloud) == 0):
+        _draw_grid(ax, rec.grid)
+    elif rec.cloud is not None and len(rec.cloud):
+        _draw_cloud(fig, ax, rec.cloud, rec.poses.positions[:, :2] if rec.poses is not None else None,
+                    cax=fig.add_axes((0.90, 0.25, 0.02, 0.5)))
+    if rec.odometry is not None:
+        ax.plot(rec.odometry.positions[:, 0], rec.odometry.positions[:, 1], color="0.55", lw=0.7, ls="--",
+                label="odometry (before loop closure)")
+    if rec.poses is not None:
+        ax.plot(rec.poses.positions[:, 0], rec.poses.positions[:, 1], color="#1f5fd0", lw=1.0, label="trajectory")
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="upper right", fontsize=8, framealpha=0.85)
+    limits = ax.get_xlim(), ax.get_ylim()
+    # the figure takes the map's shape (no empty bands above and below a wide map)
+    (x0, x1), (y0, y1) = limits
+    w_in, h_in = _MAP_RECT[2] * size, _MAP_RECT[3] * size
+    height = size * float(np.clip((y1 - y0) / max(x1 - x0, 1e-9) * w_in / h_in, 0.35, 1.0))
+    fig.set_size_inches(size, height)
+    layers = [("map", "map and trajectory", _png_exact(fig, dpi), True)]
+    if rec.submaps is None or not len(rec.submaps.get("x", [])):
+        return layers
+    xy = np.stack([rec.submaps["x"], rec.submaps["y"]], axis=1)
+
+    def overlay(key: str, label: str, draw, shown: bool) -> None:
+        fig, ax = canvas(True)
+        draw(ax)
+        ax.set_xlim(*limits[0])
+        ax.set_ylim(*limits[1])
+        ax.set_aspect("equal")
+        layers.append((key, label, _png_exact(fig, dpi), shown))
+
+    n_ok = sum(r.get("accepted") == "1" for r in rec.loops)
+    overlay("accepted", f"accepted loops ({n_ok})",
+            lambda ax: _draw_loops(ax, [r for r in rec.loops if r.get("accepted") == "1"], xy), True)
+    overlay("rejected", f"rejected hypotheses ({len(rec.loops) - n_ok})",
+            lambda ax: _draw_loops(ax, [r for r in rec.loops if r.get("accepted") != "1"], xy), False)
+
+    def anchors(ax) -> None:
+        covs = anchor_covariances_xy(rec.submaps)
+        ax.scatter(xy[:, 0], xy[:, 1], color="#7a1fa0", s=12, zorder=5)
+        _ellipses(ax, xy, covs, 3.0, edgecolors="#7a1fa0", linewidths=0.8, zorder=4)
+
+    overlay("submaps", f"submap anchors and 3σ ellipses ({len(xy)})", anchors, False)
+    return layers
+
+
+def _png_exact(fig, dpi: int) -> str:
+    """A figure as a PNG data URI at its exact size (no tight bounding box: layers stay aligned)."""
+    import base64
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi, transparent=fig.patch.get_alpha() not in (None, 1.0))
+    _plt().close(fig)
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def save_map_picture(rec: RunRecord, path, dpi: int = 110) -> None:
+    """Write a PNG of the map (grid, or the 3D cloud from above) with the optimised trajectory
+    (and the odometry before loop closure, dashed) to ``path``: the run at a glance, without the
+    report's anchors, ellipses and hypotheses."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(9, 9))
     if rec.grid is not None and (rec.cloud is None or len(rec.cloud) == 0):
         _draw_grid(ax, rec.grid)
     elif rec.cloud is not None and len(rec.cloud):
@@ -115,19 +200,12 @@ def map_figure(rec: RunRecord, dpi: int = 100) -> str:
                 label="odometry (before loop closure)")
     if rec.poses is not None:
         ax.plot(rec.poses.positions[:, 0], rec.poses.positions[:, 1], color="#1f5fd0", lw=1.0, label="trajectory")
-    if rec.submaps is not None and len(rec.submaps.get("x", [])):
-        xy = np.stack([rec.submaps["x"], rec.submaps["y"]], axis=1)
-        _draw_loops(ax, rec.loops, xy)
-        covs = anchor_covariances_xy(rec.submaps)
-        r3 = 3 * np.sqrt(np.clip(np.linalg.eigvalsh(covs)[:, -1], 0, None))
-        sc = ax.scatter(xy[:, 0], xy[:, 1], c=r3, cmap="plasma", s=14, zorder=5, label="submap anchors")
-        _ellipses(ax, xy, covs, 3.0, edgecolors="#7a1fa0", linewidths=0.8, zorder=4)
-        fig.colorbar(sc, ax=ax, shrink=0.6, label="anchor 3σ (largest axis) [m]; ellipses: 3σ to scale")
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.legend(loc="upper right", fontsize=8, framealpha=0.85)
-    return png_data_uri(fig, dpi)
+    fig.savefig(path, dpi=dpi, bbox_inches="tight")
+    plt.close(fig)
 
 
 def _draw_grid(ax, grid: GridImage) -> None:
@@ -211,8 +289,88 @@ def error_figures(reference: Trajectory, series: dict[str, tuple[Trajectory, dic
     return out
 
 
+def degenerate_alignment(reference: Trajectory, mode: AlignMode) -> str | None:
+    """A warning when the alignment's rotation is not determined by the reference path: a path
+    (nearly) along a straight line leaves the rotation about it free, so the aligned estimate's
+    rotation error means nothing. None when the path spans a plane or more (or no alignment)."""
+    if str(mode) == "none" or len(reference.positions) < 3:
+        return None
+    P = reference.positions - reference.positions.mean(axis=0)
+    sv = np.linalg.svd(P, compute_uv=False)
+    if sv[0] <= 0 or sv[1] / sv[0] >= 0.02:
+        return None
+    return (f"the reference path is nearly a straight line (its second extent is {sv[1] / sv[0]:.1%} of the first): "
+            f"the {mode} alignment cannot fix the rotation about it, so the ATE rotation figures are not "
+            "meaningful (the position errors are)")
+
+
+def evo_figures(reference: Trajectory, traj: Trajectory, name: str, mode: AlignMode,
+                dpi: int = 100) -> list[tuple[str, str, str]]:
+    """evo's standard plots of ``traj`` against ``reference`` after ``mode`` alignment, against
+    time from the reference's first pose: x, y, z and yaw of both; the position error (APE) with
+    its mean, median and ±1 std band; the relative error between consecutive poses (RPE); and
+    histograms of both. Returns ``[(data URI, caption, element id)]``."""
+    from ..geometry import inverse, rotation_angle
+    from .metrics import associate as assoc
+
+    plt = _plt()
+    i_e, i_r = assoc(traj, reference)
+    if len(i_e) < 2:
+        return []
+    e, r = traj.subset(i_e), reference.subset(i_r)
+    T, s = align_fn(e, r, mode)
+    A = np.array([T @ p for p in e.poses])
+    A[:, :3, 3] = s * e.poses[:, :3, 3] @ T[:3, :3].T + T[:3, 3]
+    t = r.timestamps - r.timestamps[0]
+    out = []
+    fig, axes = plt.subplots(4, 1, figsize=(9, 8), sharex=True)
+    yaw = lambda P: np.degrees(np.unwrap(np.arctan2(P[:, 1, 0], P[:, 0, 0])))  # noqa: E731
+    for ax, label, a, b in ((axes[0], "x [m]", A[:, 0, 3], r.poses[:, 0, 3]),
+                            (axes[1], "y [m]", A[:, 1, 3], r.poses[:, 1, 3]),
+                            (axes[2], "z [m]", A[:, 2, 3], r.poses[:, 2, 3]),
+                            (axes[3], "yaw [deg]", yaw(A), yaw(r.poses))):
+        ax.plot(t, b, color="0.5", lw=1.0, ls="--", label="reference")
+        ax.plot(t, a, color="#1f5fd0", lw=0.9, label=name)
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8, loc="upper right")
+    axes[-1].set_xlabel("time [s]")
+    out.append((png_data_uri(fig, dpi), f"{name}: x, y, z and yaw against time ({mode} aligned)", "evo-xyz"))
+    ape = np.linalg.norm(A[:, :3, 3] - r.positions, axis=1)
+    rel = [inverse(r.poses[k]) @ r.poses[k + 1] for k in range(len(r.poses) - 1)]
+    rel_e = [inverse(A[k]) @ A[k + 1] for k in range(len(A) - 1)]
+    rpe = np.array([np.linalg.norm((inverse(a) @ b)[:3, 3]) for a, b in zip(rel, rel_e)])
+    rpe_rot = np.degrees([rotation_angle(inverse(a) @ b) for a, b in zip(rel, rel_e)])
+    fig, axes = plt.subplots(2, 1, figsize=(9, 5.6), sharex=True)
+    mean, med, std = float(ape.mean()), float(np.median(ape)), float(ape.std())
+    axes[0].plot(t, ape, color="#c0392b", lw=0.8, label="APE")
+    axes[0].axhline(mean, color="k", lw=0.9, label=f"mean {mean:.3f} m")
+    axes[0].axhline(med, color="#1a9a1a", lw=0.9, ls="--", label=f"median {med:.3f} m")
+    axes[0].axhspan(mean - std, mean + std, color="0.6", alpha=0.25, label=f"±1 std {std:.3f} m")
+    axes[0].set_ylabel("APE [m]")
+    axes[0].legend(fontsize=8, loc="upper left")
+    axes[1].plot(t[1:], rpe, color="#7a1fa0", lw=0.8, label="RPE trans (consecutive poses)")
+    axes[1].set_ylabel("RPE [m/frame]")
+    axes[1].set_xlabel("time [s]")
+    axes[1].legend(fontsize=8, loc="upper left")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    out.append((png_data_uri(fig, dpi), f"{name}: absolute position error (APE) and relative error (RPE) "
+                "against time", "evo-ape"))
+    fig, axes = plt.subplots(1, 3, figsize=(11, 3.2))
+    for ax, values, label in ((axes[0], ape, "APE [m]"), (axes[1], rpe, "RPE [m/frame]"),
+                              (axes[2], rpe_rot, "RPE [deg/frame]")):
+        ax.hist(values, bins=40, color="#1f5fd0", alpha=0.8)
+        ax.set_xlabel(label)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("poses")
+    out.append((png_data_uri(fig, dpi), f"{name}: histograms of the errors", "evo-hist"))
+    return out
+
+
 def landmarks_figure(rec: RunRecord, dpi: int = 100) -> str:
-    """EKF runs: the robot path and every feature with its 3σ ellipse, coloured by credibility."""
+    """EKF runs: the robot path and every feature with its 3σ ellipse, coloured by credibility;
+    the true landmarks as black crosses when the log knows them."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(9, 9))
     if rec.poses is not None:
@@ -225,6 +383,9 @@ def landmarks_figure(rec: RunRecord, dpi: int = 100) -> str:
         colors = cmap(np.clip([lm["credibility"] for lm in lms], 0, 1))
         _ellipses(ax, xy, C, 3.0, edgecolors=colors, linewidths=1.1)
         ax.scatter(xy[:, 0], xy[:, 1], marker="+", c=colors, s=30, label="features")
+    if rec.truth_landmarks is not None and len(rec.truth_landmarks):
+        ax.scatter(rec.truth_landmarks[:, 0], rec.truth_landmarks[:, 1], marker="x", color="k", s=22, lw=0.9,
+                   label=f"true landmarks ({len(rec.truth_landmarks)})")
     sm = plt.cm.ScalarMappable(cmap=cmap, norm=plt.Normalize(0, 1))
     fig.colorbar(sm, ax=ax, shrink=0.7, label="credibility c_t")
     ax.set_aspect("equal")

@@ -46,6 +46,8 @@ class RunRecord:
         landmarks: ``landmarks.csv`` rows (EKF runs: ``id, x, y, var_xx, var_xy, var_yy, credibility``).
         nees: ``nees.json`` (``ekf-nees``) when present.
         pose_nees: ``nees.csv`` ``(times (K,), NEES (K,))`` of an EKF run against its truth.
+        truth_landmarks: ``landmarks_truth.csv`` ``(L, 2)`` x, y of the true landmarks (EKF runs of a
+            log that knows them), in the run's frame.
     """
 
     folder: str
@@ -61,6 +63,7 @@ class RunRecord:
     landmarks: list[dict[str, float]] | None = None
     nees: dict | None = None
     pose_nees: tuple[np.ndarray, np.ndarray] | None = None
+    truth_landmarks: np.ndarray | None = None
 
     @property
     def kind(self) -> str:

@@ -45,7 +45,7 @@ import numpy as np
 
 from ..errors import ConfigError, InputError
 from ..geometry import se2_to_matrix
-from .compression import base_suffix, open_text, open_text_prefetched
+from .compression import base_suffix, count_line_starts, open_text, open_text_prefetched
 from .registry import register_reader
 from .scan import Scan
 
@@ -342,13 +342,20 @@ class CarmenReader:
         self.skipped_records = 0
         self.skipped_lines: list[int] = []
         self.no_return_range: float | None = None  # found in the data when the scans are read
+        self.nan_ranges = 0  # NaN beam ranges read (as no return)
 
     @property
     def log_info(self) -> dict:
         """What ``summary.json`` reports about the reading: record used, damaged records skipped,
         the reading found to mean "no return" (None: none found)."""
         return {"log_format": self.name, "laser_record": self.tag, "skipped_records": self.skipped_records,
-                "skipped_record_lines": list(self.skipped_lines), "no_return_range_m": self.no_return_range}
+                "skipped_record_lines": list(self.skipped_lines), "no_return_range_m": self.no_return_range,
+                "nan_ranges": self.nan_ranges}
+
+    def estimated_len(self) -> tuple[int, bool]:
+        """``(scans, exact)``: the log's lines of the record read, counted (plain file) or
+        estimated from a sample (compressed; see :func:`~.compression.count_line_starts`)."""
+        return count_line_starts(self.path, self.tag.encode() + b" ")
 
     def _find_no_return(self) -> float | None:
         """:func:`detect_no_return_range` over the first ``_NO_RETURN_SCAN_LINES`` records read
@@ -383,6 +390,7 @@ class CarmenReader:
         limit = min(self.max_valid_range, reading.max_range)
         if self.no_return_range is not None:
             limit = min(limit, self.no_return_range)
+        self.nan_ranges += int(np.isnan(reading.ranges).sum())
         finite = np.isfinite(reading.ranges) & (reading.ranges > 0.0)
         valid = finite & (reading.ranges < limit)
         points = self._points(reading, reading.ranges[valid], reading.angles[valid])
@@ -408,6 +416,7 @@ class CarmenReader:
     def __iter__(self) -> Iterator[Scan]:
         self.skipped_records = 0
         self.skipped_lines = []
+        self.nan_ranges = 0
         self.no_return_range = self._find_no_return()
         parse = _PARSERS[self.tag]
         needs_odom = self.tag.startswith("RAWLASER")

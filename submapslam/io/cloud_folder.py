@@ -123,6 +123,7 @@ class CloudFolderReader:
         _refuse_pointless(self.path, self.files)
         self.skip_bad = skip_bad
         self.skipped_files: list[str] = []
+        self.nan_only_files: list[str] = []  # scan files whose every point was NaN/inf
         folders = (self.path, self.scan_dir)
         self.meta = self._read_meta(_find_file(("meta.yaml",), folders))
         self.planar = bool(self.meta.get("planar", False))
@@ -186,10 +187,12 @@ class CloudFolderReader:
     def log_info(self) -> dict:
         """What ``summary.json`` reports about the reading: the format, scan files skipped."""
         return {"log_format": self.name, "skipped_records": len(self.skipped_files),
-                "skipped_files": self.skipped_files[:20]}
+                "skipped_files": self.skipped_files[:20], "nan_only_files": self.nan_only_files[:20],
+                "nan_only_scans": len(self.nan_only_files)}
 
     def __iter__(self) -> Iterator[Scan]:
         self.skipped_files = []
+        self.nan_only_files = []
         index = 0
         for k, path in enumerate(self.files):
             try:
@@ -205,6 +208,8 @@ class CloudFolderReader:
                 if times is not None and len(times) == len(points):
                     times = times[finite]
                 points = points[finite]
+                if len(points) == 0:
+                    self.nan_only_files.append(path.name)
             if (self.motion_distorted and times is not None and len(times) == len(points)
                     and np.all(np.isfinite(times))):
                 span = times.max() - times.min() if len(times) else 0.0

@@ -8,6 +8,7 @@ import io
 import lzma
 import queue
 import threading
+import zlib
 from pathlib import Path
 from typing import IO
 
@@ -106,3 +107,40 @@ def base_suffix(path: str | Path) -> str:
     if path.suffix.lower() in _OPENERS:
         return Path(path.stem).suffix.lower()
     return path.suffix.lower()
+
+
+def count_line_starts(path: str | Path, prefix: bytes, sample_bytes: int = 2 << 20) -> tuple[int, bool]:
+    """How many lines of ``path`` start with ``prefix``: ``(count, exact)``.
+
+    A plain file is counted exactly (a byte scan, no parsing). A compressed one is counted in its
+    first ``sample_bytes`` of text and scaled by the compressed bytes that text took (measured
+    from the first text out, so the decompressor's look-ahead cancels): an estimate, ``exact``
+    False, unless the sample is the whole file. Unreadable files count what was read.
+    """
+    path = Path(path)
+    opener = _OPENERS.get(path.suffix.lower())
+    needle = b"\n" + prefix
+    count, tail, text = 0, b"\n", 0
+    first: tuple[int, int, int] | None = None  # (compressed offset, text, count) after the first chunk
+    try:
+        with open(path, "rb") as raw:
+            stream = raw if opener is None else opener(raw, "rb")
+            while True:
+                data = stream.read(1 << 16)
+                if not data:
+                    return count, True
+                block = tail + data
+                count += block.count(needle)
+                tail = block[-len(needle) + 1:]
+                text += len(data)
+                if opener is None:
+                    continue
+                if first is None:
+                    first = (raw.tell(), text, count)
+                elif text >= sample_bytes and raw.tell() > first[0]:
+                    c0, t0, n0 = first
+                    per_byte = (count - n0) / (raw.tell() - c0)  # records per compressed byte
+                    rest = path.stat().st_size - raw.tell()
+                    return count + round(per_byte * rest), False
+    except (OSError, EOFError, lzma.LZMAError, zlib.error, gzip.BadGzipFile, ValueError):
+        return count, False

@@ -116,6 +116,24 @@ def scan_poses(log_path: str | Path, poses: str | Path | None, n_scans: int) -> 
     return traj.poses
 
 
+def map_made_at(map_path: str | Path) -> Path | None:
+    """The poses file a ``clean`` map was made at (``summary.json`` beside it), None for any other
+    map. The map is in that file's frame, so that is the frame to score it in."""
+    import json
+
+    from .output_folder import written_by
+
+    folder = Path(map_path).parent
+    if written_by(folder) != "clean" or not (folder / "summary.json").is_file():
+        return None
+    try:
+        summary = json.loads((folder / "summary.json").read_text())
+    except (OSError, ValueError):
+        return None
+    made = summary.get("poses_resolved") or summary.get("poses")
+    return Path(made) if isinstance(made, str) else None
+
+
 def count_scans(log_path: str | Path) -> int:
     """How many scans a cloud-folder log holds (without reading them)."""
     from .cloud_folder import CloudFolderReader

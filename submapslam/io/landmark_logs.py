@@ -226,6 +226,48 @@ def _truth_poles(path: Path) -> dict[int, np.ndarray]:
     return out
 
 
+LANDMARK_FORMATS = ("an MR.CLAM folder (RobotN_Odometry.dat, RobotN_Measurement.dat), a victoria_park-format "
+                    "file (ODOMETRY/LANDMARK lines; `synth landmarks --out DIR` writes DIR/landmarks.txt), "
+                    "or a point-cloud log folder with scans/ and odometry_tum.txt")
+"""What ``ekf`` reads, in words for the error lines."""
+
+
+def sniff_landmark_log(path: Path, robot: int = 1) -> tuple[Path, str]:
+    """``(the file or folder to read, its format)`` for an existing ``path``; a path that is none of
+    :data:`LANDMARK_FORMATS` (a CARMEN laser log, an empty folder) is an :class:`InputError`
+    naming the formats. A folder holding ``landmarks.txt`` (``synth landmarks``) reads that file."""
+    if path.is_dir():
+        if (path / "scans").is_dir():
+            return path, "cloud"
+        if any(path.glob("Robot*_Odometry.dat*")):
+            return path, "mrclam"
+        if (path / "landmarks.txt").is_file():
+            return path / "landmarks.txt", "synth"
+        raise InputError(path, f"is not a landmark log; ekf reads {LANDMARK_FORMATS}")
+    first = ""
+    try:
+        with open_text(path) as fh:
+            for _ in range(50):
+                line = fh.readline()
+                if not line:
+                    break
+                if line.strip() and not line.lstrip().startswith("#"):
+                    first = line.split()[0]
+                    break
+    except (OSError, EOFError, lzma.LZMAError, ValueError):
+        return path, "victoria"  # the reading proper reports it
+    if first in ("ODOMETRY", "LANDMARK") or not first:
+        return path, "victoria"
+    from .registry import open_log
+
+    try:
+        kind = open_log(path).name
+    except InputError:
+        kind = None
+    what = f"a {kind} log (read it with `submapslam run`)" if kind else f"not a landmark log (it starts {first[:20]!r})"
+    raise InputError(path, f"is {what}; ekf reads {LANDMARK_FORMATS}")
+
+
 def read_landmark_log(path: str | Path, format: str | None = None, robot: int = 1) -> LandmarkLog:
     """Read a landmark log: ``mrclam`` (a folder), ``victoria`` or ``synth`` (a victoria_park-format
     file), ``cloud`` (a point-cloud log folder: pole features, unknown association).
@@ -237,7 +279,7 @@ def read_landmark_log(path: str | Path, format: str | None = None, robot: int = 
     if not path.exists():
         raise InputError(path, "no such file or directory")
     if format is None:
-        format = ("cloud" if (path / "scans").is_dir() else "mrclam") if path.is_dir() else "victoria"
+        path, format = sniff_landmark_log(path, robot)
     if format == "mrclam":
         return read_mrclam(path, robot)
     if format in ("victoria", "synth"):

@@ -47,6 +47,7 @@ def open_log(path: str | Path, format: str | None = None, **options: object) -> 
     options = {k: v for k, v in options.items() if v is not None}
     if not path.exists():
         raise InputError(path, "no such file or directory")
+    _refuse_results_folder(path)
     if format is not None:
         if format not in _READERS:
             raise UnknownFormatError(
@@ -65,6 +66,21 @@ def open_log(path: str | Path, format: str | None = None, **options: object) -> 
         "cannot tell the log format from the path; use --format with one of: "
         + ", ".join(available_formats()),
     )
+
+
+def _refuse_results_folder(path: Path) -> None:
+    """A folder (or a file in one) that a submapslam command wrote as results is no log: one line
+    naming the command (a ``synth`` folder is a log)."""
+    from .output_folder import written_by
+
+    folder = path if path.is_dir() else path.parent
+    command = written_by(folder)
+    if command is None or command == "synth" or (command == "earlier run" and not (folder / "poses_tum.txt").is_file()):
+        return
+    if command == "demo" and (folder / "log").is_dir():
+        raise InputError(path, f"is the demo's folder, not a log; its log is {folder / 'log'}")
+    raise InputError(path, f"holds the results of `submapslam {command}`, not a log "
+                     "(give the log it was made from; `run LOG --map OUT` adds a log to a run's map)")
 
 
 def _make(name: str, factory: ReaderFactory, path: Path, options: dict[str, object]) -> LogReader:

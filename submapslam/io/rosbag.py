@@ -374,12 +374,23 @@ class _PartialMcap:
                         truncated=(struct.error, TypeError))
 
 
+def _printable(message: str, limit: int = 160) -> str:
+    """``message`` for one error line: a decoder's quoted raw bytes (``b'\\x80...'``) are left out,
+    unprintable characters become "?", and the rest is cut at ``limit`` characters."""
+    for quote in ("b'", 'b"'):
+        at = message.find(quote)
+        if at >= 0 and (at == 0 or not message[at - 1].isalnum()):
+            message = message[:at] + "(undecodable bytes)"
+    message = "".join(ch if ch.isprintable() else "?" for ch in message)
+    return message if len(message) <= limit else message[:limit] + "..."
+
+
 def _open_bag(path: Path) -> _AnyBag | _PartialMcap:
     """Open ``path``; a bare MCAP file without its summary falls back to a linear scan."""
     try:
         return _AnyBag(path)
     except _BagReadError as exc:
-        problem = str(exc).rstrip(".")
+        problem = _printable(str(exc).rstrip("."))
         mcap = _single_mcap(path)
         if mcap is not None and ("end magic" in problem or "footer" in problem.lower()):
             log.debug("%s: %s; reading the MCAP data linearly up to the damage", path, problem)

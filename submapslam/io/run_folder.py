@@ -100,6 +100,9 @@ def read_run_folder(folder: str | Path, *, with_cloud: bool = True) -> RunRecord
         rec.loops = _csv_rows(root / "loops.csv")
     if (root / "landmarks.csv").is_file():
         rec.landmarks = [{k: float(v) for k, v in r.items()} for r in _csv_rows(root / "landmarks.csv")]
+    if (root / "landmarks_truth.csv").is_file():
+        rows = _csv_rows(root / "landmarks_truth.csv")
+        rec.truth_landmarks = np.array([[float(r["x"]), float(r["y"])] for r in rows]).reshape(-1, 2)
     if (root / "nees.csv").is_file():
         from .nees_csv import read_nees_csv
 
@@ -111,3 +114,26 @@ def read_run_folder(folder: str | Path, *, with_cloud: bool = True) -> RunRecord
     if with_cloud and not rec.summary.get("planar", True) and (root / "map.ply").is_file():
         rec.cloud = read_ply_points(root / "map.ply")
     return rec
+
+
+GROUND_TRUTH_NAMES = ("groundtruth_tum.txt",)
+"""Ground-truth files a log may ship beside its scans (timestamped, so they pair with a run)."""
+
+
+def shipped_ground_truth(folder: str | Path) -> Path | None:
+    """The ground truth the log of the results folder ``folder`` ships (its ``input.json`` names
+    the log; a file beside it, or in the log folder), or None."""
+    import json
+
+    try:
+        doc = json.loads((Path(folder) / "input.json").read_text())
+    except (OSError, ValueError):
+        return None
+    log = Path(doc.get("absolute_path") or doc.get("path") or "")
+    if not str(log) or not log.exists():
+        return None
+    where = log if log.is_dir() else log.parent
+    for name in GROUND_TRUTH_NAMES:
+        if (where / name).is_file():
+            return where / name
+    return None

@@ -62,6 +62,15 @@ class CorrespondenceResult:
         return self.information
 
 
+
+def below(name: str, value: float, bound: float) -> str:
+    """``"fitness 0.449 < 0.45"``: as many decimals as it takes for the two to differ."""
+    for digits in (2, 3, 4, 6):
+        a, b = f"{value:.{digits}f}", f"{bound:.{digits}f}"
+        if a != b:
+            return f"{name} {a} < {b}"
+    return f"{name} {value!r} < {bound!r}"
+
 def match_voxel(submap_voxel: float, planar: bool) -> float:
     """Voxel [m] at which submaps are registered to each other (loop tests, odometry edges).
 
@@ -85,11 +94,11 @@ def _gate(fitness: float, rmse: float, overlap: float, ambiguity: float, *, min_
     the last digits must not flip a decision from one run to the next."""
     fitness, rmse, overlap, ambiguity = (round(v, 4) for v in (fitness, rmse, overlap, ambiguity))
     if fitness < min_fitness:
-        return False, f"fitness {fitness:.2f} < {min_fitness:.2f}"
+        return False, below("fitness", fitness, min_fitness)
     if rmse > max_inlier_rmse:
         return False, f"inlier RMSE {rmse:.3f} m > {max_inlier_rmse:.3f} m"
     if overlap < min_overlap:
-        return False, f"overlap {overlap:.2f} < {min_overlap:.2f}"
+        return False, below("overlap", overlap, min_overlap)
     if ambiguity > max_ambiguity:
         return False, f"ambiguous match (second peak {ambiguity:.2f} of the best > {max_ambiguity:.2f})"
     return True, "ok"

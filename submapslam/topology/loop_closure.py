@@ -22,7 +22,12 @@ import numpy as np
 
 from ..config import LoopConfig
 from ..geometry import inverse, rotation_angle, so3_log
-from ..registration.correspondence import CorrespondenceResult, check_correspondence, match_voxel
+from ..registration.correspondence import (
+    CorrespondenceResult,
+    below,
+    check_correspondence,
+    match_voxel,
+)
 from ..registration.spatial import SubmapClouds
 from ..result import LoopRecord
 from ..submaps import Submap
@@ -182,7 +187,7 @@ class LoopCloser:
         """3D: the walls, poles and cars must agree, not only the ground (scores to 4 decimals)."""
         c = self.config
         if round(res.structure_overlap, 4) < c.min_structure_overlap:
-            return False, f"structure overlap {res.structure_overlap:.2f} < {c.min_structure_overlap:.2f}"
+            return False, below("structure overlap", res.structure_overlap, c.min_structure_overlap)
         if round(res.plane_rmse, 4) > c.max_plane_rmse:
             return False, f"structure point-to-plane RMSE {res.plane_rmse:.3f} m > {c.max_plane_rmse:.3f} m"
         return True, "ok"
