@@ -296,7 +296,7 @@ def batch_logs(
     if not cpus_per_log > 0:
         raise SubmapSlamError(f"CPUs per log must be more than 0, not {cpus_per_log:g}")
     if ship_logs not in ("auto", "always", "never"):
-        raise SubmapSlamError(f"ship_logs is auto, always or never, not {ship_logs!r}")
+        raise SubmapSlamError(f"--ship-logs is auto, always or never, not {ship_logs!r}")
     if ship_logs == "always" and use_ray is False:
         raise SubmapSlamError("logs are shipped to Ray workers: shipping them needs Ray (drop --no-ray)")
     auth: tuple[dict[str, str], str] = ({}, "")  # a cluster's authentication, found before Ray is imported
