@@ -120,6 +120,8 @@ def auth_settings(address: str, environ: dict[str, str] | None = None) -> tuple[
                 f"token from {token.where}")
     answer = probe_gcs(address)
     if answer == "unreachable":
+        answer = probe_gcs(address, timeout_s=2.0)  # once more: a head starting up or busy
+    if answer == "unreachable":
         raise SubmapSlamError(f"no Ray cluster answers at {address}: start one with `ray start --head --port PORT` "
                               "and give its HOST:PORT (the address `ray start` printed)")
     if answer == "open":
@@ -130,7 +132,10 @@ def auth_settings(address: str, environ: dict[str, str] | None = None) -> tuple[
     if token is None:
         raise SubmapSlamError(f"the Ray cluster at {address} uses token authentication and this machine has no "
                               f"token: {WHERE_TOKENS_ARE}")
-    if probe_gcs(address, token.value) == "token":
+    answer = probe_gcs(address, token.value)
+    if answer == "unreachable":  # it answered a moment ago: a busy head, asked once more
+        answer = probe_gcs(address, token.value, timeout_s=15.0)
+    if answer == "token":
         raise SubmapSlamError(f"the Ray cluster at {address} refused the token in {token.where}: {WHERE_TOKENS_ARE}")
     settings = {MODE_ENV: "token"}
     if token.where != TOKEN_ENV:
