@@ -161,7 +161,7 @@ def _burn_cpu(seconds: float) -> subprocess.Popen:
 
 
 def test_3d_runs_repeat_their_decisions_and_trajectory_on_a_loaded_machine(tmp_path):
-    log = generate("outdoor", tmp_path / "log", seed=0, laps=2, blocks=(1, 1), max_scans=360)
+    log = generate("outdoor", tmp_path / "log", seed=0, laps=2, blocks=(1, 1), max_scans=240)
     quiet = subprocess.run([*CLI, "run", str(log), "--out", str(tmp_path / "quiet")], capture_output=True, text=True)
     assert quiet.returncode == 0, quiet.stderr
     burners = [_burn_cpu(120) for _ in range(2)]
@@ -175,6 +175,7 @@ def test_3d_runs_repeat_their_decisions_and_trajectory_on_a_loaded_machine(tmp_p
     loops_quiet = (tmp_path / "quiet" / "loops.csv").read_text()
     assert loops_quiet == (tmp_path / "loaded" / "loops.csv").read_text()
     assert loops_quiet.count("\n") > 5  # hypotheses were tested, some accepted
+    assert any(row.split(",")[3] == "1" for row in loops_quiet.splitlines()[1:])
     a = np.loadtxt(tmp_path / "quiet" / "poses_tum.txt")
     b = np.loadtxt(tmp_path / "loaded" / "poses_tum.txt")
     assert np.abs(a[:, 1:4] - b[:, 1:4]).max() < 1e-3
