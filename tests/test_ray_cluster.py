@@ -154,8 +154,11 @@ def halls(tmp_path_factory):
     return a, b
 
 
-def _batch(home: Path, *args: str, token: bool = True, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_AUTH")}
+def _batch(home: Path, *args: str, token: bool = True, cwd: Path | None = None,
+           **environ: str) -> subprocess.CompletedProcess:
+    # without this process's RAY_AUTH_* (a local Ray started by an earlier test in this process
+    # sets RAY_AUTH_MODE in its environment)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("RAY_AUTH")} | environ
     env["HOME"] = str(home) if token else str(home / "nobody")  # where the token is, or no token at all
     env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).resolve().parents[1]), env.get("PYTHONPATH", "")])
     return subprocess.run([*CLI, "batch", *args], env=env, capture_output=True, text=True, timeout=600, cwd=cwd)
@@ -196,10 +199,8 @@ def test_a_missing_token_or_a_wrong_address_is_one_line(cluster, halls, tmp_path
     assert len(lines) == 1 and "token authentication" in lines[0] and "RAY_AUTH_TOKEN" in lines[0], lines
     wrong = home / "wrong_token"
     wrong.write_text("not-the-token")
-    env_res = subprocess.run([*CLI, "batch", str(a), "--address", address, "--out", str(tmp_path / "y")],
-                             env={**os.environ, "HOME": str(home), "RAY_AUTH_TOKEN_PATH": str(wrong)},
-                             capture_output=True, text=True, timeout=120)
-    assert env_res.returncode == 1 and "refused the token" in env_res.stderr, env_res.stdout + env_res.stderr
+    res = _batch(home, str(a), "--address", address, "--out", str(tmp_path / "y"), RAY_AUTH_TOKEN_PATH=str(wrong))
+    assert res.returncode == 1 and "refused the token" in res.stderr, res.stdout + res.stderr
     nobody = f"127.0.0.1:{_free_port()}"
     res = _batch(home, str(a), "--address", nobody, "--out", str(tmp_path / "z"))
     assert res.returncode == 1 and "no Ray cluster answers" in res.stderr, res.stdout + res.stderr
