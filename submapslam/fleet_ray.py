@@ -56,13 +56,11 @@ class RayBatch:
         one line when it cannot be joined. Ray's own output is kept out of the terminal unless
         ``verbose``."""
         self.ray = ray
-        self.address = address
         self.client = address is not None and address.startswith("ray://")  # Ray Client
         self.started_here = not ray.is_initialized()
         self._environment = ExitStack()  # the authentication settings, while joined
-        self.auth = "local instance" if address is None else "already joined"
         if self.started_here:
-            self.auth = self._join_or_start(address, num_cpus, verbose, auth)
+            self._join_or_start(address, num_cpus, verbose, auth)
         self.workers = max(1, int(ray.cluster_resources().get("CPU", 1)))
         self._helpers: list = []  # the merge's helper actors (:class:`_MergeHelper`)
         self._made_ahead: dict[int, tuple] = {}  # submap key -> (helper holding its local grid, its make's ref)
@@ -73,8 +71,8 @@ class RayBatch:
         self._holding: list[dict | list] = [self._made_ahead, self._helpers]
 
     def _join_or_start(self, address: str | None, num_cpus: int | None, verbose: bool,
-                       auth: tuple[dict[str, str], str]) -> str:
-        """Start a local Ray, or join the cluster at ``address``; returns how it authenticated."""
+                       auth: tuple[dict[str, str], str]) -> None:
+        """Start a local Ray, or join the cluster at ``address`` with the environment ``auth[0]``."""
         from .ray_cluster import connect_error, environment, quiet_fds
 
         self._environment.enter_context(environment(auth[0]))
@@ -89,7 +87,6 @@ class RayBatch:
             if address is None:
                 raise SubmapSlamError(f"Ray did not start here: {_last_line(failure)}") from None
             raise connect_error(address, failure, "".join(said)) from None
-        return auth[1] or ("local instance" if address is None else "as Ray found it")
 
     def nodes_see(self, paths: list[str | Path], folder: str | Path, timeout_s: float = 120.0) -> bool:
         """Whether every node of the cluster sees each of ``paths`` as here (a file of the same

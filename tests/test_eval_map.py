@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from datasets_synth.writer import write_labels, write_ply_xyzt
+from datasets_synth.writer import write_labels
 from submapslam.cli import app
 from submapslam.errors import InputError
 from submapslam.evaluation.dynamic_map import LabelledVoxels, is_dynamic, score_map
@@ -19,6 +19,7 @@ from submapslam.io.ply import write_ply
 from submapslam.io.trajectory import Trajectory, write_tum
 
 from .cli_errors import assert_one_error_line
+from .labelled_scenes import write_wall_and_person_log
 
 
 def test_label_file_round_trip_and_checks(tmp_path):
@@ -96,16 +97,7 @@ def test_grid_map_points_are_occupied_cell_centres(tmp_path):
 def labelled_log(tmp_path):
     """Two planar-free 3D scans, 1 m apart along x: a static wall seen twice, a person seen in the first."""
     log = tmp_path / "log"
-    (log / "labels").mkdir(parents=True)
-    (log / "scans").mkdir()
-    wall = np.column_stack([np.full(50, 5.0), np.linspace(-2.45, 2.45, 50), np.full(50, 0.5)])
-    person = np.column_stack([np.full(10, 2.0), np.full(10, 0.05), np.linspace(0.05, 0.95, 10)])
-    T = se2_array_to_matrices(np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))
-    for k, pts in enumerate([np.vstack([wall, person]), wall]):
-        local = pts - T[k][:3, 3]
-        write_ply_xyzt(log / "scans" / f"{k:06d}.ply", local, np.zeros(len(local)))
-        write_labels(log / "labels" / f"{k:06d}.label", np.r_[np.full(50, 50), np.full(len(pts) - 50, 254)])
-    write_tum(log / "groundtruth_tum.txt", Trajectory(np.array([0.0, 0.1]), T))
+    _, wall, person = write_wall_and_person_log(log)
     return log, wall, person
 
 

@@ -63,21 +63,13 @@ def test_map_picture_never_overwrites_a_file_of_yours(small_run, tmp_path):
 
 def _labelled_log(tmp_path):
     """Two 3D scans 1 m apart along x: a static wall seen twice, a person seen in the first."""
-    from datasets_synth.writer import write_labels, write_ply_xyzt
     from submapslam.geometry import se2_array_to_matrices
     from submapslam.io.trajectory import Trajectory, write_tum
 
+    from .labelled_scenes import write_wall_and_person_log
+
     log = tmp_path / "log"
-    (log / "labels").mkdir(parents=True)
-    (log / "scans").mkdir()
-    wall = np.column_stack([np.full(50, 5.0), np.linspace(-2.45, 2.45, 50), np.full(50, 0.5)])
-    person = np.column_stack([np.full(10, 2.0), np.full(10, 0.05), np.linspace(0.05, 0.95, 10)])
-    T = se2_array_to_matrices(np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))
-    for k, pts in enumerate([np.vstack([wall, person]), wall]):
-        local = pts - T[k][:3, 3]
-        write_ply_xyzt(log / "scans" / f"{k:06d}.ply", local, np.zeros(len(local)))
-        write_labels(log / "labels" / f"{k:06d}.label", np.r_[np.full(50, 50), np.full(len(pts) - 50, 254)])
-    write_tum(log / "groundtruth_tum.txt", Trajectory(np.array([0.0, 0.1]), T))
+    write_wall_and_person_log(log)
     # the same motion in another frame (a run's): 3 m to the side
     write_tum(tmp_path / "run_poses.txt",
               Trajectory(np.array([0.0, 0.1]), se2_array_to_matrices(np.array([[0.0, 3.0, 0.0], [1.0, 3.0, 0.0]]))))
