@@ -265,3 +265,19 @@ def test_planar_covariances_stay_planar(rectangle_run):
     loose = np.full((6, 6), 0.5) + np.eye(6)
     pinned = pin_planar(loose)
     assert pinned[5, 5] == 1e8 and pinned[5, 3] == 0.0 and pinned[3, 4] == 0.5
+
+
+def test_run_writes_pose_covariances(rectangle_run):
+    """poses_cov.txt: one pose and covariance per scan (the result's), positive definite; each
+    anchor's scan carries its anchor's reported marginal (x, y, yaw)."""
+    from submapslam.io.trajectory import read_tum_cov
+
+    _, result, paths = rectangle_run
+    traj, covs = read_tum_cov(paths["poses_cov.txt"])
+    assert len(traj) == result.n_scans
+    np.testing.assert_allclose(traj.poses, result.poses, atol=1e-7)
+    np.testing.assert_allclose(covs, result.pose_covariances(), rtol=1e-6, atol=1e-14)
+    assert np.all(np.linalg.eigvalsh(covs) > 0)
+    for k, idx in enumerate(result.submap_scan_indices):
+        want = result.submap_covariances[k, 2:5, 2:5]  # a refined anchor scan sits mm off its anchor:
+        np.testing.assert_allclose(covs[idx[0], 2:5, 2:5], want, rtol=1e-3, atol=1e-3 * np.trace(want))

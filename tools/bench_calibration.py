@@ -165,6 +165,69 @@ def ekf_rows(runs: int, workdir: str | None) -> list[str]:
     return rows
 
 
+def rescore(files: list[str], scale: list[float] | None) -> int:
+    """Print the table of the samples in ``files`` (``--json`` output), their covariances scaled by
+    ``scale`` (6 variance factors, GTSAM order; None: as run), and the per-axis scale that would make
+    each run's mean (e/sigma)^2 one (the fit: mean (e/sigma)^2 per axis of the unscaled samples)."""
+    from submapslam.uncertainty import calibrate
+
+    rows = []
+    for f in files:
+        data = json.loads(Path(f).read_text())
+        for name, smp in data["samples"].items():
+            errs, covs = np.array(smp["errors"]), np.array(smp["covariances"])
+            planar = bool(np.all(np.einsum("kii->ki", covs)[:, [0, 1, 5]] < 1e-6))
+            fit = (errs**2 / np.einsum("kii->ki", covs)).mean(axis=0)
+            print(f"{f}: {name}: fitted variance scale (GTSAM order) " + " ".join(f"{x:.4g}" for x in fit))
+            if scale is not None:
+                covs = calibrate(covs, np.array(scale))
+            rows.append(table(name + ("" if scale is None else " (rescaled)"), summarise(errs, covs, planar)))
+    print()
+    print("\n".join(["| run | samples | per axis mean (e/sigma)^2 (share <= 3.84) | x-y NEES [95 % band] (share in "
+                     "95 % bound) | full NEES [95 % band] (share in bound) |", "|---|---|---|---|---|"] + rows))
+    return 0
+
+
+def real_run(out: Path, log: Path, corrected: Path | None, scale: list[float] | None) -> int:
+    """A finished run's ``poses_cov.txt`` (in ``out``) against the log's reference: a CARMEN log's
+    corrected log (``corrected``; itself a few cm off, not ground truth) or a cloud folder's
+    ground truth / reference poses (``tools/bench_city.ground_truth_per_scan``). Errors of the
+    scans with a reference, relative to the first of them, in each scan's frame, against the
+    file's covariances (relative to scan 0, which the graph holds fixed; the first referenced scan
+    is at or near it). Every scan is a sample (neighbours are strongly correlated). ``scale``: the
+    variance scale the run used, to show the raw marginals' figures beside the written ones."""
+    from submapslam.geometry import inverse
+    from submapslam.io.trajectory import carmen_reference_trajectory, read_tum_cov
+
+    traj, covs = read_tum_cov(out / "poses_cov.txt")
+    if corrected is not None:
+        ref = carmen_reference_trajectory(corrected, log)
+        index = {round(float(t), 6): k for k, t in enumerate(traj.timestamps)}
+        pairs = [(index[round(float(t), 6)], P) for t, P in zip(ref.timestamps, ref.poses)
+                 if round(float(t), 6) in index]
+    else:
+        sys.path.insert(0, str(REPO / "tools"))
+        from bench_city import ground_truth_per_scan
+
+        _, gt = ground_truth_per_scan(log, len(traj.poses))
+        pairs = list(enumerate(gt))
+    if len(pairs) < 3:
+        raise SystemExit(f"only {len(pairs)} scans of {out} have a reference pose")
+    planar = bool(np.all(covs[:, 5, 5] < 1e-6))
+    (f, R_f), rest = pairs[0], pairs[1:]
+    errs = np.array([pose_error(inverse(R_f) @ R, inverse(traj.poses[f]) @ traj.poses[k]) for k, R in rest])
+    c = covs[[k for k, _ in rest]]
+    print(f"{out}: {len(rest)} scans with a reference (the first at scan {f})\n")
+    print("| covariances | samples | per axis mean (e/sigma)^2 (share <= 3.84) | x-y NEES [95 % band] (share in "
+          "95 % bound) | full NEES [95 % band] (share in bound) |\n|---|---|---|---|---|")
+    print(table("as written", summarise(errs, c, planar)))
+    if scale is not None:
+        from submapslam.uncertainty import calibrate
+
+        print(table("raw marginals (the scale undone)", summarise(errs, calibrate(c, 1.0 / np.array(scale)), planar)))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--world2d", default="rectangle", help="rectangle, rooms, figure8 ...")
@@ -174,12 +237,26 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds3d", default="0:20")
     ap.add_argument("--scans3d", type=int, default=200)
     ap.add_argument("--rings", type=int, default=16)
+    ap.add_argument("--kitti-gt", type=Path, default=KITTI_GT, help="folder of KITTI ground-truth NN.txt(.xz)")
     ap.add_argument("--ekf-runs", type=int, default=20)
     ap.add_argument("--config", default=None, help="pipeline config YAML (default: the defaults)")
     ap.add_argument("--only", nargs="+", default=["2d", "3d", "ekf"], choices=["2d", "3d", "ekf"])
     ap.add_argument("--json", default=None, help="write summaries and every sample here")
     ap.add_argument("--workdir", default=None, help="where the temporary logs go (default: the system's)")
+    ap.add_argument("--rescore", nargs="+", metavar="JSON", help="no runs: score the samples of these --json files "
+                    "again, their covariances scaled per axis by --scale (a calibration applied after the fact)")
+    ap.add_argument("--scale", nargs=6, type=float, metavar=("RX", "RY", "RZ", "X", "Y", "Z"),
+                    help="with --rescore: variance scale per axis, GTSAM order")
+    ap.add_argument("--run", nargs=2, type=Path, metavar=("OUT", "LOG"),
+                    help="no runs: a finished run's OUT/poses_cov.txt against LOG's reference (a cloud folder's "
+                    "ground truth, or with --corrected a CARMEN log's corrected log); --scale: the scale the run "
+                    "used, to show the raw marginals too")
+    ap.add_argument("--corrected", type=Path, help="with --run: the CARMEN corrected log")
     args = ap.parse_args(argv)
+    if args.run:
+        return real_run(*args.run, args.corrected, args.scale)
+    if args.rescore:
+        return rescore(args.rescore, args.scale)
 
     from datasets_synth import generate
     from datasets_synth.city import generate_kitti_drive
@@ -192,7 +269,7 @@ def main(argv: list[str] | None = None) -> int:
         rows += monte_carlo(f"{args.world2d} {args.laps} laps", seed_range(args.seeds2d),
                             lambda s, out: generate(args.world2d, out, seed=s, laps=args.laps), args.config, keep)
     if "3d" in args.only:
-        path = KITTI_GT / f"{args.path3d}.txt.xz"
+        path = args.kitti_gt / f"{args.path3d}.txt.xz"
         rows += monte_carlo(f"terrain city {args.path3d}, {args.scans3d} scans", seed_range(args.seeds3d),
                             lambda s, out: generate_kitti_drive(path, out, rings=args.rings, seed=s, terrain=True,
                                                                 max_scans=args.scans3d),
