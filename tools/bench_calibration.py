@@ -261,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
     from datasets_synth import generate
     from datasets_synth.city import generate_kitti_drive
 
-    keep: dict = {"workdir": args.workdir, "args": vars(args)}
+    keep: dict = {"workdir": args.workdir, "args": {k: str(v) for k, v in vars(args).items()}}
     header = ["| run | samples | per axis mean (e/sigma)^2 (share <= 3.84) | x-y NEES [95 % band] (share in 95 % bound) "
               "| full NEES [95 % band] (share in bound) |", "|---|---|---|---|---|"]
     rows: list[str] = []
