@@ -176,7 +176,7 @@ def rescore(files: list[str], scale: list[float] | None) -> int:
         data = json.loads(Path(f).read_text())
         for name, smp in data["samples"].items():
             errs, covs = np.array(smp["errors"]), np.array(smp["covariances"])
-            planar = bool(np.all(np.einsum("kii->ki", covs)[:, [0, 1, 5]] < 1e-6))
+            planar = bool(np.all(np.einsum("kii->ki", covs)[:, [0, 1, 5]] < 1e-4))  # pinned (sigma 1e-4 per edge)
             fit = (errs**2 / np.einsum("kii->ki", covs)).mean(axis=0)
             print(f"{f}: {name}: fitted variance scale (GTSAM order) " + " ".join(f"{x:.4g}" for x in fit))
             if scale is not None:
