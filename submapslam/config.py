@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, Literal, TypeVar
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from .errors import ConfigError
 
@@ -213,6 +213,20 @@ class BackendConfig(_Strict):
     final_check_consensus: int = Field(
         3, ge=1, description="the final check lets an odometry edge or ground prior give way only when at "
         "least this many loop closures remain and all of them fit once it has")
+
+    covariance_scale: tuple[float, float, float, float, float, float] | None = Field(
+        None, description="variance scale per axis, GTSAM order (roll, pitch, yaw, x, y, z), applied in each "
+        "anchor's frame to the marginal covariances a run reports (submaps.csv, poses_cov.txt, the saved map); "
+        "the graph, its estimate and the gates that read its covariances (spatial loop search, plausibility) "
+        "are not touched. null: COVARIANCE_SCALE_PLANAR / COVARIANCE_SCALE_3D in submapslam/uncertainty.py "
+        "(fitted with tools/bench_calibration.py, bounded by real logs); [1, 1, 1, 1, 1, 1]: the graph's raw marginals")
+
+    @field_validator("covariance_scale")
+    @classmethod
+    def _positive_scale(cls, v):
+        if v is not None and not all(0 < x < float("inf") for x in v):
+            raise ValueError(f"covariance_scale must be six finite numbers > 0, not {list(v)}")
+        return v
 
     def rotation_drift(self, planar: bool) -> tuple[float, float]:
         """``(deg per metre, fraction of the turned angle)`` of the odometry rotation sigma."""

@@ -220,3 +220,13 @@ def is_planar(T: ArrayLike, tol: float = 1e-6) -> bool:
         and np.all(np.abs(T[..., 2, :2]) < tol)
         and np.all(np.abs(T[..., :2, 2]) < tol)
     )
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """``(6, 6)`` adjoint of a pose in GTSAM's tangent order ``(rx, ry, rz, tx, ty, tz)``."""
+    R, t = T[:3, :3], T[:3, 3]
+    Ad = np.zeros((6, 6))
+    Ad[:3, :3] = R
+    Ad[3:, 3:] = R
+    Ad[3:, :3] = skew(t) @ R
+    return Ad

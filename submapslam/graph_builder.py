@@ -16,29 +16,12 @@ import numpy as np
 
 from .backend.pose_graph import PoseGraph, cap_covariance, floor_information
 from .config import BackendConfig, OdometryConfig
-from .geometry import inverse, rotation_angle
+from .geometry import inverse
 from .result import LoopRecord
 from .submaps import Submap
+from .uncertainty import odometry_information
 
 PRIOR_INFORMATION = np.diag([1e8] * 6)  # the first anchor is the world frame
-
-
-def odometry_information(T_i_j: np.ndarray, distance: float, planar: bool, config: BackendConfig) -> np.ndarray:
-    """Information ``(6, 6)`` (GTSAM order) of an odometry edge between consecutive anchors.
-
-    Drift model of scan-to-map odometry: translation sigma ``odometry_drift`` of the distance
-    travelled plus a floor; rotation sigma ``odometry_drift_deg_per_m`` per metre plus a
-    fraction of the turned angle plus a floor (:meth:`BackendConfig.rotation_drift`). For planar
-    logs z, roll and pitch are pinned (they are not observable and must not drift).
-    """
-    angle = rotation_angle(T_i_j)
-    per_m, turn = config.rotation_drift(planar)
-    s_t = config.odometry_sigma_floor_m + config.odometry_drift * distance
-    s_r = np.deg2rad(config.odometry_sigma_floor_deg) + np.deg2rad(per_m) * distance + turn * angle
-    sig = np.array([s_r, s_r, s_r, s_t, s_t, s_t])
-    if planar:
-        sig[[0, 1, 5]] = 1e-4
-    return np.diag(1.0 / sig**2)
 
 
 #: GTSAM-order indices of what a planar log cannot observe: roll, pitch, z

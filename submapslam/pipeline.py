@@ -27,6 +27,7 @@ from .process_stats import combined_peak_mb, current_memory_mb, peak_memory_mb, 
 from .result import LoopRecord, SlamResult
 from .scan import LoopHint, Scan
 from .submaps import Submap, SubmapBuilder
+from .uncertainty import calibrate, covariance_scale
 
 log = logging.getLogger(__name__)
 
@@ -482,7 +483,8 @@ class SubmapSLAM:
             poses=poses,
             odometry_poses=np.array(self._odom_poses),
             submap_poses=np.array([graph.pose(k) for k in range(n)]).reshape(-1, 4, 4),
-            submap_covariances=np.array([covs[k] for k in range(n)]).reshape(-1, 6, 6),
+            submap_covariances=calibrate(np.array([covs[k] for k in range(n)]).reshape(-1, 6, 6),
+                                         covariance_scale(backend, self.planar)),
             submap_points=[s.points for s in self.submaps],
             submap_scan_indices=[s.scan_indices for s in self.submaps],
             submap_scan_poses=scan_poses,

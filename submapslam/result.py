@@ -147,6 +147,14 @@ class SlamResult:
     def loops_accepted(self) -> int:
         return sum(1 for lp in self.loops if lp.accepted)
 
+    def pose_covariances(self) -> np.ndarray | None:
+        """``(N, 6, 6)`` covariance of every scan pose (GTSAM order ``(rx, ry, rz, x, y, z)``, in
+        the scan's own frame: :func:`~submapslam.uncertainty.scan_covariances`); None when the run
+        has no covariances."""
+        from .uncertainty import scan_covariances
+
+        return scan_covariances(self)
+
     def odometry_consistency(self) -> dict:
         """How far the optimised anchors moved each odometry edge from its measurement.
 

@@ -17,7 +17,7 @@ PKG = Path(__file__).resolve().parents[1] / "submapslam"
 # low to high; a module belongs to the first entry that is its name or a package above it
 LAYERS: list[tuple[str, ...]] = [
     ("geometry", "config", "errors", "trajectory", "landmark_log", "result", "process_stats", "_deps", "scan",
-     "checkpoint", "observer", "session_map", "progress"),
+     "checkpoint", "observer", "session_map", "progress", "uncertainty"),
     ("registration",),
     ("odometry", "odometry_stage", "submaps", "mapping", "topology", "backend", "ekf"),
     ("graph_builder", "scan_refine"),

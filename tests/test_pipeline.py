@@ -265,3 +265,37 @@ def test_planar_covariances_stay_planar(rectangle_run):
     loose = np.full((6, 6), 0.5) + np.eye(6)
     pinned = pin_planar(loose)
     assert pinned[5, 5] == 1e8 and pinned[5, 3] == 0.0 and pinned[3, 4] == 0.5
+
+
+def test_run_writes_pose_covariances(rectangle_run):
+    """poses_cov.txt: one pose and covariance per scan (the result's), positive definite; each
+    anchor's scan carries its anchor's reported marginal (x, y, yaw)."""
+    from submapslam.io.trajectory import read_tum_cov
+
+    _, result, paths = rectangle_run
+    traj, covs = read_tum_cov(paths["poses_cov.txt"])
+    assert len(traj) == result.n_scans
+    np.testing.assert_allclose(traj.poses, result.poses, atol=1e-7)
+    np.testing.assert_allclose(covs, result.pose_covariances(), rtol=1e-6, atol=1e-14)
+    assert np.all(np.linalg.eigvalsh(covs) > 0)
+    for k, idx in enumerate(result.submap_scan_indices):
+        want = result.submap_covariances[k, 2:5, 2:5]  # a refined anchor scan sits mm off its anchor:
+        np.testing.assert_allclose(covs[idx[0], 2:5, 2:5], want, rtol=1e-3, atol=1e-3 * np.trace(want))
+
+
+def test_covariance_scale_changes_only_the_reported_covariances(rectangle_run, tmp_path):
+    """backend.covariance_scale scales the anchors' reported marginals per axis (D Sigma D) and
+    nothing else: the same poses and loop decisions as the graph's raw marginals (scale 1)."""
+    from submapslam.config import BackendConfig
+    from submapslam.uncertainty import COVARIANCE_SCALE_PLANAR
+
+    log = rectangle_run[0]
+    raw, _ = run_log(log, None, max_scans=150, config=PipelineConfig(backend=BackendConfig(covariance_scale=[1] * 6)))
+    cal, _ = run_log(log, None, max_scans=150)
+    np.testing.assert_array_equal(cal.poses, raw.poses)
+    assert [(lp.i, lp.j, lp.accepted) for lp in cal.loops] == [(lp.i, lp.j, lp.accepted) for lp in raw.loops]
+    d = np.sqrt(np.array(COVARIANCE_SCALE_PLANAR))
+    np.testing.assert_allclose(cal.submap_covariances, raw.submap_covariances * np.outer(d, d), rtol=1e-9, atol=1e-18)
+    k = cal.submap_scan_indices[-1][0]  # the last anchor's own scan: its anchor's covariance, so scaled alike
+    s = np.diagonal(cal.pose_covariances()[k]) / np.diagonal(raw.pose_covariances()[k])
+    np.testing.assert_allclose(s[2:5], COVARIANCE_SCALE_PLANAR[2:5], rtol=1e-2)

@@ -13,8 +13,10 @@ from submapslam.io.trajectory import (
     read_relations,
     read_trajectory,
     read_tum,
+    read_tum_cov,
     write_kitti,
     write_tum,
+    write_tum_cov,
 )
 
 from .conftest import shared_data
@@ -32,6 +34,27 @@ def test_tum_round_trip(tmp_path):
     back = read_tum(tmp_path / "a.txt")
     np.testing.assert_allclose(back.timestamps, t.timestamps, atol=1e-6)
     np.testing.assert_allclose(back.poses, t.poses, atol=1e-7)
+
+
+def test_pose_covariance_file_round_trip_and_order(tmp_path):
+    """poses_cov.txt: TUM line + 21 upper-triangular entries in the order x y z rx ry rz (GTSAM
+    keeps rx ry rz x y z): a variance put on GTSAM's x (index 3) is the file's first entry."""
+    t = random_traj(5)
+    rng = np.random.default_rng(1)
+    A = rng.normal(size=(5, 6, 6))
+    covs = A @ A.transpose(0, 2, 1) + np.eye(6)
+    covs[0] = np.diag([1.0, 2.0, 3.0, 4.0, 5.0, 6.0])  # rx ry rz x y z
+    covs[0, 3, 4] = covs[0, 4, 3] = 0.5  # x-y
+    write_tum_cov(tmp_path / "c.txt", t, covs)
+    first = [float(v) for v in (tmp_path / "c.txt").read_text().splitlines()[1].split()]
+    assert len(first) == 8 + 21
+    assert first[8:14] == [4.0, 0.5, 0.0, 0.0, 0.0, 0.0]  # row x: xx xy xz xrx xry xrz
+    assert first[14] == 5.0 and first[-1] == 3.0  # yy ... rzrz
+    back, back_covs = read_tum_cov(tmp_path / "c.txt")
+    np.testing.assert_allclose(back.poses, t.poses, atol=1e-7)
+    np.testing.assert_allclose(back_covs, covs, rtol=1e-8)
+    with pytest.raises(ValueError, match="covariances"):
+        write_tum_cov(tmp_path / "d.txt", t, covs[:3])
 
 
 def test_kitti_round_trip_and_sniffing(tmp_path):

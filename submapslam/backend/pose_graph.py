@@ -16,7 +16,7 @@ import numpy as np
 
 from ..config import BackendConfig
 from ..errors import OptimisationError
-from ..geometry import rotation_between
+from ..geometry import adjoint, rotation_between
 
 log = logging.getLogger(__name__)
 
@@ -455,18 +455,6 @@ def _one_line(exc: BaseException) -> str:
     """GTSAM's multi-line exception text as one line ("... near variable 1 (Symbol: 1).")."""
     lines = [line.strip() for line in str(exc).strip().splitlines() if line.strip()]
     return " ".join(lines[:2]) if lines else type(exc).__name__
-
-
-def adjoint(T: np.ndarray) -> np.ndarray:
-    """``(6, 6)`` adjoint of a pose in GTSAM's tangent order ``(rx, ry, rz, tx, ty, tz)``."""
-    from ..geometry import skew
-
-    R, t = T[:3, :3], T[:3, 3]
-    Ad = np.zeros((6, 6))
-    Ad[:3, :3] = R
-    Ad[3:, 3:] = R
-    Ad[3:, :3] = skew(t) @ R
-    return Ad
 
 
 def chain_covariance(steps: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:

@@ -31,6 +31,7 @@ from ..graph_builder import PRIOR_INFORMATION
 from ..result import SlamResult
 from ..session_map import SessionInfo, SessionMap
 from ..submaps import Submap
+from ..uncertainty import calibrate, covariance_scale
 
 if TYPE_CHECKING:
     from ..topology.session_placement import VerifyMany
@@ -243,6 +244,8 @@ def _optimise(result: SlamResult, sessions: list[SessionInfo], config: PipelineC
     rejected += dropped
     n = result.n_submaps
     covs = graph.all_marginal_covariances(range(fixed, n))  # a frozen map keeps its own
+    scale = covariance_scale(config.backend, result.planar)
+    covs = {k: calibrate(c, scale) for k, c in covs.items()}  # as a single run reports them
     new_poses = np.array([graph.pose(k) for k in range(n)]).reshape(-1, 4, 4)
     new_poses[:fixed] = result.submap_poses[:fixed]  # a frozen map: exactly where it was
     scan_poses = _scan_poses_after(result, sessions, new_poses)

@@ -16,7 +16,7 @@ from ..process_stats import combined_peak_mb, peak_memory_mb, peaks_by_process
 from ..result import SlamResult
 from .g2o import write_g2o
 from .ply import write_ply
-from .trajectory import Trajectory, write_kitti, write_tum
+from .trajectory import Trajectory, write_kitti, write_tum, write_tum_cov
 
 
 def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs,
@@ -26,7 +26,8 @@ def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs,
 
     Files: ``poses_tum.txt``, ``poses_kitti.txt``, ``odometry_tum.txt``, ``graph.g2o``,
     ``map.ply``, ``map_dynamic.ply`` (3D runs that split what moved off the map), ``config.yaml``, ``summary.json``, ``loops.csv``, ``submaps.csv`` (anchor poses,
-    marginal standard deviations and the x-y covariance in the anchor frame, for ellipses), and
+    marginal standard deviations and the x-y covariance in the anchor frame, for ellipses),
+    ``poses_cov.txt`` (every scan's pose and its 6x6 covariance: :func:`~.trajectory.write_tum_cov`), and
     for planar runs ``map.pgm`` + ``map.yaml`` (occupancy grid in the ROS map_server format,
     moving objects cleared; for 3D LiDAR from the obstacle slice of each scan).
 
@@ -51,6 +52,10 @@ def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs,
     paths["config.yaml"].write_text(dump_config(result.config))
     _write_loops(paths["loops.csv"], result)
     _write_submaps(paths["submaps.csv"], result)
+    covariances = result.pose_covariances()
+    if covariances is not None:
+        paths["poses_cov.txt"] = out / "poses_cov.txt"
+        write_tum_cov(paths["poses_cov.txt"], Trajectory(result.timestamps, result.poses), covariances)
     if maps.occupancy is not None:
         from .grid import write_pgm_yaml
 

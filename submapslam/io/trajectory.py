@@ -68,6 +68,49 @@ def write_tum(path: str | Path, traj: Trajectory) -> None:
     Path(path).write_text("\n".join(lines) + "\n")
 
 
+#: ``poses_cov.txt``: the 6x6 in the order (x, y, z, rx, ry, rz) of ROS ``PoseWithCovariance``;
+#: GTSAM's tangent order is (rx, ry, rz, x, y, z), so entry ``i`` of the file is GTSAM's ``COV_ORDER[i]``
+COV_ORDER = (3, 4, 5, 0, 1, 2)
+_UPPER = np.triu_indices(6)
+
+
+def write_tum_cov(path: str | Path, traj: Trajectory, covariances: np.ndarray) -> None:
+    """Write ``poses_cov.txt``: per pose its TUM line (``t x y z qx qy qz qw``) and the 21
+    upper-triangular entries, row by row, of its ``(6, 6)`` covariance in the pose's own frame
+    (right perturbation ``T_true = T Exp(xi)``), in the order ``(x, y, z, rx, ry, rz)`` [m, rad;
+    ``rx, ry, rz`` a rotation vector about the pose's own axes]: ``c_xx c_xy c_xz c_xrx c_xry c_xrz
+    c_yy ... c_rzrz``. ``covariances``: ``(N, 6, 6)`` in GTSAM order ``(rx, ry, rz, x, y, z)``."""
+    covs = np.asarray(covariances, dtype=np.float64)
+    if covs.shape != (len(traj.poses), 6, 6):
+        raise ValueError(f"{len(traj.poses)} poses but covariances of shape {covs.shape}")
+    order = list(COV_ORDER)
+    lines = ["# t x y z qx qy qz qw, then the upper triangle (21 entries, row by row) of the 6x6 pose covariance "
+             "in the pose's own frame, order x y z rx ry rz [m, rad]"]
+    for t, T, C in zip(traj.timestamps, traj.poses, covs):
+        q = matrix_to_quat(T[:3, :3])
+        x, y, z = T[:3, 3]
+        upper = C[np.ix_(order, order)][_UPPER]
+        lines.append(f"{t:.6f} {x:.9g} {y:.9g} {z:.9g} {q[0]:.9g} {q[1]:.9g} {q[2]:.9g} {q[3]:.9g} "
+                     + " ".join(f"{v:.9g}" for v in upper))
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def read_tum_cov(path: str | Path) -> tuple[Trajectory, np.ndarray]:
+    """Read ``poses_cov.txt`` (:func:`write_tum_cov`): the trajectory and ``(N, 6, 6)`` covariances
+    in GTSAM order ``(rx, ry, rz, x, y, z)``, each in its pose's frame."""
+    path = Path(path)
+    rows = _rows(path, (29,))
+    data = np.array([r for _, r in rows]).reshape(-1, 29)
+    poses = poses_from_xyz_quats(data[:, 1:4], data[:, 4:8])
+    covs = np.zeros((len(data), 6, 6))
+    file_order = np.zeros((len(data), 6, 6))
+    file_order[:, _UPPER[0], _UPPER[1]] = data[:, 8:]
+    file_order[:, _UPPER[1], _UPPER[0]] = data[:, 8:]
+    inv = np.argsort(COV_ORDER)
+    covs[:] = file_order[:, inv][:, :, inv]
+    return Trajectory(data[:, 0], poses), covs
+
+
 def read_kitti(path: str | Path, timestamps: np.ndarray | None = None) -> Trajectory:
     """KITTI: 12 numbers per line (row-major 3x4); timestamps default to the line index."""
     path = Path(path)
