@@ -410,3 +410,34 @@ def test_synth_reports_progress_with_a_total(tmp_path):
     calls = []
     generate("rectangle", tmp_path / "s", laps=1, max_scans=30, progress=lambda done, total: calls.append((done, total)))
     assert calls and calls[-1] == (30, 30) and all(total == 30 for _, total in calls)
+
+
+def test_report_evaluates_against_shipped_kitti_ground_truth(small_log, small_run, tmp_path, caplog):
+    """A log that ships only KITTI poses (no stamps): line k is scan k, stamped as the reader
+    stamps it, so the page carries the same ATE as against the TUM truth. A KITTI file of the
+    wrong length is named in one warning and the page is still written."""
+    import re
+    import shutil
+
+    from submapslam.api import evaluate_files
+
+    log = tmp_path / "log"
+    shutil.copytree(small_log, log)
+    (log / "groundtruth_tum.txt").unlink()
+    run = tmp_path / "run"
+    shutil.copytree(small_run[0], run)
+    prov = json.loads((run / "input.json").read_text())
+    prov.update(path=str(log), absolute_path=str(log))
+    (run / "input.json").write_text(json.dumps(prov))
+    r = runner.invoke(app, ["report", str(run), "--out", str(tmp_path / "k.html")])
+    assert r.exit_code == 0, r.output
+    html = (tmp_path / "k.html").read_text()
+    assert "groundtruth_kitti.txt (shipped with the log)" in html
+    rmse = evaluate_files(run / "poses_tum.txt", small_log / "groundtruth_tum.txt")["ate"]["rmse"]
+    assert re.search(rf"<td class=\"t\">submapslam</td><td>{rmse:.4g}</td>", html)
+    lines = (log / "groundtruth_kitti.txt").read_text().splitlines()
+    (log / "groundtruth_kitti.txt").write_text("\n".join(lines[:-5]) + "\n")
+    r = runner.invoke(app, ["report", str(run), "--out", str(tmp_path / "short.html")])
+    assert r.exit_code == 0, r.output
+    assert "not evaluated" in caplog.text and f"{len(lines) - 5} poses for the {len(lines)} scans" in caplog.text
+    assert "shipped with the log" not in (tmp_path / "short.html").read_text()
