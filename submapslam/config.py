@@ -475,6 +475,11 @@ class ScanRefineConfig(_Strict):
     anchor_sigma_m: float | None = Field(0.01, gt=0, description="[m] each submap anchor held at its pose from the "
                                          "submap solve within this sigma; None: free")
     anchor_sigma_deg: float = Field(0.1, gt=0, description="[deg] the same in rotation")
+    anchor_bend_factor: float = Field(
+        1.0, ge=0, description="an anchor's prior sigmas are at least this times how far the submap solve bent the "
+        "odometry between it and its neighbouring anchors [m, rad]: where the loops bent the chain the anchor "
+        "gives way to the scans' matches (MIT CSAIL 0.132 -> 0.125 m, FR079 0.0665 -> 0.0651 m, Intel 0.0609 -> "
+        "0.0608 m); 0: every anchor held alike")
     anchor_kernel: float | None = Field(
         1.0, gt=0, description="Cauchy width [whitened units] of those anchor priors: an anchor the scans' matches "
         "contradict by many sigmas (an odometry edge of the submap graph that went wrong) gives way; None: Gaussian")
