@@ -21,7 +21,7 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(VENV)/bin/ruff check submapslam datasets_synth tools tests
-	$(VENV)/bin/pytest -n auto --dist loadfile
+	$(VENV)/bin/pytest -n auto --dist loadfile --durations=15
 
 bench: $(STAMP)
 	$(PY) tools/bench_pipeline.py

@@ -445,7 +445,8 @@ def report_run(run_dir: str | Path, out_path: str | Path | None = None, *, ref: 
     """Write the self-contained HTML report of the results folder ``run_dir`` (default
     ``run_dir/report.html``); with ``ref`` (``raw_log``: the raw CARMEN log when ``ref`` is a
     corrected one) the error against it; without ``ref``, against the ground truth the log ships
-    (``groundtruth_tum.txt`` beside it), if any. Returns the page's path.
+    (``groundtruth_tum.txt``, or ``groundtruth_kitti.txt`` / ``poses_gt_kitti.txt`` paired with its
+    scans, beside it), if any. Returns the page's path.
 
     An existing file at ``out_path`` is replaced only when it is a report this function wrote;
     anything else is an error, so no file of the user's is overwritten.
@@ -467,12 +468,18 @@ def report_run(run_dir: str | Path, out_path: str | Path | None = None, *, ref: 
     if not out.parent.is_dir():
         raise InputError(out.parent, "no such folder for the report")
     if ref is None:
-        from .io.run_folder import shipped_ground_truth
+        from .io.run_folder import read_shipped_ground_truth, shipped_ground_truth
 
         ref = shipped_ground_truth(run_dir)  # a log that ships its ground truth is evaluated against it
-        if ref is None:
+        truth = None
+        if ref is not None:
+            try:
+                truth = read_shipped_ground_truth(ref)
+            except InputError as exc:  # the page is still written, without the evaluation
+                log.warning("%s: not evaluated against it", exc)
+        if truth is None:
             return write_run_report(read_run_folder(run_dir), out, None, align=mode)
-        return write_run_report(read_run_folder(run_dir), out, _reference(ref, None), align=mode,
+        return write_run_report(read_run_folder(run_dir), out, truth, align=mode,
                                 reference_name=f"{Path(ref).name} (shipped with the log)")
     from concurrent.futures import ThreadPoolExecutor
 

@@ -61,6 +61,13 @@ class OdometryConfig(_Strict):
         "by more than this [deg] (or wheel_check_m), the scan is registered from both and the better fit to the "
         "last scans is kept (stale or jumping wheel poses, as in MIT CSAIL's log, otherwise lead ICP astray)")
     wheel_check_m: float = Field(0.25, gt=0, description="2D lasers: the same in translation [m]")
+    young_map_scans: int = Field(
+        3, ge=0, description="3D spinning LiDARs (KISS-ICP registration): while the local map holds fewer than this "
+        "many scans, a scan registers without its ground band (its lowest ground_band_m): a map of one scan has its "
+        "ground rings where the new scan's are, which pulls point-to-point ICP towards no motion (the second scan "
+        "of a 9 m/s drive came out 0.36 m short); 0: never")
+    ground_band_m: float = Field(0.3, gt=0, description="[m] height of that ground band above the scan's 5th "
+                                 "percentile of height (sensor frame)")
     initial_threshold: float = Field(2.0, gt=0)
     min_motion_threshold: float = Field(0.1, ge=0)
     max_iterations: int = Field(500, ge=1)
@@ -482,6 +489,11 @@ class ScanRefineConfig(_Strict):
     anchor_sigma_m: float | None = Field(0.01, gt=0, description="[m] each submap anchor held at its pose from the "
                                          "submap solve within this sigma; None: free")
     anchor_sigma_deg: float = Field(0.1, gt=0, description="[deg] the same in rotation")
+    anchor_bend_factor: float = Field(
+        1.0, ge=0, description="an anchor's prior sigmas are at least this times how far the submap solve bent the "
+        "odometry between it and its neighbouring anchors [m, rad]: where the loops bent the chain the anchor "
+        "gives way to the scans' matches (MIT CSAIL 0.132 -> 0.125 m, FR079 0.0665 -> 0.0651 m, Intel 0.0609 -> "
+        "0.0608 m); 0: every anchor held alike")
     anchor_kernel: float | None = Field(
         1.0, gt=0, description="Cauchy width [whitened units] of those anchor priors: an anchor the scans' matches "
         "contradict by many sigmas (an odometry edge of the submap graph that went wrong) gives way; None: Gaussian")

@@ -212,6 +212,20 @@ def blend_poses_many(T_a: ArrayLike, T_b: ArrayLike, alphas: ArrayLike) -> Array
     return out
 
 
+def splice_height_and_tilt(T_level: ArrayLike, T_tilt: ArrayLike) -> Array:
+    """``(4, 4)`` pose with x, y and yaw of ``T_level`` and z, roll and pitch of ``T_tilt`` (yaw-pitch-roll
+    order, ``R = Rz(yaw) Ry(pitch) Rx(roll)``; both ``(4, 4)`` in the same frame, z up)."""
+    from scipy.spatial.transform import Rotation
+
+    yaw = Rotation.from_matrix(np.asarray(T_level, dtype=np.float64)[:3, :3]).as_euler("ZYX")[0]
+    _, pitch, roll = Rotation.from_matrix(np.asarray(T_tilt, dtype=np.float64)[:3, :3]).as_euler("ZYX")
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_euler("ZYX", [yaw, pitch, roll]).as_matrix()
+    out[:2, 3] = np.asarray(T_level)[:2, 3]
+    out[2, 3] = np.asarray(T_tilt)[2, 3]
+    return out
+
+
 def is_planar(T: ArrayLike, tol: float = 1e-6) -> bool:
     """True when a pose (or stack) has z = 0 and rotates about z only."""
     T = np.asarray(T, dtype=np.float64)

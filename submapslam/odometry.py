@@ -15,7 +15,7 @@ from collections import deque
 import numpy as np
 
 from .config import OdometryConfig
-from .geometry import blend_poses, inverse, matrix_to_se2, se2_to_matrix
+from .geometry import blend_poses, inverse, matrix_to_se2, se2_to_matrix, splice_height_and_tilt
 from .registration.voxel_gicp import VoxelGicpSettings, VoxelGicpTracker, azimuth_coverage_deg
 from .scan import Scan
 
@@ -48,6 +48,22 @@ def odometry_voxels(config: OdometryConfig, planar: bool) -> tuple[float, float]
     else:
         voxel = config.max_range / 100.0
     return voxel, 0.5 * voxel
+
+
+#: a scan keeps all its points when fewer than this many lie above its ground band
+MIN_POINTS_ABOVE_GROUND = 200
+
+
+def above_ground_band(points: np.ndarray, band_m: float) -> np.ndarray:
+    """The rows of ``points`` ``(N, 3)`` (sensor frame, z up) higher than ``band_m`` [m] above the
+    scan's 5th percentile of height: what is left when the ground is taken out. All of ``points``
+    when fewer than :data:`MIN_POINTS_ABOVE_GROUND` would be left (an open field: the ground is
+    all there is to register)."""
+    if len(points) == 0:
+        return points
+    z = points[:, 2]
+    above = points[z > np.percentile(z, 5.0) + band_m]
+    return above if len(above) >= MIN_POINTS_ABOVE_GROUND else points
 
 
 class Odometry:
@@ -94,6 +110,7 @@ class Odometry:
         self.last_delta = np.eye(4)
         self._last_wheel: np.ndarray | None = None
         self.n_registered = 0
+        self._scans_in_map = 0  # scans added to KISS-ICP's local map so far
         self.wheel_overruled = 0  # planar scans whose constant-velocity guess fitted better than the wheels'
         self._recent_fits: deque[float] = deque(maxlen=20)  # planar: fit of the last scans to the ones before
         self._refiner = None
@@ -157,6 +174,11 @@ class Odometry:
                 self.last_xyt = xyt
         elif self._local_map.empty():
             new_pose = initial_guess
+        elif not self.planar and self._scans_in_map < self.config.young_map_scans:
+            # a young map: x, y and yaw from the scan without its ground (whose rings would hold it
+            # where the map's rings are), then height, roll and pitch from the whole scan
+            level = self._align(above_ground_band(source, self.config.ground_band_m), initial_guess)
+            new_pose = splice_height_and_tilt(level, self._align(source, level))
         else:
             new_pose = self._align(source, initial_guess)
         if self.planar and known is None:
@@ -190,9 +212,11 @@ class Odometry:
         self._threshold.update_model_deviation(inverse(initial_guess) @ new_pose)
         if self.movers is None:
             self._local_map.update(frame_down, new_pose)
+            self._scans_in_map += 1
         else:  # each scan enters the local map a few scans late, without what the scans around it saw through
             for points, pose in self.movers.add(frame, frame_down, new_pose, immediate=self._local_map.empty()):
                 self._local_map.update(points, pose)
+                self._scans_in_map += 1
         self._advance(new_pose)
         self.last_frame_down = frame_down
         return new_pose, frame

@@ -147,6 +147,26 @@ def _match_edges(xyt: np.ndarray, odom_xyt: np.ndarray, keyframes: np.ndarray, s
     return edges, tried
 
 
+def anchor_sigmas(odom_anchors: np.ndarray, world_anchors: np.ndarray, cfg: ScanRefineConfig
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Sigmas ``(S,)`` [m] and ``(S,)`` [rad] of the priors holding the ``S`` submap anchors
+    (``(S, 3)`` poses by odometry and after the submap solve): at least ``anchor_sigma_m`` /
+    ``anchor_sigma_deg``, and ``anchor_bend_factor`` times how far the solve bent the odometry
+    between the anchor and its neighbours (the larger of its two submap steps). Where the loops
+    had to bend the chain, the solve placed the anchor from little evidence, so the scans' matches
+    may move it further; elsewhere it is held."""
+    sigma_m = np.full(len(odom_anchors), cfg.anchor_sigma_m)
+    sigma_rad = np.full(len(odom_anchors), np.deg2rad(cfg.anchor_sigma_deg))
+    if len(odom_anchors) < 2 or not cfg.anchor_bend_factor:
+        return sigma_m, sigma_rad
+    bend = _between(_between(odom_anchors[:-1], odom_anchors[1:]), _between(world_anchors[:-1], world_anchors[1:]))
+    step_m, step_rad = np.hypot(bend[:, 0], bend[:, 1]), np.abs(bend[:, 2])
+    for sig, step in ((sigma_m, step_m), (sigma_rad, step_rad)):
+        sig[:-1] = np.maximum(sig[:-1], cfg.anchor_bend_factor * step)
+        sig[1:] = np.maximum(sig[1:], cfg.anchor_bend_factor * step)
+    return sigma_m, sigma_rad
+
+
 def refine_scans(odom_xyt: np.ndarray, world_xyt: np.ndarray, submap_scan_indices: list[list[int]],
                  submap_points: list[np.ndarray], scan_points: list[np.ndarray],
                  cfg: ScanRefineConfig) -> RefinedScans:
@@ -181,8 +201,8 @@ def refine_scans(odom_xyt: np.ndarray, world_xyt: np.ndarray, submap_scan_indice
     xyt = np.array(world_xyt[keyframes], dtype=np.float64)
     priors = []
     if cfg.anchor_sigma_m is not None:
-        info = np.diag([cfg.anchor_sigma_m**-2] * 2 + [np.deg2rad(cfg.anchor_sigma_deg) ** -2])
-        priors = [(node_of[a], info) for a in anchors]
+        sigma_m, sigma_rad = anchor_sigmas(odom_xyt[anchors], world_xyt[anchors], cfg)
+        priors = [(node_of[a], np.diag([sm**-2, sm**-2, sr**-2])) for a, sm, sr in zip(anchors, sigma_m, sigma_rad)]
     n_edges = tried = 0
     for _ in range(cfg.rounds):
         matches, tried = _match_edges(xyt, odom_xyt, keyframes, scans, owners, anchors, clouds, members, cfg)

@@ -12,6 +12,7 @@ from typer.testing import CliRunner
 from submapslam.cli import app
 
 from .cli_errors import assert_one_error_line
+from .report_pages import CHROMIUM, chromium, figure_png
 
 runner = CliRunner()
 
@@ -320,18 +321,6 @@ def test_view_without_a_display_is_one_line(small_log, tmp_path, monkeypatch):
     assert not (tmp_path / "o").exists()
 
 
-def _figure_png(html: str, ident: str):
-    import base64
-    import io
-    import re
-
-    import matplotlib.image as mpimg
-
-    m = re.search(rf'<img id="{ident}" src="data:image/png;base64,([^"]+)"', html)
-    assert m, f"no figure {ident}"
-    return mpimg.imread(io.BytesIO(base64.b64decode(m.group(1))), format="png")
-
-
 @pytest.fixture(scope="module")
 def small_report(small_run, tmp_path_factory):
     out, _ = small_run
@@ -345,7 +334,7 @@ def test_report_evaluates_against_the_shipped_ground_truth_with_evo_plots(small_
     html = small_report
     assert "groundtruth_tum.txt (shipped with the log)" in html
     for ident in ("evo-xyz", "evo-ape", "evo-hist"):
-        img = _figure_png(html, ident)
+        img = figure_png(html, ident)
         assert img.shape[0] > 150 and float(np.std(img[..., :3])) > 0.02, ident
     from submapslam.evaluation.run_figures import degenerate_alignment
     from submapslam.io.trajectory import read_tum
@@ -368,25 +357,20 @@ def test_a_straight_reference_path_flags_the_alignment():
 
 def test_the_loop_table_is_paginated_in_headless_chromium(tmp_path):
     import re
-    import shutil
-    import subprocess
 
     from submapslam.evaluation import html_page as hp
     from submapslam.evaluation.html_report import _loop_table
     from submapslam.evaluation.run_record import RunRecord
 
-    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
-    if chromium is None:
-        pytest.skip("headless chromium not installed")
+    if CHROMIUM is None:
+        pytest.skip("chromium not installed (apt-get install chromium)")
     loops = [{"submap_i": str(k), "submap_j": str(k + 3), "source": "spatial", "accepted": "1" if k % 3 else "0",
               "fitness": "0.5", "overlap": "0.5", "inlier_rmse": "0.05", "reason": "r"} for k in range(120)]
     page = tmp_path / "p.html"
     page.write_text(hp.page("t", "s", [("loops", _loop_table(RunRecord(folder="x", loops=loops)))]))
-    proc = subprocess.run([chromium, "--headless", "--no-sandbox", "--disable-gpu", "--enable-logging=stderr", "--v=0",
-                           f"--user-data-dir={tmp_path / 'profile'}", "--dump-dom", page.as_uri()],
-                          capture_output=True, text=True, timeout=120)
+    proc, console = chromium(["--dump-dom", page.as_uri()], tmp_path)
     dom = proc.stdout
-    assert not [ln for ln in proc.stderr.splitlines() if ":CONSOLE" in ln]
+    assert not console
     body = re.search(r'<table id="loops".*?<tbody>(.*?)</tbody>', dom, re.S).group(1)
     rows = re.findall(r"<tr [^>]*>", body)
     assert len(rows) == 120 and sum('display: none' not in r for r in rows) == 50
@@ -397,16 +381,16 @@ def test_the_map_view_is_large_with_layers_to_toggle(small_report):
     import re
 
     html = small_report
-    base = _figure_png(html, "map")
+    base = figure_png(html, "map")
     assert base.shape[1] >= 1100  # about 1200 px wide, not 800
     for key, shown in (("accepted", True), ("rejected", False), ("submaps", False)):
         tag = re.search(rf'<img id="layer-{key}"[^>]*>', html).group(0)
         assert ("display:none" not in tag) == shown, key
         assert f"getElementById('layer-{key}')" in html  # its checkbox
-        layer = _figure_png(html, f"layer-{key}")
+        layer = figure_png(html, f"layer-{key}")
         assert layer.shape == base.shape  # stacked pixel for pixel on the map
         assert layer.shape[2] == 4 and float(np.mean(layer[..., 3] == 0)) > 0.5  # transparent around its lines
-    anchors = _figure_png(html, "layer-submaps")
+    anchors = figure_png(html, "layer-submaps")
     assert float(np.mean(anchors[..., 3] > 0)) > 1e-4  # the anchors are drawn
 
 
@@ -426,3 +410,34 @@ def test_synth_reports_progress_with_a_total(tmp_path):
     calls = []
     generate("rectangle", tmp_path / "s", laps=1, max_scans=30, progress=lambda done, total: calls.append((done, total)))
     assert calls and calls[-1] == (30, 30) and all(total == 30 for _, total in calls)
+
+
+def test_report_evaluates_against_shipped_kitti_ground_truth(small_log, small_run, tmp_path, caplog):
+    """A log that ships only KITTI poses (no stamps): line k is scan k, stamped as the reader
+    stamps it, so the page carries the same ATE as against the TUM truth. A KITTI file of the
+    wrong length is named in one warning and the page is still written."""
+    import re
+    import shutil
+
+    from submapslam.api import evaluate_files
+
+    log = tmp_path / "log"
+    shutil.copytree(small_log, log)
+    (log / "groundtruth_tum.txt").unlink()
+    run = tmp_path / "run"
+    shutil.copytree(small_run[0], run)
+    prov = json.loads((run / "input.json").read_text())
+    prov.update(path=str(log), absolute_path=str(log))
+    (run / "input.json").write_text(json.dumps(prov))
+    r = runner.invoke(app, ["report", str(run), "--out", str(tmp_path / "k.html")])
+    assert r.exit_code == 0, r.output
+    html = (tmp_path / "k.html").read_text()
+    assert "groundtruth_kitti.txt (shipped with the log)" in html
+    rmse = evaluate_files(run / "poses_tum.txt", small_log / "groundtruth_tum.txt")["ate"]["rmse"]
+    assert re.search(rf"<td class=\"t\">submapslam</td><td>{rmse:.4g}</td>", html)
+    lines = (log / "groundtruth_kitti.txt").read_text().splitlines()
+    (log / "groundtruth_kitti.txt").write_text("\n".join(lines[:-5]) + "\n")
+    r = runner.invoke(app, ["report", str(run), "--out", str(tmp_path / "short.html")])
+    assert r.exit_code == 0, r.output
+    assert "not evaluated" in caplog.text and f"{len(lines) - 5} poses for the {len(lines)} scans" in caplog.text
+    assert "shipped with the log" not in (tmp_path / "short.html").read_text()

@@ -1,14 +1,10 @@
 """`submapslam report`: the page of a small 2D and a small 3D synthetic run, checked as text and
 rendered in headless Chromium (console clean, map not blank, the loop table holds loops.csv)."""
 
-import base64
 import csv
 import hashlib
-import io
 import json
 import re
-import shutil
-import subprocess
 from html import escape as html_escape
 
 import numpy as np
@@ -21,10 +17,16 @@ from submapslam.cli import app
 from submapslam.observer import RunObserver
 
 from .cli_errors import assert_one_error_line
+from .report_pages import (
+    REFERENCE_FIGURES,
+    assert_not_blank,
+    chromium,
+    figure_png,
+    needs_chromium,
+    rendered_figures,
+)
 
 runner = CliRunner()
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-needs_chromium = pytest.mark.skipif(CHROMIUM is None, reason="chromium not installed (apt-get install chromium)")
 
 
 @pytest.fixture(scope="module", params=["2d", "3d"])
@@ -78,13 +80,6 @@ def _loops_csv(run):
         return list(csv.DictReader(fh))
 
 
-def _map_png(html):
-    import matplotlib.image as mpimg
-
-    uri = re.search(r'<img id="map" src="data:image/png;base64,([^"]+)"', html).group(1)
-    return mpimg.imread(io.BytesIO(base64.b64decode(uri)), format="png")
-
-
 def test_page_holds_what_the_run_wrote(reported_run):
     run, page, log, kind = reported_run
     html = page.read_text()
@@ -110,16 +105,8 @@ def test_page_holds_what_the_run_wrote(reported_run):
     assert "mapping:" in html and "loops:" in html  # the effective config
     # self-contained: nothing is fetched at view time
     assert not re.search(r'(src|href)="(https?:)?//', html)
-    img = _map_png(html)
+    img = figure_png(html, "map")
     assert img.std() > 0.05 and np.mean(img[..., :3].min(axis=2) < 0.9) > 0.05  # not a blank canvas
-
-
-def _chromium(args, tmp_path):
-    proc = subprocess.run([CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--enable-logging=stderr",
-                           "--v=0", f"--user-data-dir={tmp_path / 'profile'}", *args],
-                          capture_output=True, text=True, timeout=120)
-    console = [ln for ln in proc.stderr.splitlines() if ":CONSOLE" in ln]
-    return proc, console
 
 
 @needs_chromium
@@ -127,17 +114,17 @@ def test_console_check_sees_a_broken_page(tmp_path):
     """The console check below can fail: a page with a script error is caught."""
     bad = tmp_path / "bad.html"
     bad.write_text("<html><body><script>undefinedFunction();</script></body></html>")
-    _, console = _chromium(["--dump-dom", bad.as_uri()], tmp_path)
+    _, console = chromium(["--dump-dom", bad.as_uri()], tmp_path)
     assert any("undefinedFunction" in ln for ln in console)
 
 
 @needs_chromium
-def test_report_renders_in_headless_chromium(reported_run, tmp_path):
+def test_report_renders_in_headlesschromium(reported_run, tmp_path):
     import matplotlib.image as mpimg
 
     run, page, _, _ = reported_run
     shot = tmp_path / "shot.png"
-    proc, console = _chromium(["--hide-scrollbars", "--window-size=1280,1600", f"--screenshot={shot}",
+    proc, console = chromium(["--hide-scrollbars", "--window-size=1280,1600", f"--screenshot={shot}",
                                "--dump-dom", page.as_uri()], tmp_path)
     assert proc.returncode == 0 and shot.is_file(), proc.stderr[-2000:]
     assert console == [], console
@@ -152,6 +139,18 @@ def test_report_renders_in_headless_chromium(reported_run, tmp_path):
         assert len(re.findall(r"<tr ", body)) == len(loops)
     else:
         assert "No loop hypotheses were tested" in dom
+
+
+@needs_chromium
+def test_report_draws_the_map_and_evo_plots_in_headless_chromium(reported_run, tmp_path):
+    """Each plot of a report against the truth is embedded, not blank, and drawn by Chromium."""
+    _, page, _, _ = reported_run
+    html = page.read_text()
+    for ident in REFERENCE_FIGURES:
+        assert_not_blank(figure_png(html, ident), ident)
+    drawn, console = rendered_figures(page, tmp_path)
+    assert console == [], console
+    assert set(REFERENCE_FIGURES) <= drawn, drawn
 
 
 def test_report_never_overwrites_a_file_of_the_users(reported_run, tmp_path):
@@ -199,4 +198,4 @@ def test_ekf_run_report_shows_landmarks_and_provenance(tmp_path):
     html = report_run(tmp_path / "ekf").read_text()
     assert "Stochastic map: landmarks" in html and "Loop hypotheses" not in html
     assert hashlib.sha256(log.read_bytes()).hexdigest() in html  # a log file is hashed whole
-    assert _map_png(html).std() > 0.05
+    assert figure_png(html, "map").std() > 0.05

@@ -91,3 +91,22 @@ def test_a_batch_of_scans_is_registered_to_its_cloud():
     d = _between(in_cloud, res.xyt)
     assert np.hypot(d[:, 0], d[:, 1]).max() < 0.005 and np.abs(np.rad2deg(d[:, 2])).max() < 0.05
     assert (res.fitness > 0.9).all() and (res.inlier_rmse < 0.005).all()
+
+
+def test_anchors_where_the_solve_bent_the_odometry_are_held_loosely():
+    """Five anchors 2 m apart; the submap solve moved the last two 0.2 m sideways and turned the
+    last one 1 deg: the anchors on either side of each bend get sigmas of 0.2 m / 1 deg, the rest
+    the floor."""
+    from submapslam.config import ScanRefineConfig
+    from submapslam.scan_refine import anchor_sigmas
+
+    odom = np.array([[2.0 * k, 0.0, 0.0] for k in range(5)])
+    world = odom.copy()
+    world[3:, 1] += 0.2
+    world[4, 2] += np.deg2rad(1.0)
+    cfg = ScanRefineConfig()
+    sigma_m, sigma_rad = anchor_sigmas(odom, world, cfg)
+    np.testing.assert_allclose(sigma_m, [0.01, 0.01, 0.2, 0.2, 0.01], atol=1e-9)
+    np.testing.assert_allclose(np.rad2deg(sigma_rad), [cfg.anchor_sigma_deg] * 3 + [1.0, 1.0], atol=1e-9)
+    flat, _ = anchor_sigmas(odom, world, ScanRefineConfig(anchor_bend_factor=0.0))
+    np.testing.assert_allclose(flat, 0.01)

@@ -12,6 +12,7 @@ import yaml
 
 from ..errors import InputError
 from ..evaluation.run_record import GridImage, RunRecord
+from ..trajectory import Trajectory
 from .grid import read_pgm
 from .trajectory import read_tum
 
@@ -116,24 +117,52 @@ def read_run_folder(folder: str | Path, *, with_cloud: bool = True) -> RunRecord
     return rec
 
 
-GROUND_TRUTH_NAMES = ("groundtruth_tum.txt",)
-"""Ground-truth files a log may ship beside its scans (timestamped, so they pair with a run)."""
+GROUND_TRUTH_NAMES = ("groundtruth_tum.txt", "groundtruth_kitti.txt", "poses_gt_kitti.txt")
+"""Ground-truth files a log may ship beside its scans, in this order of preference: TUM (stamped),
+then KITTI (one pose per scan file, in scan order)."""
 
 
-def shipped_ground_truth(folder: str | Path) -> Path | None:
-    """The ground truth the log of the results folder ``folder`` ships (its ``input.json`` names
-    the log; a file beside it, or in the log folder), or None."""
-    import json
-
+def _shipped_log(folder: str | Path) -> Path | None:
+    """The log the results folder ``folder`` was made from (its ``input.json``), when it exists."""
     try:
         doc = json.loads((Path(folder) / "input.json").read_text())
     except (OSError, ValueError):
         return None
     log = Path(doc.get("absolute_path") or doc.get("path") or "")
-    if not str(log) or not log.exists():
+    return log if str(log) and log.exists() else None
+
+
+def shipped_ground_truth(folder: str | Path) -> Path | None:
+    """The ground truth the log of the results folder ``folder`` ships (its ``input.json`` names
+    the log; a file of :data:`GROUND_TRUTH_NAMES` beside it, or in the log folder), or None."""
+    log = _shipped_log(folder)
+    if log is None:
         return None
     where = log if log.is_dir() else log.parent
     for name in GROUND_TRUTH_NAMES:
         if (where / name).is_file():
             return where / name
     return None
+
+
+def read_shipped_ground_truth(path: str | Path) -> Trajectory:
+    """A shipped ground-truth file as a stamped :class:`~submapslam.trajectory.Trajectory`. TUM
+    carries its stamps; a KITTI file (no stamps, one pose per scan) takes the stamps of the scans
+    of the cloud folder it sits in (``times.txt``, else the scan index, as the reader stamps the
+    scans), so it pairs with a run of that folder by time. A KITTI file whose line count is not
+    the folder's scan count is an :class:`InputError` naming both."""
+    from .cloud_folder import CloudFolderReader
+    from .trajectory import read_kitti, read_trajectory, trajectory_format
+
+    path = Path(path)
+    if trajectory_format(path) != "kitti":
+        return read_trajectory(path)
+    poses = read_kitti(path).poses
+    try:
+        stamps = CloudFolderReader(path.parent).timestamps
+    except InputError as exc:
+        raise InputError(path, f"KITTI poses carry no time, and the scans beside them cannot be read ({exc})") from None
+    if len(stamps) != len(poses):
+        raise InputError(path, f"{len(poses)} poses for the {len(stamps)} scans of {path.parent} (KITTI ground truth "
+                         "is one pose per scan, in scan order)")
+    return Trajectory(np.asarray(stamps, dtype=np.float64), poses)
