@@ -20,8 +20,13 @@ Two users, both with bounded memory (a few recent range images, one submap's sca
   side asks for more evidence (:data:`SPLIT_PARAMS`, DUFOMap's hit extension among them): a
   scan's beam that passed just over a roof, under a canopy or beside a pole, on a 16-ring
   sensor, does not count when that scan has a return within ``near_radius`` of the voxel; a
-  voxel needs more scans that saw through it than scans whose beam ended at it; and an earlier
-  submap's voxel that the new submap's scans hit again stays.
+  voxel needs more scans that saw through it than ``hit_weight`` x the scans whose beam ended
+  at it; an earlier submap's voxel that the new submap's scans hit again stays; and a beam
+  that meets the surface at the voxel at a grazing angle (the ground far from the sensor: the
+  surface's normal from the submap's points, :func:`~submapslam.mapping.local_normals.
+  local_normals`) must end ``d x tan(angle to the normal)`` farther beyond it, since a beam
+  passing the voxel at d (up to sqrt(2) ``tolerance`` + ``voxel`` / 4, the voxel's way off the
+  surface) meets that surface up to so far on.
 
 Frames: points ``(N, 3)`` in a scan's sensor frame (= base frame of the logs read here, or
 moved by ``T_base_sensor`` first), poses ``T_world_sensor`` ``(4, 4)``. Units: metres.
@@ -64,7 +69,7 @@ class MoverParams:
     hit_weight: float = 0.0  # ... and more of them than this x the scans whose beam ended at it (0: off)
     protect_seen_again: bool = False  # submaps: an earlier submap's voxel the new one's scans hit again stays ...
     protect_min_scans: int = 1  # ... when this many of them hit it (or a neighbour)
-    incidence: bool = False  # submaps: the margin grows by tolerance x tan(angle of the beam to the surface normal) ...
+    incidence: bool = False  # submaps: the margin grows by d x tan(angle of the beam to the surface normal) ...
     max_tan: float = 30.0  # ... that tangent capped here (a beam nearly along the surface) ...
     flatness: float = 0.2  # ... where the points around are a surface (local_normals: spread along / across)
 
@@ -73,8 +78,9 @@ SPLIT_PARAMS = MoverParams(near_radius=0.3, hit_weight=0.5, protect_seen_again=T
                            incidence=True)
 """The submap split's settings (:class:`SubmapMovers`): the odometry's test (:class:`MoverFilter`) keeps
 the plain ones. A map keeps what several scans saw: a voxel leaves it only when a scan saw through
-it with no return of its own within ``near_radius``, more scans saw through it than ended their
-beam at it, and (earlier submaps) the new submap's scans did not hit it again."""
+it with no return of its own within ``near_radius`` (and beyond the incidence margin), more scans
+saw through it than half those that ended their beam at it, and (earlier submaps) the new
+submap's scans did not hit it again."""
 
 
 
@@ -149,6 +155,9 @@ class ViewStack:
             return np.maximum(p.margin, p.margin_per_m * r)
 
         graze = normals is not None and p.incidence
+        # d: how far a passing beam can be from the surface at the voxel: the passes() window's
+        # corner (tolerance in elevation and in azimuth) and the voxel's own way off the plane
+        reach = np.sqrt(2.0) * p.tolerance + p.voxel / 4
 
         every = np.arange(n)
         for k in slots:
@@ -163,8 +172,8 @@ class ViewStack:
                 image = self.images[k]
                 local, idx = local[near], cand[near]
                 m = margin
-                if graze:  # a beam grazing the surface there ends on it tolerance x tan(angle) on
-                    extra = p.tolerance * grazing_tan(local, normals[idx] @ T[:3, :3].T, p.max_tan)
+                if graze:  # a beam passing the voxel grazes its surface: it ends on it up to d x tan(angle) on
+                    extra = reach * grazing_tan(local, normals[idx] @ T[:3, :3].T, p.max_tan)
                     m = functools.partial(_plus, margin, extra)
                 _, f, h = image.passes(local, p.tolerance, m)
                 if p.near_radius > 0 and f.any():
