@@ -20,8 +20,13 @@ Two users, both with bounded memory (a few recent range images, one submap's sca
   side asks for more evidence (:data:`SPLIT_PARAMS`, DUFOMap's hit extension among them): a
   scan's beam that passed just over a roof, under a canopy or beside a pole, on a 16-ring
   sensor, does not count when that scan has a return within ``near_radius`` of the voxel; a
-  voxel needs more scans that saw through it than scans whose beam ended at it; and an earlier
-  submap's voxel that the new submap's scans hit again stays.
+  voxel needs more scans that saw through it than ``hit_weight`` x the scans whose beam ended
+  at it; an earlier submap's voxel that the new submap's scans hit again stays; and a beam
+  that meets the surface at the voxel at a grazing angle (the ground far from the sensor: the
+  surface's normal from the submap's points, :func:`~submapslam.mapping.local_normals.
+  local_normals`) must end ``d x tan(angle to the normal)`` farther beyond it, since a beam
+  passing the voxel at d (up to sqrt(2) ``tolerance`` + ``voxel`` / 4, the voxel's way off the
+  surface) meets that surface up to so far on.
 
 Frames: points ``(N, 3)`` in a scan's sensor frame (= base frame of the logs read here, or
 moved by ``T_base_sensor`` first), poses ``T_world_sensor`` ``(4, 4)``. Units: metres.
@@ -29,6 +34,7 @@ moved by ``T_base_sensor`` first), poses ``T_world_sensor`` ``(4, 4)``. Units: m
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,6 +47,7 @@ from .dynamic_removal import (
     dynamic_clusters,
     voxel_keys,
 )
+from .local_normals import local_normals
 
 
 @dataclass(frozen=True)
@@ -62,13 +69,19 @@ class MoverParams:
     hit_weight: float = 0.0  # ... and more of them than this x the scans whose beam ended at it (0: off)
     protect_seen_again: bool = False  # submaps: an earlier submap's voxel the new one's scans hit again stays ...
     protect_min_scans: int = 1  # ... when this many of them hit it (or a neighbour)
+    incidence: bool = False  # submaps: the margin grows by d x tan(angle of the beam to the surface normal) ...
+    max_tan: float = 30.0  # ... that tangent capped here (a beam nearly along the surface) ...
+    flatness: float = 0.2  # ... where the points around are a surface (local_normals: spread along / across)
 
 
-SPLIT_PARAMS = MoverParams(near_radius=0.3, hit_weight=1.0, protect_seen_again=True, protect_min_scans=4)
+SPLIT_PARAMS = MoverParams(near_radius=0.3, hit_weight=0.5, protect_seen_again=True, protect_min_scans=4,
+                           incidence=True)
 """The submap split's settings (:class:`SubmapMovers`): the odometry's test (:class:`MoverFilter`) keeps
 the plain ones. A map keeps what several scans saw: a voxel leaves it only when a scan saw through
-it with no return of its own within ``near_radius``, more scans saw through it than ended their
-beam at it, and (earlier submaps) the new submap's scans did not hit it again."""
+it with no return of its own within ``near_radius`` (and beyond the incidence margin), more scans
+saw through it than half those that ended their beam at it, and (earlier submaps) the new
+submap's scans did not hit it again."""
+
 
 
 class ViewStack:
@@ -114,7 +127,7 @@ class ViewStack:
         return found
 
     def seen_through(self, points_world: np.ndarray, slots: np.ndarray,
-                     allowed=None) -> tuple[np.ndarray, np.ndarray]:
+                     allowed=None, normals: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(tested, free)``, each ``(N,)`` bool, for world points ``(N, 3)`` and the scans in ``slots``.
 
         ``free``: at least ``min_views`` of those scans saw through the point (:meth:`evidence`),
@@ -122,12 +135,12 @@ class ViewStack:
         one was allowed to test it. ``allowed(slot, point_indices)`` -> bool per point (None: every point).
         """
         p = self.params
-        n_tested, n_free, n_hit = self.evidence(points_world, slots, allowed)
+        n_tested, n_free, n_hit = self.evidence(points_world, slots, allowed, normals)
         free = (n_free >= p.min_views) & (n_free > p.hit_weight * n_hit)
         return n_tested > 0, free
 
     def evidence(self, points_world: np.ndarray, slots: np.ndarray,
-                 allowed=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                 allowed=None, normals: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(tested, free, hit)`` counts ``(N,)`` over the scans in ``slots`` for world points ``(N, 3)``:
         the scans allowed to test each point, those that saw through it (RangeImage's test: a
         beam within ``tolerance`` of it ended more than the margin beyond; within ``max_range``;
@@ -141,6 +154,11 @@ class ViewStack:
         def margin(r: np.ndarray) -> np.ndarray:
             return np.maximum(p.margin, p.margin_per_m * r)
 
+        graze = normals is not None and p.incidence
+        # d: how far a passing beam can be from the surface at the voxel: the passes() window's
+        # corner (tolerance in elevation and in azimuth) and the voxel's own way off the plane
+        reach = np.sqrt(2.0) * p.tolerance + p.voxel / 4
+
         every = np.arange(n)
         for k in slots:
             cand = every if allowed is None else np.flatnonzero(allowed(k, every))
@@ -153,12 +171,33 @@ class ViewStack:
             if near.any():
                 image = self.images[k]
                 local, idx = local[near], cand[near]
-                _, f, h = image.passes(local, p.tolerance, margin)
+                m = margin
+                if graze:  # a beam passing the voxel grazes its surface: it ends on it up to d x tan(angle) on
+                    extra = reach * grazing_tan(local, normals[idx] @ T[:3, :3].T, p.max_tan)
+                    m = functools.partial(_plus, margin, extra)
+                _, f, h = image.passes(local, p.tolerance, m)
                 if p.near_radius > 0 and f.any():
                     f[f] = ~image.returns_near(local[f], p.near_radius)
                 free[idx[f]] += 1
                 hit[idx[h]] += 1
         return tested, free, hit
+
+
+def _plus(margin, extra: np.ndarray, r: np.ndarray) -> np.ndarray:
+    return margin(r) + extra
+
+
+def grazing_tan(points_sensor: np.ndarray, normals_sensor: np.ndarray, max_tan: float) -> np.ndarray:
+    """``(N,)`` tan of the angle between each beam (sensor origin to point, ``(N, 3)``) and the surface
+    normal there (``(N, 3)``, unit or zero), at most ``max_tan``; 0 where the normal is unknown (zero).
+
+    A beam passing a surface point at distance d (perpendicular to the beam) meets the surface
+    d x tan(angle) before or beyond it: a beam grazing a slope ends on the same slope metres on."""
+    r = np.sqrt(np.einsum("ij,ij->i", points_sensor, points_sensor))
+    cos = np.abs(np.einsum("ij,ij->i", points_sensor, normals_sensor)) / np.maximum(r, 1e-9)
+    known = np.einsum("ij,ij->i", normals_sensor, normals_sensor) > 0.5
+    tan = np.sqrt(np.maximum(1.0 - cos * cos, 0.0)) / np.maximum(cos, 1e-9)
+    return np.where(known, np.minimum(tan, max_tan), 0.0)
 
 
 def non_ground(points_sensor: np.ndarray, band: float, radius: float = 15.0, percentile: float = 2.0,
@@ -245,7 +284,11 @@ def scan_votes(points_sensor: np.ndarray, T_world_sensor: np.ndarray, views: Vie
         return out
     test = np.flatnonzero(non_ground(points_sensor, params.ground_band))
     world = transform_points(T_world_sensor, points_sensor[test])
-    out[test] = views.seen_through(world, slots)[1]
+    normals = None
+    if params.incidence:  # the surface each point lies on, from all the points (the ground too)
+        normals = local_normals(transform_points(T_world_sensor, points_sensor), world, params.voxel,
+                                flatness=params.flatness)
+    out[test] = views.seen_through(world, slots, normals=normals)[1]
     return out
 
 
@@ -394,11 +437,14 @@ class SubmapMovers:
         if not len(points) or not members:
             return np.zeros(len(points), dtype=bool)
         acc = VoxelAccumulator(p.voxel)
+        every = []
         for index, T, pts in members:
             pts = np.asarray(pts, dtype=np.float64)
             if len(pts):
                 keep = non_ground(pts, p.ground_band)
-                acc.add(transform_points(T, pts[keep]), index)  # odometry frame
+                world = transform_points(T, pts)  # odometry frame
+                acc.add(world[keep], index)
+                every.append(world)
         keys, centroids, _, first, last = acc.result()
         if not len(keys):
             return np.zeros(len(points), dtype=bool)
@@ -408,7 +454,8 @@ class SubmapMovers:
             return (index[k] < first[vi] - self.slack) | (index[k] > last[vi] + self.slack)
 
         slots = views.slots(-(1 << 62), 1 << 62, self.split_views)
-        tested, free = views.seen_through(centroids, slots, outside_sightings)
+        normals = local_normals(np.concatenate(every), centroids, p.voxel, flatness=p.flatness) if p.incidence else None
+        tested, free = views.seen_through(centroids, slots, outside_sightings, normals)
         voted = np.where(tested, free.astype(np.int8), np.int8(-1))
         cluster = co_observed_clusters(keys, first, last, np.ones(len(keys), dtype=bool), self.slack + 1)
         moved = dynamic_clusters(cluster, voted, p.cluster_fraction, p.min_votes)

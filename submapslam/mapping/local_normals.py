@@ -1,0 +1,78 @@
+"""Surface normals of a point cloud, one per query point, from the points of the 27 voxels around it.
+
+Used by the mover split (:mod:`~submapslam.mapping.moving_points`) to tell how steeply a beam
+meets the surface at a voxel: a beam that grazes a slope passes a ground voxel and ends on the
+same ground metres further on. Numpy only (no scipy: the odometry's child process imports the
+mapping package). Frames: any, as long as cloud and queries share it. Units: metres.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .dynamic_removal import voxel_keys
+
+_CUBE = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)])
+# key differences to the voxel itself and its 26 neighbours, from voxel_keys itself
+_OFFSETS = voxel_keys(_CUBE + 0.5, 1.0) - voxel_keys(np.full((1, 3), 0.5), 1.0)
+
+
+def local_normals(cloud: np.ndarray, query: np.ndarray, voxel: float, min_points: int = 5,
+                  flatness: float = 1.0) -> np.ndarray:
+    """``(Q, 3)`` unit normals at the ``query`` points ``(Q, 3)``: the least-variance direction
+    (PCA) of the ``cloud`` points ``(N, 3)`` in the query's ``voxel`` [m] cell and its 26
+    neighbours (a block 3 voxels wide). Zero where that block holds fewer than ``min_points``
+    or is no surface: its spread along the normal is more than ``flatness`` x its spread along
+    the next direction (a pole, a blur of a car that moved while the points were taken), or the
+    query lies more than ``voxel / 4`` off that surface (a car's sill above the road beside it)."""
+    mean, cov, ok = local_covariances(cloud, query, voxel, min_points)
+    out = np.zeros((len(ok), 3))
+    if not ok.any():
+        return out
+    values, vectors = np.linalg.eigh(cov[ok])
+    flat = np.maximum(values[:, 0], 0.0) <= flatness ** 2 * np.maximum(values[:, 1], 0.0)
+    off = np.einsum("ij,ij->i", np.asarray(query, dtype=np.float64).reshape(-1, 3)[ok] - mean[ok], vectors[:, :, 0])
+    flat &= np.abs(off) <= voxel / 4
+    out[np.flatnonzero(ok)[flat]] = vectors[flat, :, 0]
+    return out
+
+
+def local_covariances(cloud: np.ndarray, query: np.ndarray, voxel: float,
+                      min_points: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(mean, cov, ok)``: the mean ``(Q, 3)`` and covariance ``(Q, 3, 3)`` [m^2] of the ``cloud``
+    points ``(N, 3)`` in each ``query`` point's ``voxel`` cell and its 26 neighbours, and ``ok``
+    ``(Q,)``: that block holds at least ``min_points`` (elsewhere mean and covariance are zero)."""
+    cloud = np.asarray(cloud, dtype=np.float64).reshape(-1, 3)
+    query = np.asarray(query, dtype=np.float64).reshape(-1, 3)
+    cov = np.zeros((len(query), 3, 3))
+    centre = np.zeros((len(query), 3))
+    if not len(cloud) or not len(query):
+        return centre, cov, np.zeros(len(query), dtype=bool)
+    origin = cloud.min(axis=0)
+    c = cloud - origin  # sums of squares near the data, not the frame's origin
+    keys, inverse = np.unique(voxel_keys(cloud, voxel), return_inverse=True)
+    n_vox = len(keys)
+    count = np.bincount(inverse, minlength=n_vox).astype(np.float64)
+    first = np.stack([np.bincount(inverse, c[:, a], n_vox) for a in range(3)], axis=1)
+    pairs = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+    second = np.stack([np.bincount(inverse, c[:, a] * c[:, b], n_vox) for a, b in pairs], axis=1)
+    q = voxel_keys(query, voxel)
+    n = np.zeros(len(query))
+    s1 = np.zeros((len(query), 3))
+    s2 = np.zeros((len(query), 6))
+    for off in _OFFSETS:
+        k = q + off
+        pos = np.minimum(np.searchsorted(keys, k), n_vox - 1)
+        found = np.flatnonzero(keys[pos] == k)
+        n[found] += count[pos[found]]
+        s1[found] += first[pos[found]]
+        s2[found] += second[pos[found]]
+    ok = n >= min_points
+    mean = s1[ok] / n[ok, None]
+    m2 = s2[ok] / n[ok, None]
+    block = np.empty((int(ok.sum()), 3, 3))
+    for (a, b), col in zip(pairs, m2.T):
+        block[:, a, b] = block[:, b, a] = col - mean[:, a] * mean[:, b]
+    cov[ok] = block
+    centre[ok] = mean + origin
+    return centre, cov, ok
