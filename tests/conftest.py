@@ -22,3 +22,16 @@ def shared_data(*parts: str) -> Path:
     if not path.exists():
         pytest.skip(f"real data not available: {path} (expected ../shared/data beside the repo)")
     return path
+
+
+#: the test files that take longest (``make test`` prints the slowest tests), longest first. Under
+#: ``pytest -n auto --dist loadfile`` each file goes whole to one worker in collection order; when
+#: a long file comes last one core idles while it ends, so these are collected first
+LONGEST_FILES = ("test_real2d_logs.py", "test_two_lap_3d.py", "test_city_scale.py", "test_ray_cluster.py",
+                 "test_batch.py", "test_resume.py", "test_real3d_logs.py")
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """The :data:`LONGEST_FILES` first (longest first); every other test keeps its place."""
+    rank = {name: k for k, name in enumerate(LONGEST_FILES)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
