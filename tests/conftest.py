@@ -35,3 +35,13 @@ def pytest_collection_modifyitems(config, items) -> None:
     """The :data:`LONGEST_FILES` first (longest first); every other test keeps its place."""
     rank = {name: k for k, name in enumerate(LONGEST_FILES)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+
+
+def load_tool(name: str):
+    """The module of the script ``tools/<name>.py`` (the tools are scripts, not a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, REPO / "tools" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

@@ -2,20 +2,15 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[1]
+from .conftest import load_tool
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("bench_calibration", REPO / "tools" / "bench_calibration.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
-    return bench
+    return load_tool("bench_calibration")
 
 
 def test_scores_and_rescales_samples(tmp_path, capsys):

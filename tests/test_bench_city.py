@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import os
@@ -17,15 +16,12 @@ from submapslam.geometry import inverse, se2_to_matrix
 from submapslam.io.g2o import write_g2o
 from submapslam.io.trajectory import read_tum
 
-REPO = Path(__file__).resolve().parents[1]
+from .conftest import load_tool
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_city", REPO / "tools" / "bench_city.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_tool("bench_city")
 
 
 def _md_row(md: str, label: str) -> list[str]:

@@ -2,22 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 
 from datasets_synth import generate
 from submapslam import open_log
 
-REPO = Path(__file__).resolve().parents[1]
+from .conftest import load_tool
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location("bench_fleet", REPO / "tools" / "bench_fleet.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("bench_fleet")
 
 
 def test_pieces_hold_every_scan_once_each_from_its_own_origin(tmp_path):

@@ -1,22 +1,16 @@
 """tools/bench_real2d.py on a tiny CARMEN log: the child's figures and the markdown table."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
+from .conftest import load_tool
 from .test_no_returns import _write_log
-
-REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def bench():
-    spec = importlib.util.spec_from_file_location("bench_real2d", REPO / "tools" / "bench_real2d.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_tool("bench_real2d")
 
 
 def test_child_measures_a_log_against_its_corrected_log_and_the_table_shows_it(bench, tmp_path):

@@ -3,19 +3,13 @@
 from __future__ import annotations
 
 import csv
-import importlib.util
 import json
-from pathlib import Path
 
-from .conftest import shared_data
-
-REPO = Path(__file__).resolve().parents[1]
+from .conftest import load_tool, shared_data
 
 
 def test_bench_terrain_tiny_log(tmp_path, monkeypatch):
-    spec = importlib.util.spec_from_file_location("bench_terrain", REPO / "tools" / "bench_terrain.py")
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+    bench = load_tool("bench_terrain")
     monkeypatch.setattr(bench, "KITTI_GT", shared_data("trajectories", "kitti_gt", "00.txt.xz").parent)
     rc = bench.main(["--generate", "00:16:60", "--data-root", str(tmp_path / "data"), "--out", str(tmp_path / "out"),
                      "--json", str(tmp_path / "b.json"), "--markdown", str(tmp_path / "b.md")])

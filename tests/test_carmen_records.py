@@ -148,14 +148,10 @@ def test_a_folder_given_as_carmen_says_so(tmp_path):
 
 
 def _rewrite_tool():
-    import importlib.util
 
-    from .conftest import REPO
+    from .conftest import load_tool
 
-    spec = importlib.util.spec_from_file_location("carmen_rewrite_records", REPO / "tools" / "carmen_rewrite_records.py")
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
-    return tool
+    return load_tool("carmen_rewrite_records")
 
 
 @pytest.mark.parametrize("name", ["intel.clf.bz2", "fr079.clf.bz2"])

@@ -345,12 +345,9 @@ def test_pole_log_with_a_garbled_landmark_file_fails_in_one_line(tmp_path):
 
 def test_bench_tool_turnover_table(capsys):
     """tools/bench_ekf.py --turnover on one short log: one row per setting and association."""
-    import importlib.util
-    from pathlib import Path
+    from .conftest import load_tool
 
-    spec = importlib.util.spec_from_file_location("bench_ekf", Path(__file__).resolve().parents[1] / "tools" / "bench_ekf.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_tool("bench_ekf")
     assert mod.main(["--turnover", "--seeds", "1", "--laps", "1", "--p-miss", "0", "--clutter", "0"]) == 0
     rows = [ln.split("|")[1:-1] for ln in capsys.readouterr().out.splitlines() if ln.startswith("| ids") or
             ln.startswith("| gating")]

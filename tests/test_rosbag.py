@@ -1,7 +1,6 @@
 """ROS bag reader: round trips through the rosbags writers, message decoding, odometry
 interpolation, topic choice, damaged files, and a run on a bag against the same cloud folder."""
 
-import importlib.util
 import math
 import os
 import shutil
@@ -19,10 +18,9 @@ from submapslam.io.registry import open_log
 from submapslam.io.rosbag import RosbagReader, laserscan_to_points, pointcloud2_to_points, slerp
 from submapslam.io.trajectory import read_tum
 
-REPO = Path(__file__).resolve().parents[1]
-_spec = importlib.util.spec_from_file_location("cloud_folder_to_bag", REPO / "tools" / "cloud_folder_to_bag.py")
-to_bag = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(to_bag)
+from .conftest import load_tool
+
+to_bag = load_tool("cloud_folder_to_bag")
 
 T0 = 1_700_000_000  # header stamps [s]
 
