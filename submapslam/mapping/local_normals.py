@@ -24,16 +24,27 @@ def local_normals(cloud: np.ndarray, query: np.ndarray, voxel: float, min_points
     neighbours (a block 3 voxels wide). Zero where that block holds fewer than ``min_points``
     or is no surface: its spread along the normal is more than ``flatness`` x its spread along
     the next direction (a pole, a blur of a car that moved while the points were taken), or the
-    query lies more than ``voxel / 4`` off that surface (a car's sill above the road beside it)."""
-    mean, cov, ok = local_covariances(cloud, query, voxel, min_points)
-    out = np.zeros((len(ok), 3))
+    query lies more than ``voxel / 4`` off that surface (a car's sill above the road beside it).
+
+    The block's statistics and its eigen decomposition are computed once per distinct query
+    cell (a submap's points share cells by the dozen); only the off-surface test is per point."""
+    query = np.asarray(query, dtype=np.float64).reshape(-1, 3)
+    out = np.zeros((len(query), 3))
+    if not len(query):
+        return out
+    cells, cell_of = np.unique(voxel_keys(query, voxel), return_inverse=True)
+    mean, cov, ok = _block_moments(cloud, cells, voxel, min_points)
     if not ok.any():
         return out
+    normal = np.zeros((len(cells), 3))
+    surface = np.zeros(len(cells), dtype=bool)
     values, vectors = np.linalg.eigh(cov[ok])
-    flat = np.maximum(values[:, 0], 0.0) <= flatness ** 2 * np.maximum(values[:, 1], 0.0)
-    off = np.einsum("ij,ij->i", np.asarray(query, dtype=np.float64).reshape(-1, 3)[ok] - mean[ok], vectors[:, :, 0])
-    flat &= np.abs(off) <= voxel / 4
-    out[np.flatnonzero(ok)[flat]] = vectors[flat, :, 0]
+    normal[ok] = vectors[:, :, 0]
+    surface[ok] = np.maximum(values[:, 0], 0.0) <= flatness ** 2 * np.maximum(values[:, 1], 0.0)
+    cell_of = cell_of.reshape(-1)
+    off = np.einsum("ij,ij->i", query - mean[cell_of], normal[cell_of])
+    keep = surface[cell_of] & (np.abs(off) <= voxel / 4)
+    out[keep] = normal[cell_of[keep]]
     return out
 
 
@@ -42,12 +53,23 @@ def local_covariances(cloud: np.ndarray, query: np.ndarray, voxel: float,
     """``(mean, cov, ok)``: the mean ``(Q, 3)`` and covariance ``(Q, 3, 3)`` [m^2] of the ``cloud``
     points ``(N, 3)`` in each ``query`` point's ``voxel`` cell and its 26 neighbours, and ``ok``
     ``(Q,)``: that block holds at least ``min_points`` (elsewhere mean and covariance are zero)."""
-    cloud = np.asarray(cloud, dtype=np.float64).reshape(-1, 3)
     query = np.asarray(query, dtype=np.float64).reshape(-1, 3)
-    cov = np.zeros((len(query), 3, 3))
-    centre = np.zeros((len(query), 3))
-    if not len(cloud) or not len(query):
-        return centre, cov, np.zeros(len(query), dtype=bool)
+    if not len(query):
+        return np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0, dtype=bool)
+    cells, cell_of = np.unique(voxel_keys(query, voxel), return_inverse=True)
+    mean, cov, ok = _block_moments(cloud, cells, voxel, min_points)
+    cell_of = cell_of.reshape(-1)
+    return mean[cell_of], cov[cell_of], ok[cell_of]
+
+
+def _block_moments(cloud: np.ndarray, cells: np.ndarray, voxel: float,
+                   min_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(mean, cov, ok)`` as :func:`local_covariances`, per voxel key of ``cells`` ``(C,)``."""
+    cloud = np.asarray(cloud, dtype=np.float64).reshape(-1, 3)
+    cov = np.zeros((len(cells), 3, 3))
+    centre = np.zeros((len(cells), 3))
+    if not len(cloud) or not len(cells):
+        return centre, cov, np.zeros(len(cells), dtype=bool)
     origin = cloud.min(axis=0)
     c = cloud - origin  # sums of squares near the data, not the frame's origin
     keys, inverse = np.unique(voxel_keys(cloud, voxel), return_inverse=True)
@@ -56,12 +78,11 @@ def local_covariances(cloud: np.ndarray, query: np.ndarray, voxel: float,
     first = np.stack([np.bincount(inverse, c[:, a], n_vox) for a in range(3)], axis=1)
     pairs = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
     second = np.stack([np.bincount(inverse, c[:, a] * c[:, b], n_vox) for a, b in pairs], axis=1)
-    q = voxel_keys(query, voxel)
-    n = np.zeros(len(query))
-    s1 = np.zeros((len(query), 3))
-    s2 = np.zeros((len(query), 6))
+    n = np.zeros(len(cells))
+    s1 = np.zeros((len(cells), 3))
+    s2 = np.zeros((len(cells), 6))
     for off in _OFFSETS:
-        k = q + off
+        k = cells + off
         pos = np.minimum(np.searchsorted(keys, k), n_vox - 1)
         found = np.flatnonzero(keys[pos] == k)
         n[found] += count[pos[found]]

@@ -35,6 +35,7 @@ moved by ``T_base_sensor`` first), poses ``T_world_sensor`` ``(4, 4)``. Units: m
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -126,18 +127,29 @@ class ViewStack:
             found = found[np.unique(np.round(np.linspace(len(found) - 1, 0, most)).astype(np.int64))]
         return found
 
-    def seen_through(self, points_world: np.ndarray, slots: np.ndarray,
-                     allowed=None, normals: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def seen_through(self, points_world: np.ndarray, slots: np.ndarray, allowed=None,
+                     normals_of: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(tested, free)``, each ``(N,)`` bool, for world points ``(N, 3)`` and the scans in ``slots``.
 
         ``free``: at least ``min_views`` of those scans saw through the point (:meth:`evidence`),
         more than ``hit_weight`` times as many as ended their beam at it. ``tested``: at least
         one was allowed to test it. ``allowed(slot, point_indices)`` -> bool per point (None: every point).
+        ``normals_of(point_indices)`` -> ``(K, 3)`` world-frame surface normals of those points
+        (zero: unknown) for the incidence margin. The incidence margin only widens the margin,
+        which only turns free votes into hits, so only the points free without it are tested
+        again with it (the same result as testing every point with it, for a fraction of the normals).
         """
-        p = self.params
-        n_tested, n_free, n_hit = self.evidence(points_world, slots, allowed, normals)
-        free = (n_free >= p.min_views) & (n_free > p.hit_weight * n_hit)
+        n_tested, n_free, n_hit = self.evidence(points_world, slots, allowed)
+        free = self._decide(n_free, n_hit)
+        if normals_of is not None and self.params.incidence and free.any():
+            cand = np.flatnonzero(free)
+            sub_allowed = None if allowed is None else (lambda k, idx: allowed(k, cand[idx]))
+            _, n_free, n_hit = self.evidence(points_world[cand], slots, sub_allowed, normals_of(cand))
+            free[cand] = self._decide(n_free, n_hit)
         return n_tested > 0, free
+
+    def _decide(self, n_free: np.ndarray, n_hit: np.ndarray) -> np.ndarray:
+        return (n_free >= self.params.min_views) & (n_free > self.params.hit_weight * n_hit)
 
     def evidence(self, points_world: np.ndarray, slots: np.ndarray,
                  allowed=None, normals: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -284,11 +296,12 @@ def scan_votes(points_sensor: np.ndarray, T_world_sensor: np.ndarray, views: Vie
         return out
     test = np.flatnonzero(non_ground(points_sensor, params.ground_band))
     world = transform_points(T_world_sensor, points_sensor[test])
-    normals = None
-    if params.incidence:  # the surface each point lies on, from all the points (the ground too)
-        normals = local_normals(transform_points(T_world_sensor, points_sensor), world, params.voxel,
-                                flatness=params.flatness)
-    out[test] = views.seen_through(world, slots, normals=normals)[1]
+
+    def normals_of(idx: np.ndarray) -> np.ndarray:  # the surface each point lies on, from all the points (the ground too)
+        return local_normals(transform_points(T_world_sensor, points_sensor), world[idx], params.voxel,
+                             flatness=params.flatness)
+
+    out[test] = views.seen_through(world, slots, normals_of=normals_of)[1]
     return out
 
 
@@ -454,8 +467,11 @@ class SubmapMovers:
             return (index[k] < first[vi] - self.slack) | (index[k] > last[vi] + self.slack)
 
         slots = views.slots(-(1 << 62), 1 << 62, self.split_views)
-        normals = local_normals(np.concatenate(every), centroids, p.voxel, flatness=p.flatness) if p.incidence else None
-        tested, free = views.seen_through(centroids, slots, outside_sightings, normals)
+
+        def normals_of(idx: np.ndarray) -> np.ndarray:
+            return local_normals(np.concatenate(every), centroids[idx], p.voxel, flatness=p.flatness)
+
+        tested, free = views.seen_through(centroids, slots, outside_sightings, normals_of)
         voted = np.where(tested, free.astype(np.int8), np.int8(-1))
         cluster = co_observed_clusters(keys, first, last, np.ones(len(keys), dtype=bool), self.slack + 1)
         moved = dynamic_clusters(cluster, voted, p.cluster_fraction, p.min_votes)
