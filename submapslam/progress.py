@@ -43,7 +43,10 @@ class CountColumn(ProgressColumn):
 
 
 def progress_bar(total: int | None = None, label: str = "scans", console=None):
-    """A transient rich progress bar (on stderr unless ``console``): bar, done/total, elapsed, ETA."""
+    """A transient rich progress bar (on stderr unless ``console``): bar, done/total, elapsed, ETA.
+
+    Redrawn 4 times a second, and not at all when the console is not a terminal (a log file or
+    a pipe shows nothing of a transient bar, and each redraw takes the GIL from the run)."""
     from rich.console import Console
     from rich.progress import (
         BarColumn,
@@ -53,9 +56,10 @@ def progress_bar(total: int | None = None, label: str = "scans", console=None):
         TimeRemainingColumn,
     )
 
+    console = console or Console(stderr=True)
     return Progress(TextColumn(f"[bold]{label}"), BarColumn(), CountColumn(), TimeElapsedColumn(),
-                    TextColumn("eta"), TimeRemainingColumn(), console=console or Console(stderr=True),
-                    transient=True)
+                    TextColumn("eta"), TimeRemainingColumn(), console=console, transient=True,
+                    refresh_per_second=4, disable=not console.is_terminal)
 
 
 class ScanProgress:
