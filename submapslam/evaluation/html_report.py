@@ -140,6 +140,8 @@ def _performance(summary: dict) -> str:
     """Stage wall times as bars, scans/s along the run and memory along the path as inline SVG
     charts (drawn without matplotlib: a third of a second less per report)."""
     stages = summary.get("wall_time_s") or {}
+    if not isinstance(stages, dict):  # a localize folder: the total here, the stages under time_s
+        stages = {k: v for k, v in (summary.get("time_s") or {}).items() if k != "total"}
     html = hp.bar_rows(sorted(stages.items(), key=lambda kv: -kv[1]), "wall time [s]")
     html += ('<p class="sub">Stages overlap: a closed submap\'s graph work (odometry edge, loop tests, iSAM2) '
              "runs beside the next scans' registration, so they add up to more than the wall time "

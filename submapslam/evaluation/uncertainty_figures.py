@@ -51,13 +51,13 @@ def sigmas(covariances: np.ndarray) -> np.ndarray:
     return np.sqrt(np.clip(d, 0.0, None))
 
 
-def sigma_along_path_figure(positions: np.ndarray, covariances: np.ndarray, planar: bool,
-                            times: np.ndarray | None = None, lost: np.ndarray | None = None,
-                            dpi: int = 100) -> str:
-    """σ of every pose along the path: translation [m] (x, y; z too in 3D) and rotation [deg]
-    (yaw; roll and pitch too in 3D), each about the pose's own axes, against the distance
-    travelled (or against ``times`` [s] from the first when given). ``lost`` ``(N,)`` bool shades
-    the spans where the pose was not fixed by the map (localisation). Returns a PNG data URI."""
+def sigma_figure(positions: np.ndarray, covariances: np.ndarray, planar: bool,
+                 times: np.ndarray | None = None, lost: np.ndarray | None = None):
+    """The matplotlib figure of σ of every pose along the path: translation [m] (x, y; z too in 3D)
+    and rotation [deg] (yaw; roll and pitch too in 3D), each about the pose's own axes, against the
+    distance travelled along ``positions`` ``(N, 3)`` (or against ``times`` ``(N,)`` [s] from the
+    first when given). ``lost`` ``(N,)`` bool shades the spans where the map did not fix the pose
+    (localisation)."""
     plt = _plt()
     s = sigmas(covariances)
     if times is not None:
@@ -71,15 +71,31 @@ def sigma_along_path_figure(positions: np.ndarray, covariances: np.ndarray, plan
         for label, i in group:
             ax.plot(x, s[:, i] * f, lw=0.9, label=f"σ {label}")
         ax.set_ylabel(f"σ {unit}")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8, loc="upper left")
+        ax.set_yscale("log")
+        ax.grid(alpha=0.3, which="both")
     if lost is not None and np.any(lost):
         for ax in axes:
             ax.fill_between(x, 0, 1, where=np.asarray(lost, bool), color="#d62020", alpha=0.12,
-                            transform=ax.get_xaxis_transform(), label="lost (not fixed by the map)")
-        axes[0].legend(fontsize=8, loc="upper left")
+                            transform=ax.get_xaxis_transform(), label="lost (the map did not fix the pose)")
+    for ax in axes:
+        ax.legend(fontsize=8, loc="upper left")
     axes[-1].set_xlabel(xlabel)
-    return png_data_uri(fig, dpi)
+    return fig
+
+
+def sigma_along_path_figure(positions: np.ndarray, covariances: np.ndarray, planar: bool,
+                            times: np.ndarray | None = None, lost: np.ndarray | None = None,
+                            dpi: int = 100) -> str:
+    """:func:`sigma_figure` as a PNG data URI."""
+    return png_data_uri(sigma_figure(positions, covariances, planar, times, lost), dpi)
+
+
+def save_sigma_figure(path, positions: np.ndarray, covariances: np.ndarray, planar: bool,
+                      times: np.ndarray | None = None, lost: np.ndarray | None = None, dpi: int = 100) -> None:
+    """Write :func:`sigma_figure` to the PNG file ``path``."""
+    fig = sigma_figure(positions, covariances, planar, times, lost)
+    fig.savefig(path, dpi=dpi, bbox_inches="tight")
+    _plt().close(fig)
 
 
 def draw_scan_ellipses(ax, poses: np.ndarray, covariances: np.ndarray, n_sigma: float = 3.0,
