@@ -85,6 +85,9 @@ class LocalizationResult:
     planar: bool = True
     min_fitness: float = 0.75         # the consistency gate the scans were held to (config's)
     min_consistent_fraction: float = 0.5  # share of consistent scans needed to call the log localised
+    #: (N, 6, 6) covariance of each pose (GTSAM order rx, ry, rz, x, y, z [rad, m], the pose's own
+    #: frame, right perturbation): :func:`~submapslam.uncertainty.pose_filter_covariances`
+    covariances: np.ndarray | None = None
 
     @property
     def n_scans(self) -> int:
@@ -136,7 +139,18 @@ class LocalizationResult:
             "scans_per_s": round(self.n_scans / total, 1) if total > 0 else None,
             "time_s": {k: round(v, 3) for k, v in self.timings.items()},
             "planar": self.planar,
+            **self._sigma_summary(),
         }
+
+    def _sigma_summary(self) -> dict:
+        """Median and largest 1σ of position (the larger of x and y, and z in 3D) [m] and yaw [deg]."""
+        if self.covariances is None or not self.n_scans:
+            return {}
+        s = np.sqrt(np.clip(np.diagonal(self.covariances, axis1=1, axis2=2), 0.0, None))
+        pos = s[:, 3:5].max(axis=1) if self.planar else s[:, 3:6].max(axis=1)
+        yaw = np.degrees(s[:, 2])
+        return {"sigma_position_m": {"median": round(float(np.median(pos)), 4), "max": round(float(pos.max()), 4)},
+                "sigma_yaw_deg": {"median": round(float(np.median(yaw)), 3), "max": round(float(yaw.max()), 3)}}
 
 
 @dataclass
@@ -295,6 +309,42 @@ class Localizer:
         rmse = float(np.sqrt(np.mean(d[inl] ** 2))) if n_inl else float("inf")
         return Registration(T, n_inl / n, n_inl / n_map if n_map else 1.0, rmse, n_map / n)
 
+    def information(self, scan: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """``(6, 6)`` information (GTSAM order, the scan's frame) that matching scan points ``(N, 3)``
+        (base frame) against the map at ``T_world_base`` gives about the pose; only map points count
+        (never the recent scans of unmapped space). Planar: point-to-line
+        (:func:`~submapslam.uncertainty.planar_match_information`); 3D: open3d's point-to-point
+        information over the inlier RMSE squared, divided by the same inflation."""
+        from .uncertainty import (
+            REGISTRATION_INFLATION,
+            limited_by_the_map,
+            planar_match_information,
+        )
+
+        if len(scan) < 20:
+            return np.zeros((6, 6))
+        if self.planar:
+            moved = scan[:, :2] @ T[:2, :2].T + T[:2, 3]
+            d, i = self._line_tree.query(moved, distance_upper_bound=self.inlier)
+            ok = np.isfinite(d)
+            n = self._line_normals[i[ok]]
+            r = np.einsum("ij,ij->i", moved[ok] - self._line_pts[i[ok]], n)
+            w = 1.0 / (1.0 + (r / (self.inlier / 4)) ** 2)
+            return limited_by_the_map(planar_match_information(scan[ok, :2], n @ T[:2, :2], r, w), True)
+        from ._deps import open3d
+        from .geometry import adjoint
+        from .registration.spatial import SpatialCloud
+
+        reg = open3d().pipelines.registration
+        src = SpatialCloud(scan, self.voxel).pcd
+        fit = reg.evaluate_registration(src, self._cloud.pcd, self.inlier, T)
+        if not fit.correspondence_set or len(fit.correspondence_set) < 20:
+            return np.zeros((6, 6))
+        world = np.asarray(reg.get_information_matrix_from_point_clouds(src, self._cloud.pcd, self.inlier, T))
+        var = max(float(fit.inlier_rmse) ** 2, (self.voxel / 4) ** 2)
+        A = adjoint(T)  # open3d's perturbation is in the world frame: I_body = Ad(T)^T I_world Ad(T)
+        return limited_by_the_map(A.T @ world @ A / (var * REGISTRATION_INFLATION), False)
+
     def _bearing_bins(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         nb = self._n_bins
         return ((np.arctan2(y, x) + np.pi) * (nb / (2 * np.pi))).astype(np.int64) % nb
@@ -425,6 +475,7 @@ def localize_log(
     loc = Localizer(points, cfg)
     T0 = parse_initial_pose(initial_pose)
     stamps, poses, regs, lost = [], [], [], []
+    infos: list[np.ndarray | None] = []  # what each believed match says about its pose (None: not believed)
     t_track = t_global = 0.0
     tracking = T0 is not None   # False: searching (initialisation or lost)
     ever_fixed = tracking
@@ -470,6 +521,7 @@ def localize_log(
                 pending.clear()
                 clouds.clear()
                 poses.append(reg.T)
+                infos.append(loc.information(pts, reg.T))
                 if loc.planar and len(pts):
                     recent.append(pts[:, :2] @ reg.T[:2, :2].T + reg.T[:2, 3])
                     since_local += 1
@@ -480,6 +532,7 @@ def localize_log(
                 pending.append(k)
                 clouds.append(pts)
                 poses.append(prior)  # the fit is not believed: dead reckoning until it is consistent again
+                infos.append(None)
             regs.append(reg)
             lost.append(False)
             t_track += time.perf_counter() - t
@@ -493,6 +546,7 @@ def localize_log(
                     lost[j] = True
         else:
             poses.append(prior)
+            infos.append(None)
             regs.append(loc.score(pts, prior))
             lost.append(True)
             pending.append(k)
@@ -516,7 +570,7 @@ def localize_log(
                         T = cur.T
                     log.info("fix at scan %d: fitness %.2f, ambiguity %.2f", k, fit, amb)
                     _reanchor(poses, dr, pending, k, T)
-                    poses[k], regs[k], lost[k] = T, loc.score(pts, T), False
+                    poses[k], regs[k], lost[k], infos[k] = T, loc.score(pts, T), False, loc.information(pts, T)
                     if ever_fixed:
                         n_relocs += 1
                     else:
@@ -536,13 +590,17 @@ def localize_log(
         raise SubmapSlamError("the log holds no scans to localise")
     if not ever_fixed:
         log.warning("the robot was not found in the map in %d scans (%d global searches)", k + 1, n_searches)
+    from .uncertainty import pose_filter_covariances
+
+    covariances = pose_filter_covariances(np.stack(poses), infos, np.asarray(lost, dtype=bool), loc.planar)
     timings = {"total": time.perf_counter() - t_total, "tracking": t_track, "global_search": t_global}
     return LocalizationResult(
         timestamps=np.asarray(stamps, dtype=np.float64), poses=np.stack(poses),
         fitness=np.asarray([r.fitness for r in regs]), fitness_mapped=np.asarray([r.fitness_mapped for r in regs]),
         inlier_rmse=np.asarray([r.rmse for r in regs]), lost=np.asarray(lost, dtype=bool), relocalisations=n_relocs,
         global_searches=n_searches, initialised_at=initialised_at if ever_fixed else -1, timings=timings,
-        planar=loc.planar, min_fitness=cfg.min_fitness, min_consistent_fraction=cfg.min_consistent_fraction)
+        planar=loc.planar, min_fitness=cfg.min_fitness, min_consistent_fraction=cfg.min_consistent_fraction,
+        covariances=covariances)
 
 
 def _inconsistency(reg: Registration, scan: np.ndarray, prior: np.ndarray, loc: Localizer,

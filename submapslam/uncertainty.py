@@ -23,6 +23,8 @@ untouched.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .config import BackendConfig
@@ -109,3 +111,172 @@ def scan_covariances(result) -> np.ndarray | None:
             rel = calibrate(within_submap_covariance(T, float(dist), result.planar, backend), scale)
             out[s] = A @ covs[k] @ A.T + rel
     return out
+
+
+# --- localisation in a fixed map: a pose filter beside the tracker --------------------------------
+# The tracker (submapslam.localization) keeps its poses; these give each one a covariance: the
+# previous covariance carried through the motion between the scans, plus the motion's own noise
+# (MotionNoise), replaced by what the scan's match against the map says (its point-to-line /
+# point-to-point Hessian over the residual variance, divided by REGISTRATION_INFLATION, plus the
+# map's own error MAP_SIGMA) along the directions the match constrains better (take_the_match).
+# Directions the map does not constrain (a corridor's axis, unmapped space) keep the prediction's
+# growing covariance, as the tracker keeps the prediction's pose there.
+
+#: planar (x, y, yaw) or 3D registration information is divided by this: scan points are not
+#: independent (the map's walls carry shared errors, neighbouring beams see the same bump), so
+#: the Hessian over the residual variance is overconfident. Fitted on the rectangle localisation
+#: world (tests/test_localization.py), checked on the rooms world: BENCHMARKS.md, "Localization".
+REGISTRATION_INFLATION = 5.0
+#: 1σ [m, rad] of the map itself where a scan matches it, translation and rotation: a match can
+#: place the scan no better than the map's walls are placed (a built map is off by a few cm), and
+#: that error does not shrink with more scan points
+MAP_SIGMA = (0.01, np.deg2rad(0.04))
+#: 1σ [m, m, rad] of an initial pose the user gives (or a global-search fix) before its first scan
+#: is matched: x, y and yaw (3D: also z; roll and pitch at the yaw's sigma)
+INITIAL_SIGMA = (0.5, 0.5, np.deg2rad(5.0))
+#: variance of the axes a planar pose does not have (roll, pitch, z): pinned
+PINNED_VARIANCE = 1e-10
+
+
+@dataclass(frozen=True)
+class MotionNoise:
+    """1σ of the predicted motion between consecutive scans (wheel odometry or constant velocity),
+    per component, growing with the step's length ``d`` [m] and turned angle ``a`` [rad]:
+    translation ``trans_floor + trans_per_m d``, rotation ``rot_floor + rot_per_m d + rot_per_rad a``."""
+
+    trans_floor: float = 0.005
+    trans_per_m: float = 0.05
+    rot_floor: float = np.deg2rad(0.1)
+    rot_per_m: float = np.deg2rad(1.0)
+    rot_per_rad: float = 0.05
+
+
+def motion_covariance(delta: np.ndarray, planar: bool, noise: MotionNoise = MotionNoise()) -> np.ndarray:
+    """``(6, 6)`` covariance (GTSAM order, frame of the step's end) of a predicted step ``delta``
+    ``(4, 4)`` ``T_prev_cur``; planar: roll, pitch and z pinned."""
+    d = float(np.linalg.norm(delta[:3, 3]))
+    s_t = noise.trans_floor + noise.trans_per_m * d
+    s_r = noise.rot_floor + noise.rot_per_m * d + noise.rot_per_rad * rotation_angle(delta)
+    var = np.array([s_r, s_r, s_r, s_t, s_t, s_t]) ** 2
+    if planar:
+        var[[0, 1, 5]] = PINNED_VARIANCE
+    return np.diag(var)
+
+
+def initial_covariance(planar: bool) -> np.ndarray:
+    """``(6, 6)`` covariance (GTSAM order) of a pose given without a measured accuracy: :data:`INITIAL_SIGMA`."""
+    sx, sy, syaw = INITIAL_SIGMA
+    var = np.array([syaw, syaw, syaw, sx, sy, sx]) ** 2
+    if planar:
+        var[[0, 1, 5]] = PINNED_VARIANCE
+    return np.diag(var)
+
+
+def propagate(P: np.ndarray, delta: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Covariance ``(6, 6)`` of ``T_cur = T_prev delta`` (right perturbations, each pose's own frame)
+    from ``P`` of ``T_prev``, plus the step's noise ``Q`` (in the frame of ``T_cur``)."""
+    from .geometry import adjoint, inverse
+
+    A = adjoint(inverse(delta))
+    return A @ P @ A.T + Q
+
+
+def take_the_match(P: np.ndarray, information: np.ndarray | None) -> np.ndarray:
+    """Covariance of a pose the tracker took from a match with ``information`` ``(6, 6)`` where the
+    match constrains it and from the prediction (covariance ``P``) where it does not.
+
+    The tracker does not average the two (it is no filter): along each direction the match
+    constrains it keeps the match, elsewhere the prediction. In the prediction's whitened frame
+    (``P = L L^T``, ``L^T I L = V diag(lam) V^T``) the covariance is ``1 / max(1, lam)`` per direction:
+    the match's own variance where it is the better of the two, the prediction's where not. A
+    filter's ``1 / (1 + lam)`` would shrink below the match's variance in every step, though the map's
+    errors that bound the match repeat from scan to scan. ``P`` itself without a match."""
+    if information is None:
+        return P
+    L = np.linalg.cholesky(0.5 * (P + P.T))
+    lam, V = np.linalg.eigh(L.T @ information @ L)
+    W = L @ V
+    out = (W / np.maximum(1.0, lam)) @ W.T
+    return 0.5 * (out + out.T)
+
+
+def planar_match_information(points: np.ndarray, normals_body: np.ndarray, residuals: np.ndarray,
+                             weights: np.ndarray, min_sigma: float = 0.005) -> np.ndarray:
+    """``(6, 6)`` information (GTSAM order, the scan's frame; roll, pitch and z zero) of a planar
+    point-to-line match: ``J^T W J / (sigma^2 REGISTRATION_INFLATION)``.
+
+    ``points`` ``(K, 2)`` scan points in the scan frame, ``normals_body`` ``(K, 2)`` their matched
+    lines' unit normals rotated into the scan frame, ``residuals`` ``(K,)`` [m] signed point-to-line
+    distances, ``weights`` ``(K,)`` robust weights. ``J = [n_x, n_y, n_y p_x - n_x p_y]`` per point
+    (right perturbation ``(x, y, yaw)``); ``sigma^2`` the weighted residual variance (at least
+    ``min_sigma^2``). Zero with fewer than 4 points.
+    """
+    info = np.zeros((6, 6))
+    if len(points) < 4:
+        return info
+    J = np.column_stack([normals_body[:, 0], normals_body[:, 1],
+                         normals_body[:, 1] * points[:, 0] - normals_body[:, 0] * points[:, 1]])
+    dof = max(float(weights.sum()) - 3.0, 1.0)
+    var = max(float(np.sum(weights * residuals**2)) / dof, min_sigma**2)
+    H = (J * weights[:, None]).T @ J / (var * REGISTRATION_INFLATION)
+    idx = [3, 4, 2]
+    info[np.ix_(idx, idx)] = H
+    return info
+
+
+def limited_by_the_map(information: np.ndarray, planar: bool) -> np.ndarray:
+    """A match's ``information`` ``(6, 6)`` (GTSAM order) with the map's own error :data:`MAP_SIGMA`
+    added to its covariance: ``(I^-1 + S)^-1``, computed as ``I (1 + S I)^-1`` so directions the match
+    does not constrain (zero information) stay zero."""
+    s_t, s_r = MAP_SIGMA
+    var = np.array([s_r, s_r, s_r, s_t, s_t, s_t]) ** 2
+    if planar:
+        var[[0, 1, 5]] = 0.0
+    out = information @ np.linalg.inv(np.eye(6) + np.diag(var) @ information)
+    return 0.5 * (out + out.T)
+
+
+def pose_filter_covariances(poses: np.ndarray, informations: list[np.ndarray | None], lost: np.ndarray,
+                            planar: bool, noise: MotionNoise = MotionNoise()) -> np.ndarray:
+    """``(N, 6, 6)`` covariance (GTSAM order, each pose's frame) of each pose a tracker output.
+
+    Forward: the first pose starts at :func:`initial_covariance`, each next one is the previous
+    carried through the step between the poses plus :func:`motion_covariance`, then combined with
+    its scan's match ``informations[k]`` (:func:`take_the_match`; None: the match was not believed,
+    e.g. lost). A fix after a
+    lost span (the global search, independent of the dead reckoning) starts again from
+    :func:`initial_covariance`. The lost span before a fix was re-anchored on it by dead
+    reckoning, so its covariances are carried *backwards* from the fix (the scans before the first
+    fix likewise); a lost span at the log's end keeps the forward ones.
+    """
+    from .geometry import inverse
+
+    lost = np.asarray(lost, dtype=bool)
+    n = len(poses)
+    out = np.zeros((n, 6, 6))
+    P = initial_covariance(planar)
+    for k in range(n):
+        if k and lost[k - 1] and not lost[k]:
+            P = initial_covariance(planar)
+        elif k:
+            delta = inverse(poses[k - 1]) @ poses[k]
+            P = propagate(P, delta, motion_covariance(delta, planar, noise))
+        P = take_the_match(P, informations[k])
+        out[k] = P = _pinned(P) if planar else P
+    fixed_after = np.flip(np.logical_or.accumulate(np.flip(~lost)))  # some fix at or after k
+    for k in range(n - 2, -1, -1):
+        if lost[k] and fixed_after[k + 1]:
+            delta = inverse(poses[k + 1]) @ poses[k]
+            out[k] = propagate(out[k + 1], delta, motion_covariance(delta, planar, noise))
+            out[k] = _pinned(out[k]) if planar else out[k]
+    return out
+
+
+def _pinned(P: np.ndarray) -> np.ndarray:
+    """A planar pose's covariance with roll, pitch and z decoupled at :data:`PINNED_VARIANCE` (carried
+    through the steps their pinned variance would otherwise grow with the lever arms)."""
+    P = P.copy()
+    P[[0, 1, 5], :] = 0.0
+    P[:, [0, 1, 5]] = 0.0
+    P[[0, 1, 5], [0, 1, 5]] = PINNED_VARIANCE
+    return P

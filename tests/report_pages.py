@@ -18,6 +18,8 @@ needs_chromium = pytest.mark.skipif(CHROMIUM is None, reason="chromium not insta
 
 #: the plots a report against a reference carries: the map and evo's standard plots
 REFERENCE_FIGURES = ("map", "evo-xyz", "evo-ape", "evo-hist")
+#: the uncertainty a run with ``poses_cov.txt`` shows: σ along the path, and the map layer of 3σ ellipses
+UNCERTAINTY_FIGURES = ("uncertainty-sigma", "layer-uncertainty")
 
 # appended to a copy of the page: lists the images Chromium decoded with a size (ids, in order)
 _PROBE = ("<script>document.body.setAttribute('data-rendered', Array.from(document.images)"
@@ -37,6 +39,18 @@ def assert_not_blank(img: np.ndarray, what: str) -> None:
     """A plot, not an empty canvas: some ink and more than a handful of colours."""
     rgb = img[..., :3]
     assert float(np.std(rgb)) > 0.02 and np.mean(rgb.min(axis=2) < 0.9) > 0.01, f"{what} is blank"
+
+
+def assert_layer_has_ink(img: np.ndarray, what: str, min_share: float = 0.002) -> None:
+    """A transparent overlay layer that draws something: enough opaque pixels, spread over at least
+    a fifth of the figure's width or height (its RGB under a transparent pixel says nothing, so
+    :func:`assert_not_blank` cannot tell)."""
+    assert img.shape[-1] == 4, f"{what} has no alpha channel: not an overlay"
+    ink = img[..., 3] > 0.5
+    assert float(np.mean(ink)) > min_share, f"{what} is blank ({np.mean(ink):.4%} opaque)"
+    rows, cols = np.flatnonzero(ink.any(axis=1)), np.flatnonzero(ink.any(axis=0))
+    assert max((rows[-1] - rows[0]) / ink.shape[0], (cols[-1] - cols[0]) / ink.shape[1]) > 0.2, \
+        f"{what} draws in one spot only"
 
 
 def chromium(args: list[str], tmp_path: Path) -> tuple[subprocess.CompletedProcess, list[str]]:

@@ -19,6 +19,8 @@ from submapslam.observer import RunObserver
 from .cli_errors import assert_one_error_line
 from .report_pages import (
     REFERENCE_FIGURES,
+    UNCERTAINTY_FIGURES,
+    assert_layer_has_ink,
     assert_not_blank,
     chromium,
     figure_png,
@@ -150,7 +152,33 @@ def test_report_draws_the_map_and_evo_plots_in_headless_chromium(reported_run, t
         assert_not_blank(figure_png(html, ident), ident)
     drawn, console = rendered_figures(page, tmp_path)
     assert console == [], console
-    assert set(REFERENCE_FIGURES) <= drawn, drawn
+    assert set(REFERENCE_FIGURES) | set(UNCERTAINTY_FIGURES) <= drawn, drawn
+
+
+def test_report_shows_the_uncertainty_of_every_scan(reported_run, tmp_path):
+    """poses_cov.txt on the page: σ along the path (x, y, yaw; 3D also z, roll, pitch) with the
+    largest σ the file holds, and 3σ ellipses of scans along the trajectory as a map layer; a run
+    folder without poses_cov.txt gets neither."""
+    import shutil
+
+    from submapslam.io.trajectory import read_tum_cov
+
+    run, page, _, kind = reported_run
+    html = page.read_text()
+    assert_not_blank(figure_png(html, "uncertainty-sigma"), "σ along the path")
+    assert_layer_has_ink(figure_png(html, "layer-uncertainty"), "scan ellipses")
+    _, covs = read_tum_cov(run / "poses_cov.txt")
+    sig = np.sqrt(np.diagonal(covs, axis1=1, axis2=2))
+    shown = re.search(r"largest σ x, y \[m\]</t[dh]><td[^>]*>([^<]+)</td>", html)
+    assert shown, "the largest σ is not listed"
+    np.testing.assert_allclose([float(v) for v in shown.group(1).split(",")], sig[:, 3:5].max(axis=0), rtol=1e-3)
+    assert ("largest σ z [m]" in html) == (kind == "3d")
+    n = int(re.search(r"scan poses with 3σ ellipses \((\d+) along the path", html).group(1))
+    assert 20 <= n <= 120
+    bare = tmp_path / "bare"
+    shutil.copytree(run, bare, ignore=shutil.ignore_patterns("poses_cov.txt", "report.html", "map.ply"))
+    html = report_run(bare).read_text()
+    assert all(f'id="{ident}"' not in html for ident in UNCERTAINTY_FIGURES)
 
 
 def test_report_never_overwrites_a_file_of_the_users(reported_run, tmp_path):

@@ -25,3 +25,24 @@ def test_compare_reports_agreement_and_covariances(tmp_path):
     run.filter.x[3::2] += 0.5
     assert compare_landmark_solutions(log, run, sol)["ekf_vs_graph_landmark_rms_m"] > 0.45
     assert np.isfinite(c["graph_error"])
+
+
+def test_graph_marginals_agree_with_the_ekf_and_both_are_consistent(tmp_path):
+    """The EKF as the reference, over 10 Monte Carlo landmark worlds (1 lap, 20 landmarks; the noise
+    of the NEES study): every landmark's EKF covariance agrees with the graph's marginal (symmetric
+    KL at most 0.05, ellipse areas within 10 %), so does the last pose's (KL at most 0.05), and
+    both estimators are inside the 95 % band of the NEES mean: the joint landmark NEES per DOF (all
+    landmarks of a run as one sample) and the last pose's NEES (3 DOF)."""
+    from submapslam.cli.ekf import synthetic_nees_trials
+    from submapslam.evaluation.landmark_compare import landmark_consistency_study
+
+    st = landmark_consistency_study(synthetic_nees_trials(tmp_path, runs=10, seed=100, laps=1))
+    assert st["runs"] == 10 and st["landmark_dof"] >= 200
+    assert st["landmark_sym_kl_max"] < 0.05 and st["final_pose_sym_kl_max"] < 0.05
+    lo, hi = st["landmark_area_ratio_range"]
+    assert 0.9 < lo <= hi < 1.1
+    for who in ("ekf", "graph"):
+        a, b = st["landmark_nees_per_dof_band_95"]
+        assert a <= st[f"{who}_landmark_nees_per_dof"] <= b, (who, st[f"{who}_landmark_nees_per_dof"], a, b)
+        a, b = st["final_nees_band_95"]
+        assert a <= st[f"{who}_final_nees_mean"] <= b, (who, st[f"{who}_final_nees_mean"], a, b)

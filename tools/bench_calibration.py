@@ -21,7 +21,9 @@ Reported, pooled over the seeds (anchor 0 left out, it is the reference):
   two-sided 95 % band of its mean over all samples (samples within one run are correlated, so
   the band is optimistic), and the share of samples inside the 95 % chi-square bound.
 - the landmark world's EKF (``nees_study``, ``--ekf-runs`` runs): mean robot-pose NEES (3 DOF),
-  share of steps whose Monte Carlo average lies in the 95 % band, first step out of it.
+  share of steps whose Monte Carlo average lies in the 95 % band, first step out of it; and the
+  landmarks' EKF covariances against the graph's marginals (symmetric KL, ellipse areas), both
+  estimators' joint landmark NEES and last-pose NEES against their 95 % bands.
 
 ``--json`` keeps every sample (errors and covariances) for fitting a calibration.
 """
@@ -162,7 +164,27 @@ def ekf_rows(runs: int, workdir: str | None) -> list[str]:
     for name, key in (("EKF", "ekf"), ("FEJ-EKF", "ekf_fej"), ("graph (smoother)", "graph")):
         x = study[key]
         rows.append(f"| {name} | {x.mean():.2f} | {((x >= lo) & (x <= hi)).mean():.2f} | {study[key + '_left_band_at']} |")
-    return rows
+    return rows + [""] + landmark_rows(runs, workdir)
+
+
+def landmark_rows(runs: int, workdir: str | None) -> list[str]:
+    """The same worlds' landmarks and last pose: the EKF against the graph's marginals, and both
+    against the truth (:func:`~submapslam.evaluation.landmark_compare.landmark_consistency_study`)."""
+    from submapslam.cli.ekf import synthetic_nees_trials
+    from submapslam.evaluation.landmark_compare import landmark_consistency_study
+
+    with tempfile.TemporaryDirectory(dir=workdir) as tmp:
+        st = landmark_consistency_study(synthetic_nees_trials(Path(tmp), runs=runs))
+    (la, lb), (fa, fb) = st["landmark_nees_per_dof_band_95"], st["final_nees_band_95"]
+    ra, rb = st["landmark_area_ratio_range"]
+    return [f"EKF vs graph marginals over {runs} runs: landmark symmetric KL max {st['landmark_sym_kl_max']:.4f}, "
+            f"ellipse area ratio (EKF / graph) {ra:.3f}-{rb:.3f}; last pose symmetric KL max "
+            f"{st['final_pose_sym_kl_max']:.4f}", "",
+            f"| estimator | joint landmark NEES per DOF ({st['landmark_dof']} DOF) [95 % band] | last pose NEES "
+            "mean (3 DOF) [95 % band] |", "|---|---|---|",
+            *(f"| {name} | {st[key + '_landmark_nees_per_dof']:.3f} [{la:.3f}, {lb:.3f}] | "
+              f"{st[key + '_final_nees_mean']:.2f} [{fa:.2f}, {fb:.2f}] |" for name, key in (("EKF", "ekf"),
+                                                                                             ("graph", "graph")))]
 
 
 def rescore(files: list[str], scale: list[float] | None) -> int:

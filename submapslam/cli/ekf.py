@@ -107,15 +107,17 @@ def synthetic_nees_trials(workdir: str | Path, runs: int = 50, seed: int = 100,
                           laps: int = 2) -> Iterator[tuple[LandmarkLog, np.ndarray]]:
     """``(log, truth)`` per Monte Carlo run for :func:`~submapslam.evaluation.landmark_compare.nees_study`:
     synthetic landmark worlds (seeds ``seed``, ``seed + 1``, ...) written under ``workdir``,
-    truth ``(N, 3)`` ``x, y, yaw`` in the log's frame (the log starts at the origin)."""
+    truth ``(N, 3)`` ``x, y, yaw`` in the log's frame (the log starts at the origin); each log carries
+    its true landmarks (``truth_landmarks``) in that frame."""
     from datasets_synth.landmarks import generate_landmark_log
 
-    from ..io.landmark_logs import read_victoria_park
+    from ..io.landmark_logs import read_victoria_park, with_synthetic_truth
 
     for r in range(runs):
         folder = Path(workdir) / f"mc{r}"
-        log = read_victoria_park(generate_landmark_log(folder / "syn.txt", seed=seed + r, laps=laps,
-                                                       sigma_range=0.05, odo_sigma=(0.03, 0.02, 0.01)))
+        path = generate_landmark_log(folder / "syn.txt", seed=seed + r, laps=laps, sigma_range=0.05,
+                                     odo_sigma=(0.03, 0.02, 0.01))
+        log = with_synthetic_truth(read_victoria_park(path), path)  # the true landmarks too, in the log's frame
         raw = np.loadtxt(folder / "poses_truth.txt")[:, 1:4]
         c, s = np.cos(-raw[0, 2]), np.sin(-raw[0, 2])
         rel = raw - raw[0]

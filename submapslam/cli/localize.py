@@ -56,6 +56,10 @@ def register(app: typer.Typer) -> None:
         console.print(f"{s['scans']} scans, {s['lost_scans']} lost in {len(s['lost_spans'])} spans, "
                       f"{s['relocalisations']} relocalisations, {s['consistent_fraction']:.0%} consistent with the "
                       f"map; {s['wall_time_s']:.1f} s ({s['scans_per_s']} scans/s)")
+        if "sigma_position_m" in s:
+            console.print(f"1σ position {s['sigma_position_m']['median']:.3f} m median, {s['sigma_position_m']['max']:.3f} "
+                          f"m largest; yaw {s['sigma_yaw_deg']['median']:.2f} deg median, "
+                          f"{s['sigma_yaw_deg']['max']:.2f} deg largest (poses_cov.txt, uncertainty.png)")
         console.print(f"results in {out}")
         if not result.localised:
             found = "never found in the map" if s["initialised_at_scan"] < 0 else "found, but the map explains too few"

@@ -91,6 +91,28 @@ def _overview(rec: RunRecord) -> str:
     return hp.key_values(pairs)
 
 
+def _uncertainty(rec: RunRecord) -> str:
+    """σ of every pose along the path (``poses_cov.txt``) with its largest values."""
+    from .uncertainty_figures import sigma_along_path_figure, sigmas
+
+    planar = bool(rec.summary.get("planar", True))
+    s = sigmas(rec.pose_covariances)
+    fig = hp.figure(sigma_along_path_figure(rec.poses.positions, rec.pose_covariances, planar),
+                    "1σ of each scan pose along the path, about the scan's own axes (x forward, y left"
+                    + (")" if planar else ", z up; roll, pitch, yaw)") + ", as poses_cov.txt reports it; the map "
+                    "above draws 3σ ellipses of every few scans (orange)", "uncertainty-sigma")
+    finite = np.isfinite(s).all(axis=1)
+    pairs = [("poses with a covariance", f"{int(finite.sum())} of {len(s)}")]
+    if finite.any():
+        pairs += [("largest σ x, y [m]", f"{np.max(s[finite, 3]):.4g}, {np.max(s[finite, 4]):.4g}"),
+                  ("largest σ yaw [deg]", float(np.degrees(np.max(s[finite, 2]))))]
+        if not planar:
+            pairs += [("largest σ z [m]", float(np.max(s[finite, 5]))),
+                      ("largest σ roll, pitch [deg]", f"{np.degrees(np.max(s[finite, 0])):.4g}, "
+                                                      f"{np.degrees(np.max(s[finite, 1])):.4g}")]
+    return fig + hp.key_values(pairs)
+
+
 def _loop_table(rec: RunRecord) -> str:
     if not rec.loops:
         return "<p>No loop hypotheses were tested in this run (loops.csv is empty or absent).</p>"
@@ -118,6 +140,8 @@ def _performance(summary: dict) -> str:
     """Stage wall times as bars, scans/s along the run and memory along the path as inline SVG
     charts (drawn without matplotlib: a third of a second less per report)."""
     stages = summary.get("wall_time_s") or {}
+    if not isinstance(stages, dict):  # a localize folder: the total here, the stages under time_s
+        stages = {k: v for k, v in (summary.get("time_s") or {}).items() if k != "total"}
     html = hp.bar_rows(sorted(stages.items(), key=lambda kv: -kv[1]), "wall time [s]")
     html += ('<p class="sub">Stages overlap: a closed submap\'s graph work (odometry edge, loop tests, iSAM2) '
              "runs beside the next scans' registration, so they add up to more than the wall time "
@@ -188,7 +212,10 @@ def build_run_report(rec: RunRecord, reference: Trajectory | Callable[[], Trajec
         sections.append(("Map, trajectory, submaps and loops", hp.layered_figure(
             rf.map_layers(rec), f"The {what}; blue: trajectory, dashed grey: odometry before loop closure, "
             "green: accepted loops, red: rejected hypotheses (reasons in the table below), purple: submap "
-            "anchors with 3σ ellipses; the boxes above show and hide the layers")))
+            "anchors with 3σ ellipses, orange: 3σ ellipses of every few scans (poses_cov.txt); the boxes above "
+            "show and hide the layers")))
+        if rec.poses is not None and rec.pose_covariances is not None:
+            sections.append(("Uncertainty along the path", _uncertainty(rec)))
     if callable(reference):
         reference = reference()
     if reference is not None and rec.poses is not None:

@@ -147,6 +147,99 @@ def nees_study(trials: Iterable[tuple[LandmarkLog, np.ndarray]], with_graph: boo
             "graph_left_band_at": left(graph) if graph is not None else None}
 
 
+def joint_landmark_nees(ids: list[int], est: np.ndarray, cov: np.ndarray, truth: dict[int, np.ndarray]) -> float:
+    """NEES of all landmarks at once: ``e^T P^-1 e`` of the stacked ``(2L,)`` error of estimates
+    ``est`` ``(2L,)`` (``x_i, y_i`` in the order of ``ids``) against ``truth`` (id -> ``(2,)``, same
+    frame) with their joint ``(2L, 2L)`` covariance; chi-square with ``2L`` DOF when consistent.
+    Landmarks of one run are correlated (they share the robot's error), so only the joint NEES is
+    one sample; the runs are independent."""
+    e = np.asarray(est, dtype=np.float64) - np.concatenate([truth[i] for i in ids])
+    return float(e @ np.linalg.solve(cov, e))
+
+
+def ekf_landmark_joint(run: EkfRun) -> tuple[list[int], np.ndarray, np.ndarray]:
+    """``(ids, (2L,) estimates, (2L, 2L) joint covariance)`` of the stochastic map's features."""
+    f = run.filter
+    idx = np.concatenate([[3 + 2 * k, 4 + 2 * k] for k in range(f.n)]).astype(int)
+    return list(f.ids), f.x[idx].copy(), f.P[np.ix_(idx, idx)].copy()
+
+
+def covariance_agreement(run: EkfRun, sol: GraphSolution) -> dict:
+    """How far the EKF's covariances are from the graph's marginals, per landmark and for the last
+    pose (world frame): the largest symmetric KL divergence over the landmarks, and the ratio of
+    ellipse areas (EKF / graph, square root of the determinants' ratio) at its smallest and largest."""
+    ekf_cov = {lm["id"]: np.array([[lm["var_xx"], lm["var_xy"]], [lm["var_xy"], lm["var_yy"]]])
+               for lm in run.filter.landmarks()}
+    shared = sorted(set(ekf_cov) & set(sol.landmark_covs))
+    area = np.array([np.sqrt(np.linalg.det(ekf_cov[k]) / np.linalg.det(sol.landmark_covs[k])) for k in shared])
+    out = {"landmarks": len(shared), "landmark_sym_kl_max": max(_sym_kl(ekf_cov[k], sol.landmark_covs[k])
+                                                               for k in shared),
+           "landmark_area_ratio_min": float(area.min()), "landmark_area_ratio_max": float(area.max())}
+    if sol.pose_covs is not None:
+        P_e, P_g = run.pose_covs[-1], sol.pose_covs[-1]
+        out["final_pose_sym_kl"] = _sym_kl_n(P_e, P_g)
+        out["final_pose_sigma_ratio"] = (np.sqrt(np.diag(P_e) / np.diag(P_g))).tolist()  # x, y, yaw
+    return out
+
+
+def _sym_kl_n(A: np.ndarray, B: np.ndarray) -> float:
+    """Symmetric KL divergence between zero-mean Gaussians with ``(n, n)`` covariances."""
+    n = len(A)
+    return float(0.5 * (np.trace(np.linalg.solve(B, A)) + np.trace(np.linalg.solve(A, B))) - n)
+
+
+def landmark_consistency_study(trials: Iterable[tuple[LandmarkLog, np.ndarray]]) -> dict:
+    """Monte Carlo over landmark worlds: the EKF and the graph against the truth and each other.
+
+    Per run: the joint landmark NEES per DOF (:func:`joint_landmark_nees` / ``2L``) and the final
+    pose's NEES (3 DOF) of both estimators, and :func:`covariance_agreement`. Returns the per-run
+    lists, their means and the two-sided 95 % band of each mean (chi-square of the summed DOF over
+    it: the runs are independent, so these bands are exact for consistent estimators), and the
+    worst agreement over the runs.
+    """
+    from scipy.stats import chi2
+
+    from ..backend.landmark_graph import solve_landmark_graph
+    from ..ekf.runner import run_ekf
+    from ..ekf.stochastic_map import CredibilityParams
+
+    keep = CredibilityParams(b=1e9, remove_below=0.0)
+    rows = []
+    for log, truth in trials:
+        run = run_ekf(log, keep)
+        sol = solve_landmark_graph(log, pose_covariances=True, landmark_joint=True)
+        ids, x, P = ekf_landmark_joint(run)
+        order = np.argsort(ids)
+        ids_s = [ids[i] for i in order]
+        sel = np.concatenate([[2 * i, 2 * i + 1] for i in order])
+        g_ids, g_cov = sol.landmark_joint_cov
+        assert g_ids == ids_s, "the EKF and the graph hold different landmarks"
+        g_est = np.concatenate([sol.landmarks[i] for i in g_ids])
+        end = truth[int(run.times[-1])]
+        rows.append({"dof": 2 * len(ids_s),
+                     "ekf_landmark_nees": joint_landmark_nees(ids_s, x[sel], P[np.ix_(sel, sel)], log.truth_landmarks),
+                     "graph_landmark_nees": joint_landmark_nees(g_ids, g_est, g_cov, log.truth_landmarks),
+                     "ekf_final_nees": float(nees_series(run.poses[-1:], run.pose_covs[-1:], end[None])[0]),
+                     "graph_final_nees": float(nees_series(sol.poses[-1:], sol.pose_covs[-1:], end[None])[0]),
+                     **covariance_agreement(run, sol)})
+    runs = len(rows)
+    if runs < 2:
+        raise SubmapSlamError(f"a consistency study needs at least 2 runs, got {runs}")
+    dof = sum(r["dof"] for r in rows)
+    out: dict = {"runs": runs, "landmark_dof": dof,
+                 "landmark_nees_per_dof_band_95": [chi2.ppf(0.025, dof) / dof, chi2.ppf(0.975, dof) / dof],
+                 "final_nees_band_95": [chi2.ppf(0.025, 3 * runs) / runs, chi2.ppf(0.975, 3 * runs) / runs]}
+    for who in ("ekf", "graph"):
+        out[f"{who}_landmark_nees_per_dof"] = sum(r[f"{who}_landmark_nees"] for r in rows) / dof
+        out[f"{who}_final_nees_mean"] = float(np.mean([r[f"{who}_final_nees"] for r in rows]))
+    out["landmark_sym_kl_max"] = max(r["landmark_sym_kl_max"] for r in rows)
+    out["landmark_area_ratio_range"] = [min(r["landmark_area_ratio_min"] for r in rows),
+                                        max(r["landmark_area_ratio_max"] for r in rows)]
+    out["final_pose_sym_kl_max"] = max(r["final_pose_sym_kl"] for r in rows)
+    out["per_run"] = rows
+    return out
+
+
 def nees_summary(study: dict) -> dict:
     """The figures of a :func:`nees_study` as plain JSON values (``nees.json``): the band, the
     fraction of steps the EKF's mean NEES lies inside it, where each estimator leaves it, and

@@ -147,9 +147,6 @@ def map_layers(rec: RunRecord, dpi: int = 100, size: float = 12.0) -> list[tuple
     height = size * float(np.clip((y1 - y0) / max(x1 - x0, 1e-9) * w_in / h_in, 0.35, 1.0))
     fig.set_size_inches(size, height)
     layers = [("map", "map and trajectory", _png_exact(fig, dpi), True)]
-    if rec.submaps is None or not len(rec.submaps.get("x", [])):
-        return layers
-    xy = np.stack([rec.submaps["x"], rec.submaps["y"]], axis=1)
 
     def overlay(key: str, label: str, draw, shown: bool) -> None:
         fig, ax = canvas(True)
@@ -158,6 +155,16 @@ def map_layers(rec: RunRecord, dpi: int = 100, size: float = 12.0) -> list[tuple
         ax.set_ylim(*limits[1])
         ax.set_aspect("equal")
         layers.append((key, label, _png_exact(fig, dpi), shown))
+
+    if rec.poses is not None and rec.pose_covariances is not None:
+        from .uncertainty_figures import draw_scan_ellipses, ellipse_indices
+
+        n = len(ellipse_indices(rec.poses.positions, rec.pose_covariances))
+        overlay("uncertainty", f"scan poses with 3σ ellipses ({n} along the path, from poses_cov.txt)",
+                lambda ax: draw_scan_ellipses(ax, rec.poses.poses, rec.pose_covariances), True)
+    if rec.submaps is None or not len(rec.submaps.get("x", [])):
+        return layers
+    xy = np.stack([rec.submaps["x"], rec.submaps["y"]], axis=1)
 
     n_ok = sum(r.get("accepted") == "1" for r in rec.loops)
     overlay("accepted", f"accepted loops ({n_ok})",

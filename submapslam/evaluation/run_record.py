@@ -40,6 +40,8 @@ class RunRecord:
         config_text: ``config.yaml`` (the effective config) or None.
         provenance: ``input.json`` (file, size, SHA-256, scans, duration) or None.
         poses, odometry: ``poses_tum.txt`` and ``odometry_tum.txt`` (before loop closure).
+        pose_covariances: ``poses_cov.txt``'s ``(N, 6, 6)`` covariance of each pose of ``poses`` (GTSAM
+            order ``rx, ry, rz, x, y, z``, the pose's own frame), or None when the run wrote none.
         submaps: ``submaps.csv`` columns by name (``x``, ``y``, ``yaw``, ``sigma_x`` ... ``cov_xy``).
         loops: ``loops.csv`` rows by column name, as text.
         grid: ``map.pgm`` + ``map.yaml``; cloud: ``map.ply`` ``(M, 3)`` world frame (3D runs).
@@ -56,6 +58,7 @@ class RunRecord:
     provenance: dict | None = None
     poses: Trajectory | None = None
     odometry: Trajectory | None = None
+    pose_covariances: np.ndarray | None = None
     submaps: dict[str, np.ndarray] | None = None
     loops: list[dict[str, str]] = field(default_factory=list)
     grid: GridImage | None = None

@@ -14,7 +14,7 @@ from ..errors import InputError
 from ..evaluation.run_record import GridImage, RunRecord
 from ..trajectory import Trajectory
 from .grid import read_pgm
-from .trajectory import read_tum
+from .trajectory import read_tum, read_tum_cov
 
 _PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "uchar": "u1", "uint8": "u1",
               "char": "i1", "int8": "i1", "ushort": "<u2", "uint16": "<u2", "short": "<i2", "int16": "<i2",
@@ -93,6 +93,10 @@ def read_run_folder(folder: str | Path, *, with_cloud: bool = True) -> RunRecord
         rec.config_text = (root / "config.yaml").read_text()
     if (root / "poses_tum.txt").is_file():
         rec.poses = read_tum(root / "poses_tum.txt")
+    if rec.poses is not None and (root / "poses_cov.txt").is_file():
+        cov_traj, covs = read_tum_cov(root / "poses_cov.txt")
+        if len(cov_traj.timestamps) == len(rec.poses.timestamps):  # one covariance per pose, else none
+            rec.pose_covariances = covs
     if (root / "odometry_tum.txt").is_file():
         rec.odometry = read_tum(root / "odometry_tum.txt")
     if (root / "submaps.csv").is_file():
