@@ -267,7 +267,11 @@ class _TileIndex:
 
 class RangeImage:
     """The nearest return per (elevation, azimuth) pixel of one scan in its sensor frame, with the
-    return's exact direction, so a lookup can tell whether that beam passed through a voxel."""
+    return's exact direction, so a lookup can tell whether that beam passed through a voxel.
+
+    Stored compactly: a pixel grid of ``int32`` slots (0: no beam) into the returns kept, one
+    per occupied pixel (a narrow-field scan fills a few % of the grid's pixels, a 16-ring scan
+    a third), each with its range, elevation and azimuth (``float32``)."""
 
     def __init__(self, points_sensor: np.ndarray, el_bin_deg: float, az_bin_deg: float) -> None:
         r, el, az = _spherical(points_sensor)
@@ -279,14 +283,18 @@ class RangeImage:
         self.el_lo = float(el.min()) - 2 * self.del_ if len(el) else 0.0
         rows = np.floor((el - self.el_lo) / self.del_).astype(np.int64)
         self.rows = int(rows.max()) + 3 if len(rows) else 1
-        size = self.rows * self.cols
-        self.range = np.zeros(size, dtype=np.float32)  # 0: no beam
-        self.el = np.zeros(size, dtype=np.float32)
-        self.az = np.zeros(size, dtype=np.float32)
         flat = rows * self.cols + self._col(az)
         order = np.argsort(-r)  # nearest written last: duplicates keep the nearest return
-        f = flat[order]
-        self.range[f], self.el[f], self.az[f] = r[order], el[order], az[order]
+        nearest = np.zeros(self.rows * self.cols, dtype=np.int64)  # 1 + index into r of each pixel's return
+        nearest[flat[order]] = order + 1
+        kept = np.flatnonzero(nearest)
+        self._slot = np.zeros(self.rows * self.cols, dtype=np.int32)
+        self._slot[kept] = np.arange(1, len(kept) + 1, dtype=np.int32)
+        chosen = nearest[kept] - 1
+        # slot 0: no beam (range 0)
+        self._range = np.concatenate([[0.0], r[chosen]]).astype(np.float32)
+        self._el = np.concatenate([[0.0], el[chosen]]).astype(np.float32)
+        self._az = np.concatenate([[0.0], az[chosen]]).astype(np.float32)
 
     def _col(self, az: np.ndarray) -> np.ndarray:
         return np.floor((az + np.pi) / self.daz).astype(np.int64) % self.cols
@@ -311,10 +319,10 @@ class RangeImage:
         for dr in (-1, 0, 1):
             rr = rows + dr
             inside = (rr >= 0) & (rr < self.rows)
-            flat = np.where(inside, rr, 0) * self.cols + cols
-            measured = self.range[flat]
-            d_az = _wrap(self.az[flat] - az)
-            passing = inside & (measured > 0) & (np.abs(self.el[flat] - el) * r < tolerance) \
+            slot = self._slot[np.where(inside, rr, 0) * self.cols + cols]
+            measured = self._range[slot]
+            d_az = _wrap(self._az[slot] - az)
+            passing = inside & (measured > 0) & (np.abs(self._el[slot] - el) * r < tolerance) \
                 & (d_az * cos_el * r < tolerance)
             any_pass |= passing
             short |= passing & (measured <= r + m)
@@ -333,10 +341,10 @@ class RangeImage:
         out = np.zeros(len(r), dtype=bool)
         if not len(r):
             return out
-        if not hasattr(self, "_xyz"):
-            ce = np.cos(self.el)
-            self._xyz = np.stack([ce * np.cos(self.az), ce * np.sin(self.az), np.sin(self.el)], 1) \
-                * self.range[:, None]
+        if not hasattr(self, "_xyz"):  # each return's point, computed as before in float32
+            ce = np.cos(self._el)
+            self._xyz = np.stack([ce * np.cos(self._az), ce * np.sin(self._az), np.sin(self._el)], 1) \
+                * self._range[:, None]
         rows = np.floor((el - self.el_lo) / self.del_).astype(np.int64)
         cols = self._col(az)
         ang = radius / np.maximum(r, 1e-6)  # [rad] angular radius of the ball
@@ -349,9 +357,9 @@ class RangeImage:
             act = np.flatnonzero((n_rows >= abs(dr)) & (rows + dr >= 0) & (rows + dr < self.rows) & ~out)
             if not len(act):
                 continue
-            flat = (rows[act, None] + dr) * self.cols + (cols[act, None] + dcs) % self.cols  # (A, C)
-            d = self._xyz[flat] - p32[act, None, :]
-            close = (self.range[flat] > 0) & (np.abs(dcs) <= n_cols[act, None]) & (np.einsum("ijk,ijk->ij", d, d) <= r2)
+            slot = self._slot[(rows[act, None] + dr) * self.cols + (cols[act, None] + dcs) % self.cols]  # (A, C)
+            d = self._xyz[slot] - p32[act, None, :]
+            close = (slot > 0) & (np.abs(dcs) <= n_cols[act, None]) & (np.einsum("ijk,ijk->ij", d, d) <= r2)
             out[act[close.any(axis=1)]] = True
         return out
 
