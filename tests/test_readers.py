@@ -244,3 +244,44 @@ def test_ply_the_fast_path_does_not_describe_goes_to_open3d(tmp_path):
     listed = b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nproperty float y\n" \
              b"property float z\nproperty list uchar int idx\nend_header\n"
     assert vertex_dtype(listed) is None
+
+
+def test_binary_pcd_fast_path_reads_what_open3d_reads(tmp_path):
+    """A binary PCD (x y z, intensity, a uint16 ring, a 3-count field, per-point time) read with
+    numpy gives open3d's points; an ASCII body and a body of the wrong size go to open3d."""
+    from submapslam._deps import open3d
+    from submapslam.io.cloud_folder import read_cloud
+    from submapslam.io.pcd import read_pcd_records
+
+    rng = np.random.default_rng(7)
+    dtype = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4"), ("ring", "<u2"),
+                      ("rgb", "<u1", (3,)), ("t", "<f8")])
+    records = np.zeros(300, dtype=dtype)
+    for name in ("x", "y", "z", "intensity", "t"):
+        records[name] = rng.normal(size=300) * 20
+    records["ring"] = rng.integers(0, 16, 300)
+    head = ("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z intensity ring rgb t\nSIZE 4 4 4 4 2 1 8\n"
+            "TYPE F F F F U U F\nCOUNT 1 1 1 1 1 3 1\nWIDTH 300\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+            "POINTS 300\nDATA binary\n")
+    path = tmp_path / "scan.pcd"
+    path.write_bytes(head.encode() + records.tobytes())
+    assert read_pcd_records(path) is not None
+    points, times = read_cloud(path)
+    assert points.dtype == np.float64 and points.shape == (300, 3)
+    assert np.array_equal(times, records["t"])
+    plain = tmp_path / "plain.pcd"  # open3d's own reading of the x/y/z part
+    xyz = np.zeros(300, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
+    for name in "xyz":
+        xyz[name] = records[name]
+    plain.write_bytes((b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 300\n"
+                       b"HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 300\nDATA binary\n") + xyz.tobytes())
+    o3d_points = open3d().t.io.read_point_cloud(str(plain)).point.positions.numpy().astype(np.float64)
+    assert np.array_equal(points, o3d_points) and np.array_equal(read_cloud(plain)[0], o3d_points)
+    ascii_pcd = tmp_path / "a.pcd"
+    ascii_pcd.write_text("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\n"
+                         "HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 2\nDATA ascii\n1 2 3\n4 5 6\n")
+    assert read_pcd_records(ascii_pcd) is None
+    assert np.array_equal(read_cloud(ascii_pcd)[0], [[1, 2, 3], [4, 5, 6]])
+    short = tmp_path / "short.pcd"  # one record missing: not read here (check_cloud_file or open3d decide)
+    short.write_bytes(head.encode() + records[:-1].tobytes())
+    assert read_pcd_records(short) is None

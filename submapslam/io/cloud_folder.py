@@ -27,6 +27,7 @@ import yaml
 from ..errors import InputError
 from .cloud_header import check_cloud_file, header_point_count
 from .compression import open_text
+from .pcd import read_pcd_records
 from .ply import read_ply_vertices
 from .registry import register_reader
 from .scan import Scan, apply_mounting, check_transform
@@ -95,6 +96,12 @@ def read_cloud(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         if records is not None:  # binary x/y/z records: numpy reads them ~20x faster than open3d
             points = np.stack([records["x"], records["y"], records["z"]], axis=1).astype(np.float64)
             name = next((n for n in _TIME_FIELDS if n in records.dtype.names), None)
+            return points, None if name is None else records[name].astype(np.float64)
+    elif path.suffix.lower() == ".pcd":
+        records = read_pcd_records(path)
+        if records is not None and {"x", "y", "z"} <= set(records.dtype.names):
+            points = np.stack([records["x"], records["y"], records["z"]], axis=1).astype(np.float64)
+            name = next((n for n in _TIME_FIELDS if n in records.dtype.names and records[n].ndim == 1), None)
             return points, None if name is None else records[name].astype(np.float64)
     pcd = open3d().t.io.read_point_cloud(str(path))
     if "positions" not in pcd.point:
