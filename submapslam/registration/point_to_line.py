@@ -7,23 +7,21 @@ estimate lags the motion (about 1 % of the distance on a 1-degree laser with 10 
 along plain corridors). Point-to-line residuals measure only the distance *across* each wall,
 so edge samples do not pull along it.
 
-:class:`RecentScanMap` keeps the last scans (odometry frame), rebuilds its line points (a line
-normal per point) every few scans, and refines a pose by Gauss-Newton on the point-to-line
+:class:`RecentScanMap` keeps the last scans (odometry frame), rebuilds a k-d tree with a line
+normal per point every few scans, and refines a pose by Gauss-Newton on the point-to-line
 residuals with a Cauchy kernel (:func:`point_to_line`, also the last step of planar submap
 matching). The update is solved along the well-constrained eigenvectors only; directions the
 scene does not constrain (a plain corridor's axis) take the prediction instead (the wheel
-odometry when the log has it), else keep the initial guess. The arithmetic is compiled
-(:mod:`.line_kernels`, numba): the recent-scan map runs a whole refinement in one call.
+odometry when the log has it), else keep the initial guess.
 """
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import numpy as np
 from scipy.spatial import cKDTree
-
-from .line_kernels import LineGrid, gn_step, rotate
 
 
 def first_point_per_cell(xy: np.ndarray, cell: float) -> np.ndarray:
@@ -66,15 +64,16 @@ class RecentScanMap:
         self.min_eigen_fraction = min_eigen_fraction
         self._scans: deque[np.ndarray] = deque(maxlen=window)
         self._since_rebuild = 0
-        self._grid: LineGrid | None = None  # nearest line point lookup, compiled
-        self._lines = np.zeros((0, 3))  # per line point: unit normal, offset n . q
+        self._tree: cKDTree | None = None
+        self._points = np.zeros((0, 2))
+        self._normals = np.zeros((0, 2))
 
     def add(self, points_xy: np.ndarray, xyt: np.ndarray) -> None:
         """Add a scan ``(N, 2)`` (sensor frame) seen from the odometry-frame pose ``xyt``."""
         c, s = np.cos(xyt[2]), np.sin(xyt[2])
         self._scans.append(points_xy @ np.array([[c, s], [-s, c]]) + xyt[:2])
         self._since_rebuild += 1
-        if self._grid is None or self._since_rebuild >= self.rebuild_every:
+        if self._tree is None or self._since_rebuild >= self.rebuild_every:
             self._rebuild()
 
     def _rebuild(self) -> None:
@@ -82,22 +81,22 @@ class RecentScanMap:
         pts = pts[first_point_per_cell(pts, self.voxel)]
         self._since_rebuild = 0
         if len(pts) < 10:
-            self._grid = None
+            self._tree = None
             return
         normals = line_normals(pts, cKDTree(pts))
         line = np.isfinite(normals[:, 0])  # corners and clutter have no line normal: not targets
-        if line.sum() < 10:
-            self._grid = None
-            return
-        self._grid = LineGrid(pts[line], self.max_correspondence)
-        self._lines = line_offsets(pts[line], normals[line])
+        self._points, self._normals = pts[line], normals[line]
+        self._tree = cKDTree(self._points) if line.sum() >= 10 else None
 
     def fit(self, points_xy: np.ndarray, xyt: np.ndarray, distance: float) -> float:
         """Share of ``points_xy (N, 2)`` (sensor frame) placed at ``xyt`` that lie within ``distance``
         [m] of the target's line points (0 with no target)."""
-        if self._grid is None or len(points_xy) == 0:
+        if self._tree is None or len(points_xy) == 0:
             return 0.0
-        return self._grid.fit(points_xy, xyt, distance) / len(points_xy)
+        c, s = math.cos(xyt[2]), math.sin(xyt[2])
+        moved = points_xy @ np.array([[c, s], [-s, c]]) + xyt[:2]
+        d, _ = self._tree.query(moved, distance_upper_bound=distance)
+        return float(np.count_nonzero(d <= distance)) / len(points_xy)
 
     def refine(self, points_xy: np.ndarray, xyt: np.ndarray, prior_xyt: np.ndarray | None = None,
                iterations: int = 6) -> tuple[np.ndarray, int]:
@@ -107,18 +106,30 @@ class RecentScanMap:
         (e.g. the wheel-odometry prediction) if given, else keep ``xyt``. Returns ``xyt``
         unchanged when there is no map yet or fewer than 20 correspondences.
         """
-        if self._grid is None or len(points_xy) < 20:
+        if self._tree is None or len(points_xy) < 20:
             return xyt, 0
-        return self._grid.refine(points_xy, xyt, self._lines, self.max_correspondence, self.kernel,
-                                 self.min_eigen_fraction, prior_xyt, iterations, self.converged)
+        return point_to_line(points_xy, xyt, self._tree, self._points, self._normals,
+                             max_correspondence=self.max_correspondence, kernel=self.kernel,
+                             min_eigen_fraction=self.min_eigen_fraction, prior_xyt=prior_xyt,
+                             iterations=iterations, converged=self.converged)
 
 
-def line_offsets(target: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """``(M, 3)``: per line point of ``target (M, 2)`` its unit normal ``(M, 2)`` and the line's offset ``n . q``."""
-    lines = np.empty((len(target), 3))
-    lines[:, :2] = normals
-    lines[:, 2] = np.einsum("ij,ij->i", target, normals)
-    return lines
+def _sym3_eigvals(a: float, b: float, c: float, d: float, e: float, f: float) -> tuple[float, float, float]:
+    """Eigenvalues, ascending, of the symmetric ``[[a, d, e], [d, b, f], [e, f, c]]`` (closed form)."""
+    p1 = d * d + e * e + f * f
+    q = (a + b + c) / 3.0
+    if p1 == 0.0:
+        lo, mid, hi = sorted((a, b, c))
+        return lo, mid, hi
+    aq, bq, cq = a - q, b - q, c - q
+    p = math.sqrt((aq * aq + bq * bq + cq * cq + 2.0 * p1) / 6.0)
+    if p == 0.0:
+        return q, q, q
+    r = (aq * (bq * cq - f * f) - d * (d * cq - f * e) + e * (d * f - bq * e)) / (2.0 * p * p * p)
+    phi = math.acos(min(1.0, max(-1.0, r))) / 3.0
+    hi = q + 2.0 * p * math.cos(phi)
+    lo = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
+    return lo, 3.0 * q - lo - hi, hi
 
 
 def point_to_line(points_xy: np.ndarray, xyt: np.ndarray, tree: cKDTree, target: np.ndarray, normals: np.ndarray, *,
@@ -126,32 +137,71 @@ def point_to_line(points_xy: np.ndarray, xyt: np.ndarray, tree: cKDTree, target:
                   prior_xyt: np.ndarray | None = None, iterations: int = 6,
                   converged: tuple[float, float] = (5e-5, 3e-6)) -> tuple[np.ndarray, int]:
     """Gauss-Newton on point-to-line residuals (Cauchy kernel) of ``points_xy (N, 2)`` moved by ``xyt``
-    against line points ``target (M, 2)`` (``tree``: anything with ``cKDTree.query``'s
-    ``query(x, distance_upper_bound=...)`` over them) with unit ``normals (M, 2)``.
+    against line points ``target (M, 2)`` (k-d ``tree`` over them) with unit ``normals (M, 2)``.
 
     The update is solved only along well-constrained directions; degenerate ones move to
     ``prior_xyt`` when given, else keep ``xyt``. Iterations stop early once a step moves less
     than ``converged`` = ``(|dx| + |dy| [m], |dyaw| [rad])``. Returns the pose and the
-    correspondences used (``xyt`` and 0 when fewer than 20 correspond). Each step is
-    :func:`.line_kernels.gn_step`; :class:`RecentScanMap` runs the whole loop compiled.
+    correspondences used (``xyt`` and 0 when fewer than 20 correspond).
     """
     if len(points_xy) < 20 or len(target) < 10:
         return np.asarray(xyt, dtype=np.float64), 0
     step_m, step_rad = converged
     x0, x1, x2 = (float(v) for v in xyt)
-    has_prior = prior_xyt is not None
-    prior = np.asarray(prior_xyt, dtype=np.float64) if has_prior else np.zeros(3)
-    lines = line_offsets(target, normals)
+    prior = None if prior_xyt is None else np.asarray(prior_xyt, dtype=np.float64)
+    # per target point: its normal and the line's offset n . q, gathered with one index per step
+    lines = np.empty((len(target), 3))
+    lines[:, :2] = normals
+    lines[:, 2] = np.einsum("ij,ij->i", target, normals)
+    n_used = 0
     points_xy = np.ascontiguousarray(points_xy, dtype=np.float64)
     inv_kernel2 = 1.0 / (kernel * kernel)
-    n_used = 0
+    threshold = min_eigen_fraction
     for _ in range(iterations):
-        rotated = rotate(points_xy, x2)
+        c, s = math.cos(x2), math.sin(x2)
+        rotated = points_xy @ np.array([[c, s], [-s, c]])
         d, nn = tree.query(rotated + (x0, x1), distance_upper_bound=max_correspondence)
-        nn = np.where(d < np.inf, nn, -1).astype(np.int64)
-        s0, s1, s2, n_used = gn_step(rotated, nn, lines, x0, x1, x2, inv_kernel2, min_eigen_fraction, prior, has_prior)
+        ok = d < np.inf
+        idx = nn[ok]
+        n_used = len(idx)
         if n_used < 20:
             return np.asarray(xyt, dtype=np.float64), 0
+        p, nq = rotated[ok], lines[idx]
+        # rows (J, r): J = n^T [I, dR p], r = n . (p + t) - n . q
+        A = np.empty((n_used, 4))
+        A[:, :2] = nq[:, :2]
+        A[:, 2] = nq[:, 1] * p[:, 0] - nq[:, 0] * p[:, 1]
+        A[:, 3] = nq[:, 0] * (p[:, 0] + x0) + nq[:, 1] * (p[:, 1] + x1) - nq[:, 2]
+        weights = 1.0 / (1.0 + np.square(A[:, 3]) * inv_kernel2)  # Cauchy
+        (h00, h01, h02, g0), (_, h11, h12, g1), (_, _, h22, g2), _ = ((A * weights[:, None]).T @ A).tolist()
+        # solve only in directions the scene constrains; yaw is scaled by the rms lever arm of
+        # the matched points so the three directions compare in metres
+        lever = max(math.sqrt(float(np.vdot(p, p)) / n_used), 1e-3)
+        si = 1.0 / lever
+        a, b, cc, dd, e, f = h00, h11, h22 * si * si, h01, h02 * si, h12 * si
+        smallest = _sym3_eigvals(a, b, cc, dd, e, f)[0]
+        if smallest > threshold * (a + b + cc):
+            # every direction constrained: the plain Gauss-Newton step -H^-1 g (cofactors)
+            m00, m01, m02 = h11 * h22 - h12 * h12, h02 * h12 - h01 * h22, h01 * h12 - h02 * h11
+            m11, m12, m22 = h00 * h22 - h02 * h02, h01 * h02 - h00 * h12, h00 * h11 - h01 * h01
+            det = h00 * m00 + h01 * m01 + h02 * m02
+            s0 = -(m00 * g0 + m01 * g1 + m02 * g2) / det
+            s1 = -(m01 * g0 + m11 * g1 + m12 * g2) / det
+            s2 = -(m02 * g0 + m12 * g1 + m22 * g2) / det
+        else:
+            S = np.array([1.0, 1.0, si])
+            H = np.array([[h00, h01, h02], [h01, h11, h12], [h02, h12, h22]])
+            evals, evecs = np.linalg.eigh(H * np.outer(S, S))
+            keep = evals > threshold * (evals[0] + evals[1] + evals[2])
+            Vk = evecs[:, keep]
+            step_s = -(Vk @ ((Vk.T @ (S * np.array([g0, g1, g2]))) / evals[keep]))
+            if prior is not None:
+                # degenerate directions: move to the prior (wheel odometry) instead of keeping the guess
+                to_prior = prior - (x0, x1, x2)
+                to_prior[2] = math.remainder(to_prior[2], 2 * math.pi)
+                Vd = evecs[:, ~keep]
+                step_s = step_s + Vd @ (Vd.T @ (to_prior / S))
+            s0, s1, s2 = (S * step_s).tolist()
         x0, x1, x2 = x0 + s0, x1 + s1, x2 + s2
         if abs(s0) + abs(s1) < step_m and abs(s2) < step_rad:
             break
