@@ -35,3 +35,16 @@ def test_the_bound_is_strict_as_in_cKDTree():
     np.testing.assert_array_equal(i, i_ref)
     np.testing.assert_array_equal(d, d_ref)
     assert i.tolist() == [2, 0]
+
+
+def test_fewer_points_than_asked_or_none_are_misses_as_in_cKDTree():
+    pts = np.array([[0.0, 0.0], [1.0, 0.0]])
+    q = np.array([[0.1, 0.0]])
+    d, i = KdTree2D(pts).query(q, k=3)
+    d_ref, i_ref = cKDTree(pts).query(q, k=3)
+    np.testing.assert_array_equal(i, i_ref)
+    np.testing.assert_allclose(d, d_ref)
+    d, i = KdTree2D(np.zeros((0, 2))).query(q, distance_upper_bound=0.3)
+    d_ref, i_ref = cKDTree(np.zeros((0, 2))).query(q, distance_upper_bound=0.3)
+    np.testing.assert_array_equal(i, i_ref)
+    np.testing.assert_array_equal(d, d_ref)

@@ -14,17 +14,20 @@ import small_gicp
 
 
 class KdTree2D:
-    """Nearest neighbours among ``points (M, 2)`` (M >= 1); ``query`` as :meth:`cKDTree.query`."""
+    """Nearest neighbours among ``points (M, 2)``; ``query`` as :meth:`cKDTree.query`."""
 
     def __init__(self, points: np.ndarray) -> None:
         self.n = len(points)
-        self._tree = small_gicp.KdTree(_lift(points))
+        self._tree = small_gicp.KdTree(_lift(points)) if self.n else None
 
     def query(self, x: np.ndarray, k: int = 1, distance_upper_bound: float = np.inf
               ) -> tuple[np.ndarray, np.ndarray]:
         """Distances and rows of the ``k`` nearest points of each ``x (N, 2)``: ``(N,)`` each for
         ``k == 1``, else ``(N, k)``, nearest first; a neighbour not strictly closer than
         ``distance_upper_bound`` is ``inf`` with row ``M``."""
+        if self._tree is None:  # no points: every neighbour missing
+            shape = (len(x),) if k == 1 else (len(x), k)
+            return np.full(shape, np.inf), np.zeros(shape, dtype=np.int64)
         q = _lift(x)
         if k == 1:
             rows, d2 = self._tree.batch_nearest_neighbor_search(q)
