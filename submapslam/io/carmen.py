@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import bisect
 import bz2
+import functools
 import gzip
 import logging
 import lzma
@@ -104,14 +105,18 @@ def _record_of(laser: str | None) -> str | None:
     raise ConfigError(f"unknown CARMEN laser {laser!r}: use one of {', '.join(laser_choices())}")
 
 
+@functools.lru_cache(maxsize=8)
 def beam_angles(n: int, rear: bool = False) -> np.ndarray:
     """Angles [rad] of ``n`` FLASER beams over 180 degrees starting at -90 (or +90 for the rear laser).
 
-    Odd counts (181, 361) include both ends; even counts (180, 360) step 180/n degrees.
+    Odd counts (181, 361) include both ends; even counts (180, 360) step 180/n degrees. One
+    read-only array per count, shared by every record.
     """
     step = math.pi / (n - 1) if n % 2 == 1 and n > 1 else math.pi / n  # one beam: straight at the start
     start = math.pi / 2 if rear else -math.pi / 2
-    return start + step * np.arange(n)
+    angles = start + step * np.arange(n)
+    angles.flags.writeable = False
+    return angles
 
 
 @dataclass
@@ -128,7 +133,11 @@ class LaserReading:
 
 def _floats(tokens: list[str], what: str, path: Path, lineno: int) -> np.ndarray:
     try:
-        values = np.array(tokens, dtype=np.float64)
+        # Python's float() parses as numpy does (correctly rounded), in a third less time; it also
+        # takes digit separators ("1_0"), which numpy does not and a log must not hold
+        if "_" in "".join(tokens):
+            raise ValueError("could not convert string to float: a '_' digit separator")
+        values = np.fromiter(map(float, tokens), dtype=np.float64, count=len(tokens))
     except ValueError as exc:
         raise InputError(path, f"{what} line has a non-numeric field ({exc})", lineno) from None
     return values

@@ -119,10 +119,15 @@ class EvidenceGrid:
         scale = offsets * p.resolution / lengths[ray]
         r, c, inside = self.cells(origin + vec[ray] * scale[:, None])
         width = self.logodds.shape[1]
-        free_idx = np.unique(r[inside] * width + c[inside])
+        free_idx = r[inside] * width + c[inside]  # repeats: each cell still counts once (see integrate_scan)
         hr, hc, h_in = self.cells(hits)
-        free_idx = np.setdiff1d(free_idx, hr[h_in] * width + hc[h_in], assume_unique=False)
+        hit_idx = hr[h_in] * width + hc[h_in]
         flat = self.logodds.reshape(-1)
+        if self._is_hit is None:
+            self._is_hit = np.zeros(flat.shape, dtype=bool)
+        self._is_hit[hit_idx] = True
+        free_idx = free_idx[~self._is_hit[free_idx]]  # the scan's hit cells are spared
+        self._is_hit[hit_idx] = False
         flat[free_idx] = np.maximum(flat[free_idx] + p.l_free, p.l_min)
         if self.free_run is not None:
             runs = self.free_run.reshape(-1)

@@ -26,6 +26,7 @@ from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
 from ..geometry import matrix_to_se2, se2_to_matrix
+from .kdtree2d import KdTree2D
 from .point_to_line import first_point_per_cell, line_normals, point_to_line
 
 
@@ -261,14 +262,15 @@ class PlanarCloud:
     def __init__(self, points: np.ndarray) -> None:
         self.source = points
         self.xy = np.ascontiguousarray(points[:, :2], dtype=np.float64)
-        self._tree: cKDTree | None = None
+        self._tree: KdTree2D | None = None
         self._normals: np.ndarray | None = None
-        self._lines: tuple[cKDTree, np.ndarray, np.ndarray] | None = None
+        self._lines: tuple[KdTree2D, np.ndarray, np.ndarray] | None = None
 
     @property
-    def tree(self) -> cKDTree:
+    def tree(self) -> KdTree2D:
+        """A k-d tree over the points (cKDTree's queries, :class:`.kdtree2d.KdTree2D`)."""
         if self._tree is None:
-            self._tree = cKDTree(self.xy)
+            self._tree = KdTree2D(self.xy)
         return self._tree
 
     @property
@@ -279,13 +281,13 @@ class PlanarCloud:
         return self._normals
 
     @property
-    def lines(self) -> tuple[cKDTree, np.ndarray, np.ndarray] | None:
+    def lines(self) -> tuple[KdTree2D, np.ndarray, np.ndarray] | None:
         """``(tree, points, normals)`` of the line-like points, or None when fewer than 10."""
         if self._lines is None:
             normals = line_normals(self.xy, self.tree)
             line = np.isfinite(normals[:, 0])
             pts = self.xy[line]
-            self._lines = (cKDTree(pts), pts, normals[line]) if line.sum() >= 10 else (None, pts, normals[line])
+            self._lines = (KdTree2D(pts), pts, normals[line]) if line.sum() >= 10 else (None, pts, normals[line])
         return None if self._lines[0] is None else self._lines
 
 

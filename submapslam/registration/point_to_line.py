@@ -8,7 +8,7 @@ along plain corridors). Point-to-line residuals measure only the distance *acros
 so edge samples do not pull along it.
 
 :class:`RecentScanMap` keeps the last scans (odometry frame), rebuilds a k-d tree with a line
-normal per point every few scans, and refines a pose by Gauss-Newton on the point-to-line
+normal per point every few scans (:class:`.kdtree2d.KdTree2D`: cKDTree's queries, faster), and refines a pose by Gauss-Newton on the point-to-line
 residuals with a Cauchy kernel (:func:`point_to_line`, also the last step of planar submap
 matching). The update is solved along the well-constrained eigenvectors only; directions the
 scene does not constrain (a plain corridor's axis) take the prediction instead (the wheel
@@ -22,6 +22,8 @@ from collections import deque
 
 import numpy as np
 from scipy.spatial import cKDTree
+
+from .kdtree2d import KdTree2D
 
 
 def first_point_per_cell(xy: np.ndarray, cell: float) -> np.ndarray:
@@ -64,7 +66,7 @@ class RecentScanMap:
         self.min_eigen_fraction = min_eigen_fraction
         self._scans: deque[np.ndarray] = deque(maxlen=window)
         self._since_rebuild = 0
-        self._tree: cKDTree | None = None
+        self._tree: KdTree2D | None = None
         self._points = np.zeros((0, 2))
         self._normals = np.zeros((0, 2))
 
@@ -83,10 +85,10 @@ class RecentScanMap:
         if len(pts) < 10:
             self._tree = None
             return
-        normals = line_normals(pts, cKDTree(pts))
+        normals = line_normals(pts, KdTree2D(pts))
         line = np.isfinite(normals[:, 0])  # corners and clutter have no line normal: not targets
         self._points, self._normals = pts[line], normals[line]
-        self._tree = cKDTree(self._points) if line.sum() >= 10 else None
+        self._tree = KdTree2D(self._points) if line.sum() >= 10 else None
 
     def fit(self, points_xy: np.ndarray, xyt: np.ndarray, distance: float) -> float:
         """Share of ``points_xy (N, 2)`` (sensor frame) placed at ``xyt`` that lie within ``distance``
