@@ -266,6 +266,11 @@ class MappingConfig(_Strict):
         "(clusters, :mod:`submapslam.mapping.moving_points`) leave its cloud (map.ply, place descriptors, "
         "loop registration) for its dynamic cloud (map_dynamic.ply); 2D lasers: not used (their grid "
         "clears what moved)")
+    split_floor_cell: float | None = Field(
+        None, gt=0, description="[m] 3D mover split on static, hilly ground (off: null): a voxel seen through "
+        "within 0.4 m of the submap's own floor (the lowest of its points in this column and those beside "
+        "it) casts no free vote; on 600 scans of a terrain town the dynamic share fell 6.0 -> 0.74 %, but "
+        "on the labelled mover drive DA fell 0.955 -> 0.931 (BENCHMARKS, 'The submap's own floor')")
 
     @model_validator(mode="after")
     def _band_order(self) -> MappingConfig:

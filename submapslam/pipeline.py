@@ -190,9 +190,12 @@ class SubmapSLAM:
         from .registration.correspondence import match_voxel
 
         if not self.planar and cfg.mapping.split_movers:
-            from .mapping.moving_points import SubmapMovers
+            import dataclasses
 
-            self._movers = SubmapMovers()
+            from .mapping.moving_points import SPLIT_PARAMS, SubmapMovers
+
+            floor = cfg.mapping.split_floor_cell
+            self._movers = SubmapMovers(SPLIT_PARAMS if floor is None else dataclasses.replace(SPLIT_PARAMS, floor_cell=floor))
         if not self.planar:  # prepared clouds, shared by odometry-edge registration and loop tests
             from .registration.spatial import SubmapClouds
 

@@ -3,9 +3,11 @@ sensor) and still takes out a car that drove off."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-from submapslam.mapping.moving_points import SubmapMovers
+from submapslam.mapping.moving_points import SPLIT_PARAMS, MoverParams, SubmapMovers
 
 # boxes (lo, hi) [m] in the world frame, ground at z = 0
 BUILDING = (np.array([-5.0, 8.0, 0.0]), np.array([40.0, 14.0, 7.0]))
@@ -48,12 +50,12 @@ def _cast(origin: np.ndarray, boxes: list, rng: np.random.Generator, grade: floa
     return d[keep] * r[:, None]
 
 
-def _split_drive(car_until: int, grade: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def _split_drive(car_until: int, grade: float = 0.0, params: MoverParams = SPLIT_PARAMS) -> tuple[np.ndarray, np.ndarray]:
     """Drive 24 m along y = 0 (36 scans, 2 submaps of 18); ``CAR`` stands in the scans before
     ``car_until``; the road ahead climbs by ``grade`` beyond ``HILL``. Returns every submap point
     (world frame) and which of them went to the dynamic cloud."""
     rng = np.random.default_rng(0)
-    movers = SubmapMovers()
+    movers = SubmapMovers(params=params)
     poses, clouds = [], []
     for k in range(36):
         T = np.eye(4)
@@ -115,3 +117,32 @@ def test_a_road_climbing_ahead_keeps_its_ground():
     far = points[:, 0] > HILL + 5.0
     assert far.sum() > 1000
     assert moved.mean() <= 0.005, (moved.mean(), moved[far].mean())
+
+
+def test_the_floor_of_a_column_is_the_lowest_point_beside_it():
+    """column_floor: on a road climbing 10 %, the floor under a point is the road within a cell of
+    it; under a car whose own columns hold no road, it is the road beside the car."""
+    from submapslam.mapping.moving_points import column_floor
+
+    xy = np.stack(np.meshgrid(np.arange(0.0, 20.0, 0.25), np.arange(-5.0, 5.0, 0.25)), -1).reshape(-1, 2)
+    under_car = (np.abs(xy[:, 0] - 10.0) < 2.0) & (np.abs(xy[:, 1]) < 0.9)
+    road = np.column_stack([xy[~under_car], 0.1 * xy[~under_car, 0]])
+    car = np.column_stack([xy[under_car], 0.1 * xy[under_car, 0] + 0.5])  # its underside, 0.5 m up
+    floor = column_floor(np.vstack([road, car]), np.array([[5.1, 0.1, 9.0], [10.1, 0.1, 1.5]]), 1.0)
+    assert abs(floor[0] - 0.4) < 0.11  # the road's lowest point within a cell of x = 5.1
+    assert abs(floor[1] - 0.8) < 0.11  # the road beside the car, not the car (1.5 m)
+    assert column_floor(road, np.array([[100.0, 0.0, 0.0]]), 1.0)[0] == -np.inf  # no point near
+
+
+def test_with_the_floor_rule_a_steep_road_keeps_its_ground_and_the_car_still_goes():
+    """A road climbing 15 % ahead, the split with ``floor_cell`` 1 m (off by default: see BENCHMARKS):
+    what a beam sees through within 0.4 m of the submap's own floor casts no free vote, so the hill
+    keeps its points (without the rule 0.5 % of it goes); a car (1.4 m tall) still leaves."""
+    floor = dataclasses.replace(SPLIT_PARAMS, floor_cell=1.0)
+    points, moved = _split_drive(car_until=0, grade=0.15, params=floor)
+    far = points[:, 0] > HILL + 5.0
+    assert far.sum() > 1000
+    assert moved.mean() <= 0.001 and moved[far].mean() <= 0.001, (moved.mean(), moved[far].mean())
+    points, moved = _split_drive(car_until=10, grade=0.15, params=floor)
+    car = _inside(points, CAR)
+    assert moved[car].mean() > 0.8 and moved[~car].mean() <= 0.005

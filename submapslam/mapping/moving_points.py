@@ -73,6 +73,9 @@ class MoverParams:
     incidence: bool = False  # submaps: the margin grows by d x tan(angle of the beam to the surface normal) ...
     max_tan: float = 30.0  # ... that tangent capped here (a beam nearly along the surface) ...
     flatness: float = 0.2  # ... where the points around are a surface (local_normals: spread along / across)
+    floor_cell: float = 0.0  # [m] submaps (0: off): a point at most floor_band [m] above the floor (column_floor ...
+    floor_band: float = 0.4  # ... of floor_cell columns, floor_reach around, from the same cloud) casts no free ...
+    floor_reach: int = 1  # ... vote: it stays a member of its cluster, never the reason it moves
 
 
 SPLIT_PARAMS = MoverParams(near_radius=0.3, hit_weight=0.5, protect_seen_again=True, protect_min_scans=4,
@@ -286,6 +289,35 @@ def spatial_clusters(keys: np.ndarray) -> np.ndarray:
     return labels
 
 
+def column_floor(cloud_world: np.ndarray, query_world: np.ndarray, cell: float, reach: int = 1) -> np.ndarray:
+    """``(Q,)`` [m] the floor under each query point ``(Q, 3)``: the lowest point of ``cloud_world``
+    ``(N, 3)`` (same frame, z up) in the query's ``cell`` x ``cell`` [m] column and the columns up to
+    ``reach`` cells away (a car's own columns see no road under it; those beside it do); -inf where
+    the cloud has no point there. The ground as the cloud itself shows it, wherever the terrain
+    bends (a scan's ground plane follows it only near the sensor)."""
+    cloud = np.asarray(cloud_world, dtype=np.float64).reshape(-1, 3)
+    query = np.asarray(query_world, dtype=np.float64).reshape(-1, 3)
+    out = np.full(len(query), np.inf)
+    if not len(cloud) or not len(query):
+        return np.full(len(query), -np.inf)
+
+    def column_keys(p: np.ndarray) -> np.ndarray:
+        ij = np.floor(p[:, :2] / cell).astype(np.int64)
+        return (ij[:, 0] << 32) + ij[:, 1]  # |index| < 2^31
+
+    keys, column = np.unique(column_keys(cloud), return_inverse=True)
+    lowest = np.full(len(keys), np.inf)
+    np.minimum.at(lowest, column.reshape(-1), cloud[:, 2])
+    q = column_keys(query)
+    for di in range(-reach, reach + 1):
+        for dj in range(-reach, reach + 1):
+            k = q + (di << 32) + dj
+            pos = np.minimum(np.searchsorted(keys, k), len(keys) - 1)
+            found = keys[pos] == k
+            out[found] = np.minimum(out[found], lowest[pos[found]])
+    return np.where(np.isfinite(out), out, -np.inf)
+
+
 def scan_votes(points_sensor: np.ndarray, T_world_sensor: np.ndarray, views: ViewStack,
                slots: np.ndarray, params: MoverParams) -> np.ndarray:
     """``(N,)`` bool: the non-ground points of one scan (sensor frame, at ``T_world_sensor``)
@@ -302,6 +334,11 @@ def scan_votes(points_sensor: np.ndarray, T_world_sensor: np.ndarray, views: Vie
                              flatness=params.flatness)
 
     out[test] = views.seen_through(world, slots, normals_of=normals_of)[1]
+    if params.floor_cell > 0 and out.any():  # near the floor: no vote (still a member of its cluster)
+        voted = np.flatnonzero(out)
+        cloud = transform_points(T_world_sensor, points_sensor)
+        out[voted] = cloud[voted, 2] > column_floor(cloud, cloud[voted], params.floor_cell,
+                                                    params.floor_reach) + params.floor_band
     return out
 
 
@@ -472,6 +509,9 @@ class SubmapMovers:
             return local_normals(np.concatenate(every), centroids[idx], p.voxel, flatness=p.flatness)
 
         tested, free = views.seen_through(centroids, slots, outside_sightings, normals_of)
+        if p.floor_cell > 0 and free.any():  # near the submap's own floor: no vote (still a cluster member)
+            free &= centroids[:, 2] > column_floor(np.concatenate(every), centroids, p.floor_cell,
+                                                   p.floor_reach) + p.floor_band
         voted = np.where(tested, free.astype(np.int8), np.int8(-1))
         cluster = co_observed_clusters(keys, first, last, np.ones(len(keys), dtype=bool), self.slack + 1)
         moved = dynamic_clusters(cluster, voted, p.cluster_fraction, p.min_votes)
