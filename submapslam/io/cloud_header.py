@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..errors import InputError
+from .pcd import pcd_header_values
 from .ply import PLY_TYPES
 
 _PLY_SIZES = {name: int(code[1]) for name, code in PLY_TYPES.items()}  # bytes of each PLY scalar type
@@ -72,18 +73,10 @@ def _ply_header(head: bytes) -> CloudHeader | None:
 
 
 def _pcd_header(head: bytes) -> CloudHeader | None:
-    values: dict[str, list[str]] = {}
-    offset = 0
-    for raw in head.split(b"\n"):
-        offset += len(raw) + 1
-        words = raw.decode("ascii", errors="replace").split()
-        if not words or words[0].startswith("#"):
-            continue
-        values[words[0].upper()] = words[1:]
-        if words[0].upper() == "DATA":
-            break
-    else:
+    header = pcd_header_values(head)
+    if header is None:
         return None
+    values, offset = header
     claims = [int(values["POINTS"][0])] if "POINTS" in values else []
     if "WIDTH" in values and "HEIGHT" in values:
         claims.append(int(values["WIDTH"][0]) * int(values["HEIGHT"][0]))

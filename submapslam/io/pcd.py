@@ -14,12 +14,9 @@ _KINDS = {"F": "f", "U": "u", "I": "i"}  # PCD TYPE -> numpy kind
 _HEADER_BYTES = 65536
 
 
-def read_pcd_records(path: Path) -> np.ndarray | None:
-    """The records of a binary PCD file as a structured array ``(POINTS,)`` (little-endian fields
-    named as in ``FIELDS``; a field of ``COUNT`` > 1 is a sub-array), or None when the file is not
-    a plain binary PCD this reads (ASCII, compressed, an unknown type, a body of the wrong size)."""
-    with open(path, "rb") as fh:
-        head = fh.read(_HEADER_BYTES)
+def pcd_header_values(head: bytes) -> tuple[dict[str, list[str]], int] | None:
+    """The header lines of a PCD file's first bytes ``head`` as ``{KEY: words}`` (keys upper-case,
+    comments left out) and the byte offset of the body after the ``DATA`` line; None without one."""
     values: dict[str, list[str]] = {}
     offset = 0
     for raw in head.split(b"\n"):
@@ -29,9 +26,19 @@ def read_pcd_records(path: Path) -> np.ndarray | None:
             continue
         values[words[0].upper()] = words[1:]
         if words[0].upper() == "DATA":
-            break
-    else:
+            return values, offset
+    return None
+
+
+def read_pcd_records(path: Path) -> np.ndarray | None:
+    """The records of a binary PCD file as a structured array ``(POINTS,)`` (little-endian fields
+    named as in ``FIELDS``; a field of ``COUNT`` > 1 is a sub-array), or None when the file is not
+    a plain binary PCD this reads (ASCII, compressed, an unknown type, a body of the wrong size)."""
+    with open(path, "rb") as fh:
+        header = pcd_header_values(fh.read(_HEADER_BYTES))
+    if header is None:
         return None
+    values, offset = header
     try:
         if values["DATA"][0] != "binary":
             return None
