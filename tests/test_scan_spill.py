@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from submapslam.geometry import se2_to_matrix
-from submapslam.mapping.global_map import local_grid
 from submapslam.mapping.evidence_grid import GridParams
+from submapslam.mapping.global_map import local_grid
 from submapslam.mapping.scan_spill import ScanSpill, SpilledScans
 
 
