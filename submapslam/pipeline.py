@@ -496,6 +496,7 @@ class SubmapSLAM:
         scan_poses = [s.T_anchor_scans for s in self.submaps]
         refinement: dict = {}
         if self.planar and self.config.scan_refinement.enabled and n >= 2 and failure is None:
+            release_free_memory()  # the run's freed temporaries (every thread's heap) out of the refinement's peak
             with self.timer("scan_refinement"):
                 poses, refinement = self._refine_scans(poses)
             scan_poses = [inverse(graph.pose(s.id)) @ poses[s.scan_indices] for s in self.submaps]
