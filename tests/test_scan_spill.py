@@ -51,3 +51,29 @@ def test_a_spilled_submap_gives_the_same_grid_cells():
     spilled = local_grid(poses, spill.put(scans), params, spill.put(no_returns))
     assert np.array_equal(kept.origin, spilled.origin)
     assert kept.logodds.tobytes() == spilled.logodds.tobytes()
+
+
+def test_a_run_spills_closed_submaps_and_builds_the_same_maps(tmp_path):
+    """The pipeline keeps only the last few submaps' grid scans in memory; the maps built from the
+    spilled ones equal those built from the same scans held as lists."""
+    from dataclasses import replace
+
+    from datasets_synth import generate
+    from submapslam import open_log
+    from submapslam.mapping.global_map import build_map_outputs
+    from submapslam.pipeline import _LATER_SUBMAPS, run
+
+    log = generate("rectangle", tmp_path / "log", seed=0, laps=1)
+    result = run(open_log(log))
+    n = len(result.submap_scan_points)
+    assert n > _LATER_SUBMAPS + 1
+    kinds = [isinstance(s, SpilledScans) for s in result.submap_scan_points]
+    kept = _LATER_SUBMAPS + 1  # the last closed submap and those its graph work may still edit
+    assert all(kinds[:n - kept]) and not any(kinds[n - kept:])
+    held = replace(result, submap_scan_points=[list(s) for s in result.submap_scan_points],
+                   submap_scan_no_returns=[list(s) for s in result.submap_scan_no_returns])
+    a, b = build_map_outputs(result), build_map_outputs(held)
+    assert a.points.tobytes() == b.points.tobytes()
+    assert a.occupancy.tobytes() == b.occupancy.tobytes() and np.array_equal(a.origin, b.origin)
+    assert pickle.loads(pickle.dumps(result)).submap_scan_points[0][0].tobytes() \
+        == result.submap_scan_points[0][0].tobytes()
