@@ -89,6 +89,8 @@ class SubmapSLAM:
         self._odom_poses: list[np.ndarray] = []
         self._scan_submap: list[int] = []  # submap id per scan, -1 while in the growing submap
         self.submaps: list[Submap] = []
+        self._spill = None  # ScanSpill: closed submaps' grid scans on disk (made at the first spill)
+        self._spilled = 0  # submaps 0 .. _spilled - 1 have their grid scans on disk
         self.loops: list[LoopRecord] = []
         self.dropped_nan_points = 0
         self.empty_scans = 0
@@ -234,6 +236,7 @@ class SubmapSLAM:
         self.memory_mb_by_km.append((self._travelled / 1000.0, current_memory_mb()))
         self.scans_by_wall_time.append((time.perf_counter() - self._t_start, len(self.timestamps)))
         self.submaps.append(submap)
+        self._spill_scans(submap.id - _LATER_SUBMAPS)
         for idx in submap.scan_indices:
             self._scan_submap[idx] = submap.id
         hint_pairs = self._hint_pairs()
@@ -249,6 +252,24 @@ class SubmapSLAM:
         # scan registration (main thread) does not read the graph: its KISS-ICP, k-d tree, FFT
         # and numpy kernels overlap with the loop tests on a second core
         self._pending = self._worker.submit(self._add_submap_to_graph, submap, hint_pairs, wheel, movers)
+
+    def _spill_scans(self, end: int) -> None:
+        """Grid scans of the closed submaps before ``end`` to disk (:mod:`.mapping.scan_spill`):
+        they are read again only by the final grid and scan refinement, and otherwise grow with the
+        log's length. The graph work of a new submap may still edit the grid scans of the
+        ``_LATER_SUBMAPS`` submaps before it (what moved leaves them), so those stay."""
+        if end <= self._spilled:
+            return
+        from .mapping.scan_spill import ScanSpill
+
+        if self._spill is None:
+            self._spill = ScanSpill()
+        for submap in self.submaps[self._spilled:end]:
+            if submap.scan_points:
+                submap.scan_points = self._spill.put(submap.scan_points)
+            if submap.scan_no_returns:
+                submap.scan_no_returns = self._spill.put(submap.scan_no_returns)
+        self._spilled = end
 
     def _add_submap_to_graph(self, submap: Submap, hint_pairs: list[tuple[int, int]], wheel_odometry: bool,
                              movers: tuple | None = None) -> None:
@@ -478,6 +499,7 @@ class SubmapSLAM:
         scan_poses = [s.T_anchor_scans for s in self.submaps]
         refinement: dict = {}
         if self.planar and self.config.scan_refinement.enabled and n >= 2 and failure is None:
+            release_free_memory()  # the run's freed temporaries (every thread's heap) out of the refinement's peak
             with self.timer("scan_refinement"):
                 poses, refinement = self._refine_scans(poses)
             scan_poses = [inverse(graph.pose(s.id)) @ poses[s.scan_indices] for s in self.submaps]
@@ -525,12 +547,13 @@ class SubmapSLAM:
         from .geometry import matrix_to_se2
         from .scan_refine import refine_scans
 
-        scan_points: list = [None] * len(poses)
+        where: dict[int, tuple[int, int]] = {}  # scan -> (submap, its place there); the last submap holding it
         for s in self.submaps:
-            for i, pts in zip(s.scan_indices, s.scan_points):
-                scan_points[i] = pts
-        if any(p is None for p in scan_points):  # scans not in any closed submap: nothing to refine
+            for k, i in enumerate(s.scan_indices):
+                where[i] = (s.id, k)
+        if len(where) < len(poses):  # scans not in any closed submap: nothing to refine
             return poses, {}
+        scan_points = _ScanLookup(self.submaps, where)
         refined = refine_scans(matrix_to_se2(np.array(self._odom_poses)), matrix_to_se2(poses),
                                [s.scan_indices for s in self.submaps], [s.points for s in self.submaps],
                                scan_points, self.config.scan_refinement)
@@ -661,6 +684,21 @@ def run(
         result.input_warnings.append(f"{result.log_info['nan_ranges']} NaN beam range(s) in the log, read as "
                                      "no return")
     return result
+
+
+class _ScanLookup:
+    """Scan index -> its grid points, read from its submap when asked (spilled scans stay on
+    disk but for the few the scan refinement takes)."""
+
+    def __init__(self, submaps: list[Submap], where: dict[int, tuple[int, int]]) -> None:
+        self._submaps, self._where = submaps, where
+
+    def __len__(self) -> int:
+        return len(self._where)
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        m, k = self._where[i]
+        return self._submaps[m].scan_points[k]
 
 
 # 3D: earlier submaps whose points a new submap's scans test for what has moved away since

@@ -32,6 +32,8 @@ def local_grid(T_anchor_scans: np.ndarray, scan_points: list[np.ndarray], params
         return None
     extent = np.vstack([*world, T_anchor_scans[:, :2, 3]])
     grid = EvidenceGrid.covering(extent, params)
+    if no_returns:
+        no_returns = list(no_returns)  # spilled (:mod:`.scan_spill`): read once, not a scan at a time
     for n, (T, pts) in enumerate(zip(T_anchor_scans, scan_points)):
         free = no_returns[n] if no_returns and n < len(no_returns) else None
         grid.integrate_scan(T, pts, carve_free=n % params.free_scan_stride == 0, no_returns=free)
