@@ -327,16 +327,15 @@ def scan_votes(points_sensor: np.ndarray, T_world_sensor: np.ndarray, views: Vie
     if not len(slots) or not len(points_sensor):
         return out
     test = np.flatnonzero(non_ground(points_sensor, params.ground_band))
-    world = transform_points(T_world_sensor, points_sensor[test])
+    cloud = transform_points(T_world_sensor, points_sensor)  # all the points (the ground too)
+    world = cloud[test]
 
-    def normals_of(idx: np.ndarray) -> np.ndarray:  # the surface each point lies on, from all the points (the ground too)
-        return local_normals(transform_points(T_world_sensor, points_sensor), world[idx], params.voxel,
-                             flatness=params.flatness)
+    def normals_of(idx: np.ndarray) -> np.ndarray:  # the surface each point lies on
+        return local_normals(cloud, world[idx], params.voxel, flatness=params.flatness)
 
     out[test] = views.seen_through(world, slots, normals_of=normals_of)[1]
     if params.floor_cell > 0 and out.any():  # near the floor: no vote (still a member of its cluster)
         voted = np.flatnonzero(out)
-        cloud = transform_points(T_world_sensor, points_sensor)
         out[voted] = cloud[voted, 2] > column_floor(cloud, cloud[voted], params.floor_cell,
                                                     params.floor_reach) + params.floor_band
     return out
@@ -505,13 +504,14 @@ class SubmapMovers:
 
         slots = views.slots(-(1 << 62), 1 << 62, self.split_views)
 
+        cloud = np.concatenate(every)  # the submap's scans, ground too (odometry frame)
+
         def normals_of(idx: np.ndarray) -> np.ndarray:
-            return local_normals(np.concatenate(every), centroids[idx], p.voxel, flatness=p.flatness)
+            return local_normals(cloud, centroids[idx], p.voxel, flatness=p.flatness)
 
         tested, free = views.seen_through(centroids, slots, outside_sightings, normals_of)
         if p.floor_cell > 0 and free.any():  # near the submap's own floor: no vote (still a cluster member)
-            free &= centroids[:, 2] > column_floor(np.concatenate(every), centroids, p.floor_cell,
-                                                   p.floor_reach) + p.floor_band
+            free &= centroids[:, 2] > column_floor(cloud, centroids, p.floor_cell, p.floor_reach) + p.floor_band
         voted = np.where(tested, free.astype(np.int8), np.int8(-1))
         cluster = co_observed_clusters(keys, first, last, np.ones(len(keys), dtype=bool), self.slack + 1)
         moved = dynamic_clusters(cluster, voted, p.cluster_fraction, p.min_votes)
