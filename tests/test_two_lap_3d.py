@@ -33,7 +33,16 @@ def one_run(two_lap_lidar):
     return run_log(two_lap_lidar, None)[0]
 
 
-def test_a_3d_session_driven_backwards_is_placed_and_as_accurate_as_one_run(two_lap_lidar, one_run):
+@pytest.fixture(scope="module")
+def backward_lap(two_lap_lidar):
+    """The drive's second lap played backwards from its own origin (each scan with its own
+    timestamp and wheel-odometry pose), run alone at defaults as a session."""
+    scans = list(open_log(two_lap_lidar))
+    lap = len(scans) // 2
+    return session_map_from_result(run(scans[lap:][::-1], PipelineConfig(), source=str(two_lap_lidar)), "backward")
+
+
+def test_a_3d_session_driven_backwards_is_placed_and_as_accurate_as_one_run(two_lap_lidar, one_run, backward_lap):
     """The 3D target on a small drive: a two-lap LiDAR log cut at the lap, the second lap played
     backwards from its own origin (each scan with its own timestamp and wheel-odometry pose);
     both sessions placed, the merged trajectory's ATE at most 1.2x a single run over the log."""
@@ -46,7 +55,7 @@ def test_a_3d_session_driven_backwards_is_placed_and_as_accurate_as_one_run(two_
     cfg = PipelineConfig()
     single = one_run
     forward = session_map_from_result(run(scans[:lap], cfg, source=str(log)), "forward")
-    backward = session_map_from_result(run(scans[lap:][::-1], cfg, source=str(log)), "backward")
+    backward = backward_lap
     merged = merge_sessions(forward, [backward], cfg)
     assert [s.placed for s in merged.sessions] == [True, True]
     assert merged.sessions[1].links >= 3
@@ -103,10 +112,11 @@ def _scan_with_box(scan, T_world_sensor: np.ndarray, box: np.ndarray, lo: np.nda
                                            transform_points(np.linalg.inv(T_world_sensor), seen)]))
 
 
-def test_a_3d_box_gone_in_the_later_session_leaves_the_merged_cloud(two_lap_lidar):
+def test_a_3d_box_gone_in_the_later_session_leaves_the_merged_cloud(two_lap_lidar, backward_lap):
     """A box (a parked car) stands beside the road in the first lap only: the merged map of the
-    two laps as sessions moves its points to the dynamic cloud, where the grid saw the space
-    empty in the later session; the buildings and the ground stay."""
+    two laps as sessions (the later one the second lap driven backwards) moves its points to the
+    dynamic cloud, where the grid saw the space empty in the later session; the buildings and the
+    ground stay."""
     from submapslam.geometry import transform_points
     from submapslam.mapping.global_map import build_map_outputs
 
@@ -127,7 +137,7 @@ def test_a_3d_box_gone_in_the_later_session_leaves_the_merged_cloud(two_lap_lida
              for scan, T in zip(scans[:lap], truth[:lap])]
     cfg = PipelineConfig()
     merged = merge_sessions(session_map_from_result(run(first, cfg, source=str(log)), "with_box"),
-                            [session_map_from_result(run(scans[lap:], cfg, source=str(log)), "without")], cfg)
+                            [backward_lap], cfg)
     assert all(s.placed for s in merged.sessions)
     result = merged.placed_result()
 
