@@ -182,10 +182,11 @@ class ViewStack:
                 continue
             tested[cand] += 1
             T = self.T_sensor_world[k]
+            image = self.images[k]
+            cand = cand[image.facing(T, points_world[cand])]  # no beam of this scan passes the others
             local = transform_points(T, points_world[cand])
             near = np.einsum("ij,ij->i", local, local) < p.max_range ** 2
             if near.any():
-                image = self.images[k]
                 local, idx = local[near], cand[near]
                 m = margin
                 if graze:  # a beam passing the voxel grazes its surface: it ends on it up to d x tan(angle) on
