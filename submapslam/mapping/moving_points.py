@@ -177,13 +177,18 @@ class ViewStack:
 
         every = np.arange(n)
         for k in slots:
-            cand = every if allowed is None else np.flatnonzero(allowed(k, every))
+            if allowed is None:  # every point (no copies of them)
+                cand, candidates = every, points_world
+                tested += 1
+            else:
+                cand = np.flatnonzero(allowed(k, every))
+                candidates = points_world[cand]
+                tested[cand] += 1
             if not len(cand):
                 continue
-            tested[cand] += 1
             T = self.T_sensor_world[k]
             image = self.images[k]
-            cand = cand[image.facing(T, points_world[cand])]  # no beam of this scan passes the others
+            cand = cand[image.facing(T, candidates)]  # no beam of this scan passes the others
             local = transform_points(T, points_world[cand])
             near = np.einsum("ij,ij->i", local, local) < p.max_range ** 2
             if near.any():
