@@ -120,7 +120,9 @@ class Odometry:
             voxel = self.voxel_size
             self._gicp = VoxelGicpTracker(VoxelGicpSettings(fine_voxel=voxel, coarse_voxel=4.0 * voxel,
                                                             frame_voxel=self.frame_voxel,
-                                                            coarse_distance=8.0 * voxel, fine_distance=2.0 * voxel))
+                                                            coarse_distance=8.0 * voxel, fine_distance=2.0 * voxel,
+                                                            coarse_translation_epsilon=0.04 * voxel,
+                                                            fine_translation_epsilon=0.004 * voxel))
         elif not planar and (config.drop_movers or config.movers_delay > 0):
             from .mapping.moving_points import MoverFilter
 

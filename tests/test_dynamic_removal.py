@@ -31,6 +31,32 @@ from .cli_errors import assert_one_error_line
 from .conftest import shared_data
 
 
+def test_range_image_facing_keeps_every_centre_a_beam_can_pass():
+    """facing(): the wedge of a narrow scan's columns, tested in the world frame, never drops a
+    centre that passes() frees or hits; it drops most of those around; a wide scan drops none."""
+    rng = np.random.default_rng(3)
+    for trial, half_width in enumerate((0.2, 0.6, 1.2, 2.0)):  # [rad] the scan's azimuth half-width
+        az = rng.uniform(-half_width, half_width, 5000) + rng.uniform(-np.pi, np.pi)
+        el, r = rng.uniform(-0.6, 0.6, 5000), rng.uniform(0.5, 60.0, 5000)
+        pts = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], 1) * r[:, None]
+        image = RangeImage(pts, 0.5, 0.4)
+        a, b = rng.uniform(-np.pi, np.pi, 2)
+        T_world_sensor = np.eye(4)
+        T_world_sensor[:3, :3] = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]) \
+            @ np.array([[1, 0, 0], [0, np.cos(b / 4), -np.sin(b / 4)], [0, np.sin(b / 4), np.cos(b / 4)]])
+        T_world_sensor[:3, 3] = rng.normal(size=3) * 20.0
+        local = np.concatenate([pts[rng.integers(0, 5000, 3000)] * rng.uniform(0.3, 1.2, (3000, 1)),
+                                rng.normal(size=(3000, 3)) * 30.0])
+        world = local @ T_world_sensor[:3, :3].T + T_world_sensor[:3, 3]
+        facing = image.facing(np.linalg.inv(T_world_sensor), world)
+        _, free, hit = image.passes(local, 0.25, lambda r: np.maximum(0.5, 0.05 * r))
+        assert not ((free | hit) & ~facing).any(), trial
+        if half_width < 1.0:
+            assert (~facing).mean() > 0.3, trial
+        if half_width > 1.6:  # wider than 170 deg: no wedge
+            assert facing.all(), trial
+
+
 def test_range_image_frees_a_voxel_only_when_its_beam_ended_beyond_it():
     # one beam straight ahead ending at 10 m, one 90 deg to the left ending at 3 m
     image = RangeImage(np.array([[10.0, 0.0, 0.0], [0.0, 3.0, 0.0]]), 0.25, 0.2)

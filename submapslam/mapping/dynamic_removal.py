@@ -271,7 +271,8 @@ class RangeImage:
 
     Stored compactly: a pixel grid of ``int32`` slots (0: no beam) into the returns kept, one
     per occupied pixel (a narrow-field scan fills a few % of the grid's pixels, a 16-ring scan
-    a third), each with its range, elevation and azimuth (``float32``)."""
+    a third), each with its range, elevation and azimuth (``float32``), and which azimuth
+    columns hold any return (a lookup skips the points outside them: most, for a narrow field)."""
 
     def __init__(self, points_sensor: np.ndarray, el_bin_deg: float, az_bin_deg: float) -> None:
         r, el, az = _spherical(points_sensor)
@@ -295,9 +296,49 @@ class RangeImage:
         self._range = np.concatenate([[0.0], r[chosen]]).astype(np.float32)
         self._el = np.concatenate([[0.0], el[chosen]]).astype(np.float32)
         self._az = np.concatenate([[0.0], az[chosen]]).astype(np.float32)
+        self._column_has_beam = np.zeros(self.cols, dtype=bool)
+        self._column_has_beam[kept % self.cols] = True
 
     def _col(self, az: np.ndarray) -> np.ndarray:
         return np.floor((az + np.pi) / self.daz).astype(np.int64) % self.cols
+
+    def facing(self, T_sensor_world: np.ndarray, points_world: np.ndarray) -> np.ndarray:
+        """``(N,)`` bool: the world points ``(N, 3)`` (this scan at ``T_sensor_world``) within the
+        azimuth wedge of its columns with a return, widened by a column each side: a superset of
+        those a beam of this scan can pass (:meth:`passes`), found without moving them into the
+        sensor frame (two half-space tests). All of them when the columns span more than 170 deg."""
+        normals = self._wedge()
+        if normals is None:
+            return np.ones(len(points_world), dtype=bool)
+        if not len(normals):  # no return at all
+            return np.zeros(len(points_world), dtype=bool)
+        R, t = T_sensor_world[:3, :3], T_sensor_world[:3, 3]
+        # n . (R p + t) >= 0  <=>  (R^T n) . p >= -n . t; a micrometre of slack for the rounding
+        side = np.asarray(points_world, dtype=np.float64) @ (normals @ R).T + normals @ t
+        return (side[:, 0] >= -1e-6) & (side[:, 1] >= -1e-6)
+
+    def _wedge(self) -> np.ndarray | None:
+        """``(2, 3)`` sensor-frame normals of the two vertical half-planes bounding the columns with
+        a return (the complement of the widest run of empty columns) plus a column each side;
+        ``(0, 3)`` when no column has one; None when that wedge is wider than 170 deg."""
+        if not hasattr(self, "_wedge_normals"):
+            occupied = np.flatnonzero(self._column_has_beam)
+            wedge = np.zeros((0, 3))
+            if len(occupied):
+                gaps = (np.roll(occupied, -1) - occupied) % self.cols  # to the next occupied column
+                gaps[gaps == 0] = self.cols  # one occupied column: the gap is all the others
+                k = int(np.argmax(gaps))
+                first, last = int(occupied[(k + 1) % len(occupied)]), int(occupied[k])
+                span = ((last - first) % self.cols + 1 + 2) * self.daz  # columns first..last, +1 each side
+                if span > np.deg2rad(170.0):
+                    wedge = None
+                else:
+                    start = (first - 1) * self.daz - np.pi  # column c spans [c daz - pi, (c + 1) daz - pi)
+                    end = (last + 2) * self.daz - np.pi
+                    wedge = np.array([[-np.sin(start), np.cos(start), 0.0],  # counter-clockwise of start
+                                      [np.sin(end), -np.cos(end), 0.0]])  # clockwise of end
+            self._wedge_normals = wedge
+        return self._wedge_normals
 
     def passes(self, points_sensor: np.ndarray, tolerance: float, margin: Callable[[np.ndarray], np.ndarray]):
         """For sensor-frame voxel centres ``(M, 3)``: ``(r, free, hit)``, each ``(M,)``.
@@ -308,13 +349,24 @@ class RangeImage:
         a passing beam ended within ``margin(r)`` of it, before or beyond (a beam that ended
         well short of it, on something in front, is neither).
         """
-        r, el, az = _spherical(points_sensor)
-        rows = np.floor((el - self.el_lo) / self.del_).astype(np.int64)
+        p = np.asarray(points_sensor, dtype=np.float64)
+        r = np.sqrt(np.einsum("ij,ij->i", p, p))
+        free = np.zeros(len(r), dtype=bool)
+        hit = np.zeros(len(r), dtype=bool)
+        az = np.arctan2(p[:, 1], p[:, 0])
         cols = self._col(az)
-        m = margin(r)
+        # only a centre in a column with a return can have a beam pass it (the same result)
+        live = np.flatnonzero(self._column_has_beam[cols])
+        if not len(live):
+            return r, free, hit
+        ranges = r
+        m = margin(r)[live]
+        r, az, cols = r[live], az[live], cols[live]
+        el = np.arcsin(np.clip(p[live, 2] / np.maximum(r, 1e-9), -1.0, 1.0))  # as _spherical
+        rows = np.floor((el - self.el_lo) / self.del_).astype(np.int64)
         any_pass = np.zeros(len(r), dtype=bool)
         short = np.zeros(len(r), dtype=bool)
-        hit = np.zeros(len(r), dtype=bool)
+        ended = np.zeros(len(r), dtype=bool)
         cos_el = np.cos(el)
         for dr in (-1, 0, 1):
             rr = rows + dr
@@ -326,8 +378,10 @@ class RangeImage:
                 & (d_az * cos_el * r < tolerance)
             any_pass |= passing
             short |= passing & (measured <= r + m)
-            hit |= passing & (np.abs(measured - r) <= m)
-        return r, any_pass & ~short, hit
+            ended |= passing & (np.abs(measured - r) <= m)
+        free[live] = any_pass & ~short
+        hit[live] = ended
+        return ranges, free, hit
 
     def returns_near(self, points_sensor: np.ndarray, radius: float, max_rows: int = 8,
                      max_cols: int = 12) -> np.ndarray:
@@ -352,16 +406,32 @@ class RangeImage:
         n_cols = np.minimum(np.ceil(ang / (self.daz * np.maximum(np.cos(el), 0.1))).astype(np.int64) + 1, max_cols)
         r2 = radius * radius
         p32 = p.astype(np.float32)
-        dcs = np.arange(-max_cols, max_cols + 1)
-        for dr in range(-max_rows, max_rows + 1):  # all columns of a row offset at once
-            act = np.flatnonzero((n_rows >= abs(dr)) & (rows + dr >= 0) & (rows + dr < self.rows) & ~out)
-            if not len(act):
-                continue
-            slot = self._slot[(rows[act, None] + dr) * self.cols + (cols[act, None] + dcs) % self.cols]  # (A, C)
-            d = self._xyz[slot] - p32[act, None, :]
-            close = (slot > 0) & (np.abs(dcs) <= n_cols[act, None]) & (np.einsum("ijk,ijk->ij", d, d) <= r2)
-            out[act[close.any(axis=1)]] = True
+        for lo in range(0, len(r), _WINDOW_CHUNK):  # every (centre, pixel) pair of a chunk's windows at once
+            centre, dr = _windows(n_rows[lo:lo + _WINDOW_CHUNK])
+            centre += lo
+            row = rows[centre] + dr
+            inside = (row >= 0) & (row < self.rows)
+            centre, row = centre[inside], row[inside]
+            pair, dc = _windows(n_cols[centre])
+            centre = centre[pair]
+            slot = self._slot[row[pair] * self.cols + (cols[centre] + dc) % self.cols]
+            beam = slot > 0
+            centre, slot = centre[beam], slot[beam]
+            d = (self._xyz[slot] - p32[centre])[:, None, :]
+            out[centre[np.einsum("ijk,ijk->ij", d, d)[:, 0] <= r2]] = True
         return out
+
+
+_WINDOW_CHUNK = 2048  # returns_near: centres searched at once (at most 17 x 25 pixels each)
+
+
+def _windows(half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(owner, offset)``: for half-widths ``half`` ``(K,)`` (int, >= 0), every offset
+    ``-half[k] .. half[k]`` of every ``k`` in turn, with ``k`` as its owner (each ``(sum(2 half + 1),)``)."""
+    width = 2 * half + 1
+    owner = np.repeat(np.arange(len(half)), width)
+    start = np.cumsum(width) - width
+    return owner, np.arange(len(owner)) - start[owner] - half[owner]
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:

@@ -35,6 +35,7 @@ moved by ``T_base_sensor`` first), poses ``T_world_sensor`` ``(4, 4)``. Units: m
 from __future__ import annotations
 
 import functools
+import hashlib
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -176,15 +177,21 @@ class ViewStack:
 
         every = np.arange(n)
         for k in slots:
-            cand = every if allowed is None else np.flatnonzero(allowed(k, every))
+            if allowed is None:  # every point (no copies of them)
+                cand, candidates = every, points_world
+                tested += 1
+            else:
+                cand = np.flatnonzero(allowed(k, every))
+                candidates = points_world[cand]
+                tested[cand] += 1
             if not len(cand):
                 continue
-            tested[cand] += 1
             T = self.T_sensor_world[k]
+            image = self.images[k]
+            cand = cand[image.facing(T, candidates)]  # no beam of this scan passes the others
             local = transform_points(T, points_world[cand])
             near = np.einsum("ij,ij->i", local, local) < p.max_range ** 2
             if near.any():
-                image = self.images[k]
                 local, idx = local[near], cand[near]
                 m = margin
                 if graze:  # a beam passing the voxel grazes its surface: it ends on it up to d x tan(angle) on
@@ -318,16 +325,43 @@ def column_floor(cloud_world: np.ndarray, query_world: np.ndarray, cell: float, 
     return np.where(np.isfinite(out), out, -np.inf)
 
 
+@dataclass
+class Placed:
+    """A cloud placed in the world once for the mover tests of it: ``test`` ``(T,)`` the indices
+    of its non-ground points (:func:`non_ground` in its own frame), ``cloud`` ``(N, 3)`` all its
+    points in the world frame, ``world`` ``(T,)`` its tested points there (transformed on their
+    own, as :func:`clusters_moved` always did); ``clusters``: ``(keys, inverse, labels)`` of those
+    points' voxels (sorted unique :func:`voxel_keys`, each point's voxel, each voxel's
+    26-connected cluster), built on first use by :func:`clusters_moved`."""
+
+    test: np.ndarray
+    cloud: np.ndarray
+    world: np.ndarray
+    clusters: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+
+def place(points_sensor: np.ndarray, T_world_sensor: np.ndarray, params: MoverParams) -> Placed:
+    """The :class:`Placed` cloud of ``points_sensor`` ``(N, 3)`` (its frame) at ``T_world_sensor``."""
+    points_sensor = np.asarray(points_sensor, dtype=np.float64)
+    test = np.flatnonzero(non_ground(points_sensor, params.ground_band))
+    return Placed(test, transform_points(T_world_sensor, points_sensor),
+                  transform_points(T_world_sensor, points_sensor[test]))
+
+
 def scan_votes(points_sensor: np.ndarray, T_world_sensor: np.ndarray, views: ViewStack,
-               slots: np.ndarray, params: MoverParams) -> np.ndarray:
+               slots: np.ndarray, params: MoverParams, placed: Placed | None = None) -> np.ndarray:
     """``(N,)`` bool: the non-ground points of one scan (sensor frame, at ``T_world_sensor``)
-    that a scan in ``slots`` of ``views`` saw through (each point on its own; see :func:`clusters_moved`)."""
+    that a scan in ``slots`` of ``views`` saw through (each point on its own; see :func:`clusters_moved`).
+    ``placed``: the same points as :func:`place` gives them, when already at hand."""
     points_sensor = np.asarray(points_sensor, dtype=np.float64)
     out = np.zeros(len(points_sensor), dtype=bool)
     if not len(slots) or not len(points_sensor):
         return out
-    test = np.flatnonzero(non_ground(points_sensor, params.ground_band))
-    cloud = transform_points(T_world_sensor, points_sensor)  # all the points (the ground too)
+    if placed is None:
+        test = np.flatnonzero(non_ground(points_sensor, params.ground_band))
+        cloud = transform_points(T_world_sensor, points_sensor)  # all the points (the ground too)
+    else:
+        test, cloud = placed.test, placed.cloud
     world = cloud[test]
 
     def normals_of(idx: np.ndarray) -> np.ndarray:  # the surface each point lies on
@@ -342,20 +376,25 @@ def scan_votes(points_sensor: np.ndarray, T_world_sensor: np.ndarray, views: Vie
 
 
 def clusters_moved(points_sensor: np.ndarray, T_world_sensor: np.ndarray, votes: np.ndarray,
-                   params: MoverParams) -> np.ndarray:
+                   params: MoverParams, placed: Placed | None = None) -> np.ndarray:
     """``(N,)`` bool: the points of the non-ground clusters (26-connected ``params.voxel`` voxels)
     of which at least ``cluster_fraction`` of the voxels (and ``min_votes``) hold a voted point
-    (``votes`` ``(N,)``, e.g. from :func:`scan_votes`)."""
+    (``votes`` ``(N,)``, e.g. from :func:`scan_votes`). ``placed``: the same points as
+    :func:`place` gives them, when already at hand (their clusters are kept there)."""
     points_sensor = np.asarray(points_sensor, dtype=np.float64)
     out = np.zeros(len(points_sensor), dtype=bool)
     if int(votes.sum()) < params.min_votes:
         return out
-    test = np.flatnonzero(non_ground(points_sensor, params.ground_band))
-    world = transform_points(T_world_sensor, points_sensor[test])
-    keys, inverse = np.unique(voxel_keys(world, params.voxel), return_inverse=True)
+    if placed is None:
+        placed = place(points_sensor, T_world_sensor, params)
+    if placed.clusters is None:
+        keys, inverse = np.unique(voxel_keys(placed.world, params.voxel), return_inverse=True)
+        placed.clusters = (keys, inverse, spatial_clusters(keys))
+    keys, inverse, labels = placed.clusters
+    test = placed.test
     voted = np.zeros(len(keys), dtype=np.int8)
     np.maximum.at(voted, inverse, votes[test].astype(np.int8))
-    moved = dynamic_clusters(spatial_clusters(keys), voted, params.cluster_fraction, params.min_votes)
+    moved = dynamic_clusters(labels, voted, params.cluster_fraction, params.min_votes)
     out[test] = moved[inverse]
     return out
 
@@ -445,12 +484,17 @@ class SubmapMovers:
     """The submap side of a streaming run: each scan's thinned points while its submap grows,
     and the range images of the last ``max_views`` scans, so that a closed submap can be split
     into what stayed and what moved (:meth:`split`), and earlier submaps lose what the new one's
-    scans saw through (:meth:`seen_through_later`). Memory: one submap's thinned scans and
-    ``max_views`` range images."""
+    scans saw through (:meth:`seen_through_later`). Memory: one submap's thinned scans,
+    ``max_views`` range images, and each of the last ``placed_kept`` earlier submaps tested
+    placed in the odometry frame with its voxel clusters (:class:`Placed`: tested again by each
+    of the next submaps, a cloud's ground split and clusters are found once; ~1 MB a submap)."""
 
     def __init__(self, params: MoverParams = SPLIT_PARAMS, before: int = 10, max_views: int = 24,
-                 slack: int = 1, split_views: int = 16, later_views: int = 8, view_stride: int = 2) -> None:
+                 slack: int = 1, split_views: int = 16, later_views: int = 8, view_stride: int = 2,
+                 placed_kept: int = 5) -> None:
         self.params = params
+        self.placed_kept = placed_kept  # earlier submaps whose placed clouds (and clusters) are kept
+        self._kept: dict[bytes, Placed] = {}  # content digest of (points, pose) -> Placed, oldest first
         self.view_stride = view_stride  # a range image of every view_stride-th scan
         self.before = before
         self.slack = slack
@@ -528,10 +572,24 @@ class SubmapMovers:
         members, views, first = evidence
         later = views.slots(first + 1, 1 << 62, self.later_views)
         T = np.asarray(T_odom_anchor, dtype=np.float64)
-        votes = scan_votes(points, T, views, later, self.params)
+        placed = self._placed(points, T)
+        votes = scan_votes(points, T, views, later, self.params, placed)
         if self.params.protect_seen_again and votes.any():  # what the new submap's scans hit is still there
             votes[votes] = ~self._seen_again(members, first, transform_points(T, points[votes]))
-        return clusters_moved(points, T, votes, self.params)
+        return clusters_moved(points, T, votes, self.params, placed)
+
+    def _placed(self, points: np.ndarray, T_odom_anchor: np.ndarray) -> Placed:
+        """:func:`place` of an earlier submap's ``points`` at ``T_odom_anchor``, kept for the next
+        submaps' tests of the same cloud (the last ``placed_kept``; a cloud that lost points is new)."""
+        points = np.ascontiguousarray(points, dtype=np.float64)
+        key = hashlib.blake2b(points.tobytes() + T_odom_anchor.tobytes(), digest_size=16).digest()
+        placed = self._kept.pop(key, None)
+        if placed is None:
+            placed = place(points, T_odom_anchor, self.params)
+        self._kept[key] = placed
+        while len(self._kept) > self.placed_kept:
+            self._kept.pop(next(iter(self._kept)))
+        return placed
 
     def _seen_again(self, members: list, first: int, points_odom: np.ndarray) -> np.ndarray:
         """``(M,)`` bool: points ``(M, 3)`` (odometry frame) in or beside (26 neighbours) a voxel that
