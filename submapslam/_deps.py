@@ -65,8 +65,14 @@ def _defer_draw_plotly() -> None:
         call.__name__ = call.__qualname__ = name
         return call
 
+    def any_other(name: str):  # a name a later open3d takes from the module: the real one, now
+        if name.startswith("__"):  # the import machinery's probes (__path__, __spec__ ...)
+            raise AttributeError(name)
+        return getattr(real(), name)
+
     for name in _DRAW_PLOTLY_NAMES:
         setattr(stand_in, name, deferred(name))
+    stand_in.__getattr__ = any_other
     sys.modules[_DRAW_PLOTLY] = stand_in
 
 
