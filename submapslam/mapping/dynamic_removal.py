@@ -298,6 +298,7 @@ class RangeImage:
         self._az = np.concatenate([[0.0], az[chosen]]).astype(np.float32)
         self._column_has_beam = np.zeros(self.cols, dtype=bool)
         self._column_has_beam[kept % self.cols] = True
+        self._wedge_normals = self._wedge()
 
     def _col(self, az: np.ndarray) -> np.ndarray:
         return np.floor((az + np.pi) / self.daz).astype(np.int64) % self.cols
@@ -307,7 +308,7 @@ class RangeImage:
         azimuth wedge of its columns with a return, widened by a column each side: a superset of
         those a beam of this scan can pass (:meth:`passes`), found without moving them into the
         sensor frame (two half-space tests). All of them when the columns span more than 170 deg."""
-        normals = self._wedge()
+        normals = self._wedge_normals
         if normals is None:
             return np.ones(len(points_world), dtype=bool)
         if not len(normals):  # no return at all
@@ -318,27 +319,23 @@ class RangeImage:
         return (side[:, 0] >= -1e-6) & (side[:, 1] >= -1e-6)
 
     def _wedge(self) -> np.ndarray | None:
-        """``(2, 3)`` sensor-frame normals of the two vertical half-planes bounding the columns with
+        """At construction: ``(2, 3)`` sensor-frame normals of the two vertical half-planes bounding the columns with
         a return (the complement of the widest run of empty columns) plus a column each side;
         ``(0, 3)`` when no column has one; None when that wedge is wider than 170 deg."""
-        if not hasattr(self, "_wedge_normals"):
-            occupied = np.flatnonzero(self._column_has_beam)
-            wedge = np.zeros((0, 3))
-            if len(occupied):
-                gaps = (np.roll(occupied, -1) - occupied) % self.cols  # to the next occupied column
-                gaps[gaps == 0] = self.cols  # one occupied column: the gap is all the others
-                k = int(np.argmax(gaps))
-                first, last = int(occupied[(k + 1) % len(occupied)]), int(occupied[k])
-                span = ((last - first) % self.cols + 1 + 2) * self.daz  # columns first..last, +1 each side
-                if span > np.deg2rad(170.0):
-                    wedge = None
-                else:
-                    start = (first - 1) * self.daz - np.pi  # column c spans [c daz - pi, (c + 1) daz - pi)
-                    end = (last + 2) * self.daz - np.pi
-                    wedge = np.array([[-np.sin(start), np.cos(start), 0.0],  # counter-clockwise of start
-                                      [np.sin(end), -np.cos(end), 0.0]])  # clockwise of end
-            self._wedge_normals = wedge
-        return self._wedge_normals
+        occupied = np.flatnonzero(self._column_has_beam)
+        if not len(occupied):
+            return np.zeros((0, 3))
+        gaps = (np.roll(occupied, -1) - occupied) % self.cols  # to the next occupied column
+        gaps[gaps == 0] = self.cols  # one occupied column: the gap is all the others
+        k = int(np.argmax(gaps))
+        first, last = int(occupied[(k + 1) % len(occupied)]), int(occupied[k])
+        span = ((last - first) % self.cols + 1 + 2) * self.daz  # columns first..last, +1 each side
+        if span > np.deg2rad(170.0):
+            return None
+        start = (first - 1) * self.daz - np.pi  # column c spans [c daz - pi, (c + 1) daz - pi)
+        end = (last + 2) * self.daz - np.pi
+        return np.array([[-np.sin(start), np.cos(start), 0.0],  # counter-clockwise of start
+                         [np.sin(end), -np.cos(end), 0.0]])  # clockwise of end
 
     def passes(self, points_sensor: np.ndarray, tolerance: float, margin: Callable[[np.ndarray], np.ndarray]):
         """For sensor-frame voxel centres ``(M, 3)``: ``(r, free, hit)``, each ``(M,)``.

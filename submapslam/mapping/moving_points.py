@@ -254,9 +254,7 @@ def non_ground(points_sensor: np.ndarray, band: float, radius: float = 15.0, per
             h -= float(np.percentile(h[horizontal <= radius], percentile))  # the low reference, as on flat ground
     if cell is None:
         return h > band
-    ij = np.floor(pts[:, :2] / cell).astype(np.int64)
-    keys = (ij[:, 0] << 32) + ij[:, 1]  # one int64 per column (|index| < 2^31)
-    _, inverse = np.unique(keys, return_inverse=True)
+    _, inverse = np.unique(_column_keys(pts, cell), return_inverse=True)
     inverse = inverse.reshape(-1)
     lowest = np.full(int(inverse.max()) + 1 if len(inverse) else 0, np.inf)
     np.minimum.at(lowest, inverse, h)
@@ -296,6 +294,13 @@ def spatial_clusters(keys: np.ndarray) -> np.ndarray:
     return labels
 
 
+def _column_keys(points: np.ndarray, cell: float) -> np.ndarray:
+    """``(N,)`` int64: the ``cell`` x ``cell`` [m] column of each point ``(N, 3)``, as ``i << 32 + j``
+    (|index| < 2^31), so that the column ``(di, dj)`` away is the key ``+ (di << 32) + dj``."""
+    ij = np.floor(np.asarray(points)[:, :2] / cell).astype(np.int64)
+    return (ij[:, 0] << 32) + ij[:, 1]
+
+
 def column_floor(cloud_world: np.ndarray, query_world: np.ndarray, cell: float, reach: int = 1) -> np.ndarray:
     """``(Q,)`` [m] the floor under each query point ``(Q, 3)``: the lowest point of ``cloud_world``
     ``(N, 3)`` (same frame, z up) in the query's ``cell`` x ``cell`` [m] column and the columns up to
@@ -308,14 +313,10 @@ def column_floor(cloud_world: np.ndarray, query_world: np.ndarray, cell: float, 
     if not len(cloud) or not len(query):
         return np.full(len(query), -np.inf)
 
-    def column_keys(p: np.ndarray) -> np.ndarray:
-        ij = np.floor(p[:, :2] / cell).astype(np.int64)
-        return (ij[:, 0] << 32) + ij[:, 1]  # |index| < 2^31
-
-    keys, column = np.unique(column_keys(cloud), return_inverse=True)
+    keys, column = np.unique(_column_keys(cloud, cell), return_inverse=True)
     lowest = np.full(len(keys), np.inf)
     np.minimum.at(lowest, column.reshape(-1), cloud[:, 2])
-    q = column_keys(query)
+    q = _column_keys(query, cell)
     for di in range(-reach, reach + 1):
         for dj in range(-reach, reach + 1):
             k = q + (di << 32) + dj
@@ -348,6 +349,14 @@ def place(points_sensor: np.ndarray, T_world_sensor: np.ndarray, params: MoverPa
                   transform_points(T_world_sensor, points_sensor[test]))
 
 
+def above_floor(cloud_world: np.ndarray, query_world: np.ndarray, params: MoverParams) -> np.ndarray:
+    """``(Q,)`` bool: the query points ``(Q, 3)`` more than ``params.floor_band`` [m] above the floor of
+    ``cloud_world`` (:func:`column_floor` over ``floor_cell`` columns, ``floor_reach`` around): those that
+    may cast a free vote under the floor rule (``floor_cell`` > 0)."""
+    floor = column_floor(cloud_world, query_world, params.floor_cell, params.floor_reach)
+    return np.asarray(query_world)[:, 2] > floor + params.floor_band
+
+
 def scan_votes(points_sensor: np.ndarray, T_world_sensor: np.ndarray, views: ViewStack,
                slots: np.ndarray, params: MoverParams, placed: Placed | None = None) -> np.ndarray:
     """``(N,)`` bool: the non-ground points of one scan (sensor frame, at ``T_world_sensor``)
@@ -370,8 +379,7 @@ def scan_votes(points_sensor: np.ndarray, T_world_sensor: np.ndarray, views: Vie
     out[test] = views.seen_through(world, slots, normals_of=normals_of)[1]
     if params.floor_cell > 0 and out.any():  # near the floor: no vote (still a member of its cluster)
         voted = np.flatnonzero(out)
-        out[voted] = cloud[voted, 2] > column_floor(cloud, cloud[voted], params.floor_cell,
-                                                    params.floor_reach) + params.floor_band
+        out[voted] = above_floor(cloud, cloud[voted], params)
     return out
 
 
@@ -555,7 +563,7 @@ class SubmapMovers:
 
         tested, free = views.seen_through(centroids, slots, outside_sightings, normals_of)
         if p.floor_cell > 0 and free.any():  # near the submap's own floor: no vote (still a cluster member)
-            free &= centroids[:, 2] > column_floor(cloud, centroids, p.floor_cell, p.floor_reach) + p.floor_band
+            free &= above_floor(cloud, centroids, p)
         voted = np.where(tested, free.astype(np.int8), np.int8(-1))
         cluster = co_observed_clusters(keys, first, last, np.ones(len(keys), dtype=bool), self.slack + 1)
         moved = dynamic_clusters(cluster, voted, p.cluster_fraction, p.min_votes)
