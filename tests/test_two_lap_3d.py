@@ -5,6 +5,8 @@ made once for all of these (they are the suite's costliest inputs)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import pytest
 
@@ -17,6 +19,7 @@ from submapslam.evaluation.metrics import ate
 from submapslam.fleet import merge_sessions, session_map_from_result
 from submapslam.io.trajectory import Trajectory, read_tum
 from submapslam.pipeline import run
+from submapslam.session_map import SessionMap
 
 from .test_pipeline import FALSE_CLOSURE_M, loop_errors
 
@@ -42,19 +45,19 @@ def backward_lap(two_lap_lidar):
     return session_map_from_result(run(scans[lap:][::-1], PipelineConfig(), source=str(two_lap_lidar)), "backward")
 
 
-def test_a_3d_session_driven_backwards_is_placed_and_as_accurate_as_one_run(two_lap_lidar, one_run, backward_lap):
+def test_a_3d_session_driven_backwards_is_placed_and_as_accurate_as_one_run(two_lap_lidar, one_run, backward_lap,
+                                                                          first_lap_with_box):
     """The 3D target on a small drive: a two-lap LiDAR log cut at the lap, the second lap played
     backwards from its own origin (each scan with its own timestamp and wheel-odometry pose);
-    both sessions placed, the merged trajectory's ATE at most 1.2x a single run over the log."""
+    both sessions placed, the merged trajectory's ATE at most 1.2x a single run over the log.
+    The first session is the first lap with a parked car beside the road (the box test's)."""
     from submapslam.evaluation.metrics import ate
     from submapslam.io.trajectory import Trajectory
 
     log = two_lap_lidar
-    scans = list(open_log(log))
-    lap = len(scans) // 2
     cfg = PipelineConfig()
     single = one_run
-    forward = session_map_from_result(run(scans[:lap], cfg, source=str(log)), "forward")
+    forward = first_lap_with_box.session
     backward = backward_lap
     merged = merge_sessions(forward, [backward], cfg)
     assert [s.placed for s in merged.sessions] == [True, True]
@@ -112,13 +115,19 @@ def _scan_with_box(scan, T_world_sensor: np.ndarray, box: np.ndarray, lo: np.nda
                                            transform_points(np.linalg.inv(T_world_sensor), seen)]))
 
 
-def test_a_3d_box_gone_in_the_later_session_leaves_the_merged_cloud(two_lap_lidar, backward_lap):
-    """A box (a parked car) stands beside the road in the first lap only: the merged map of the
-    two laps as sessions (the later one the second lap driven backwards) moves its points to the
-    dynamic cloud, where the grid saw the space empty in the later session; the buildings and the
-    ground stay."""
+@dataclass
+class BoxLap:
+    """The first lap with a box standing beside the road, run alone as a session."""
+
+    session: SessionMap
+    centre: np.ndarray  # (2,) the box's centre in the world [m]
+
+
+@pytest.fixture(scope="module")
+def first_lap_with_box(two_lap_lidar) -> BoxLap:
+    """The drive's first lap with a box (a parked car) halfway from the road to a wall the second
+    lap sees at 8-14 m, on the ground, in every scan within 40 m of it; run alone at defaults."""
     from submapslam.geometry import transform_points
-    from submapslam.mapping.global_map import build_map_outputs
 
     log = two_lap_lidar
     scans = list(open_log(log))
@@ -135,9 +144,21 @@ def test_a_3d_box_gone_in_the_later_session_leaves_the_merged_cloud(two_lap_lida
     lo, hi = np.array([*(centre - 0.8), -1.0]), np.array([*(centre + 0.8), 1.5])  # down into the ground
     first = [_scan_with_box(scan, T, box, lo, hi) if np.hypot(*(T[:2, 3] - centre)) < 40 else scan
              for scan, T in zip(scans[:lap], truth[:lap])]
+    return BoxLap(session_map_from_result(run(first, PipelineConfig(), source=str(log)), "with_box"), centre)
+
+
+def test_a_3d_box_gone_in_the_later_session_leaves_the_merged_cloud(two_lap_lidar, backward_lap, first_lap_with_box):
+    """A box (a parked car) stands beside the road in the first lap only: the merged map of the
+    two laps as sessions (the later one the second lap driven backwards) moves its points to the
+    dynamic cloud, where the grid saw the space empty in the later session; the buildings and the
+    ground stay."""
+    from submapslam.geometry import transform_points
+    from submapslam.mapping.global_map import build_map_outputs
+
+    truth = read_tum(two_lap_lidar / "groundtruth_tum.txt").poses
+    centre = first_lap_with_box.centre
     cfg = PipelineConfig()
-    merged = merge_sessions(session_map_from_result(run(first, cfg, source=str(log)), "with_box"),
-                            [backward_lap], cfg)
+    merged = merge_sessions(first_lap_with_box.session, [backward_lap], cfg)
     assert all(s.placed for s in merged.sessions)
     result = merged.placed_result()
 
