@@ -90,8 +90,8 @@ class GraphBuilder:
                 if tilt is not None:
                     self._add_tilt(submap.id, tilt, previous.distance)
             else:
-                tilt = self.tilt_drift.sigma(previous.distance) if self.tilt_drift is not None else None
-                info = odometry_information(T_prev_k, previous.distance, self.planar, self.config, tilt)
+                tilt_sigma = self.tilt_drift.sigma(previous.distance) if self.tilt_drift is not None else None
+                info = odometry_information(T_prev_k, previous.distance, self.planar, self.config, tilt_sigma)
                 if self.config.odometry_registration_covariance:
                     info = self._registration_shaped(info, previous, submap, T_prev_k, wheel_odometry)
                 if self.planar:
@@ -162,6 +162,7 @@ class GraphBuilder:
         return np.linalg.inv(0.5 * (cov + cov.T))
 
     def _add_tilt(self, submap_id: int, correction: np.ndarray, distance: float) -> None:
+        """One edge's tilt correction ``(2,)`` [rad] into the run's tilt-drift estimate (kept by submap id)."""
         if self.tilt_drift is not None:
             self.tilt_drift.add(correction, distance)
             self.odometry_tilt[submap_id] = np.asarray(correction, dtype=np.float64)
