@@ -190,7 +190,7 @@ class BackendConfig(_Strict):
         None, ge=0, description="odometry rotation sigma as a fraction of the turned angle; None: 0.03 for "
         "planar logs, 0.01 for 3D")
     odometry_tilt_factor: float | None = Field(
-        2.0, gt=0, description="3D logs: each odometry edge's roll and pitch sigma is this many times the tilt "
+        3.0, gt=0, description="3D logs: each odometry edge's roll and pitch sigma is this many times the tilt "
         "by which the registration between consecutive submaps corrects the odometry (a robust RMS over the run "
         "so far, per metre; uncertainty.TiltDrift), where that is below the drift model's: a sensor that holds "
         "its tilt is not outweighed by the ground priors. null: the drift model alone")

@@ -86,12 +86,15 @@ class TiltDrift:
     and the ground priors, weighed against that loose model, then bend a good odometry towards a
     flat world (terrain 00, 64 rings: odometry 0.12 m, graph 0.18 m). Each odometry edge is
     registered submap to submap anyway (the covariance shaping); the tilt by which that
-    registration corrects the odometry is a sample of the odometry's tilt error (it is not the
-    whole of it: on the terrain cities the true error was 1.5-2.3x the correction's RMS). Per
-    edge ``d^2 / distance`` [rad^2 / m] of roll and pitch; the robust variance per metre is
+    registration corrects the odometry is a sample of the odometry's tilt error, but not the
+    whole of it: the two share the sensor's bias (on the flat city the 16-ring odometry pitches
+    0.11 deg per 12 m the same way every time, which no registration between its own submaps
+    sees), and on the terrain cities the true error was 1.5-4x the correction's RMS per axis.
+    Per edge ``d^2 / distance`` [rad^2 / m] of roll and pitch; the robust variance per metre is
     the samples' median over chi-square(1)'s median (0.455). An edge's tilt sigma is
     ``factor`` times its square root times ``sqrt(distance)``, at least ``floor``; None until
-    ``min_edges`` edges were measured.
+    ``min_edges`` edges were measured. (``backend.odometry_tilt_factor``: 3 by default; 2 let the
+    flat city's bias through, BENCHMARKS.md.)
     """
 
     def __init__(self, factor: float, min_edges: int = 5, floor_rad: float = float(np.deg2rad(0.01))) -> None:
