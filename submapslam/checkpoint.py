@@ -30,6 +30,9 @@ class Checkpoint:
             numbers, which a matrix round trip would change in the last bit), else None.
         odometry_information: per submap id >= 1, the ``(6, 6)`` information of its odometry
             edge from the previous submap (GTSAM order).
+        odometry_tilt: per submap id (3D, where measured), the ``(2,)`` roll and pitch [rad] by
+            which the registration between the two submaps corrected that edge (the run's
+            estimate of its own tilt drift is made of these).
         loop_records: per submap id, the hypotheses tested when it closed, in test order.
         source: the log the scans came from.
     """
@@ -38,6 +41,7 @@ class Checkpoint:
     odometry_poses: np.ndarray
     planar_poses: np.ndarray | None
     odometry_information: dict[int, np.ndarray] = field(default_factory=dict)
+    odometry_tilt: dict[int, np.ndarray] = field(default_factory=dict)
     loop_records: dict[int, list[LoopRecord]] = field(default_factory=dict)
     source: str = ""
 

@@ -189,6 +189,11 @@ class BackendConfig(_Strict):
     odometry_turn_fraction: float | None = Field(
         None, ge=0, description="odometry rotation sigma as a fraction of the turned angle; None: 0.03 for "
         "planar logs, 0.01 for 3D")
+    odometry_tilt_factor: float | None = Field(
+        3.0, gt=0, description="3D logs: each odometry edge's roll and pitch sigma is this many times the tilt "
+        "by which the registration between consecutive submaps corrects the odometry (a robust RMS over the run "
+        "so far, per metre; uncertainty.TiltDrift), where that is below the drift model's: a sensor that holds "
+        "its tilt is not outweighed by the ground priors. null: the drift model alone")
     odometry_sigma_floor_m: float = Field(0.02, gt=0)
     odometry_sigma_floor_deg: float = Field(0.2, gt=0)
     ground_attitude_sigma_deg: float | None = Field(

@@ -19,7 +19,7 @@ from .config import BackendConfig, OdometryConfig
 from .geometry import inverse
 from .result import LoopRecord
 from .submaps import Submap
-from .uncertainty import odometry_information
+from .uncertainty import TiltDrift, odometry_information
 
 PRIOR_INFORMATION = np.diag([1e8] * 6)  # the first anchor is the world frame
 
@@ -57,9 +57,12 @@ class GraphBuilder:
         self.clouds = clouds
         self.graph = PoseGraph(config)
         self.odometry_information: dict[int, np.ndarray] = {}  # submap id -> its odometry edge's (6, 6)
+        self.odometry_tilt: dict[int, np.ndarray] = {}  # 3D: submap id -> (2,) its edge's TiltDrift.correction
         self._timer = timer
         self._world_up: np.ndarray | None = None  # 3D: the world's up direction (first ground seen)
         self._ground_up: dict[int, np.ndarray] = {}  # 3D: submap id -> (3,) ground normal in its anchor frame
+        factor = config.odometry_tilt_factor
+        self.tilt_drift = TiltDrift(factor) if factor is not None and not planar else None
 
     def _time(self, stage: str):
         return self._timer(stage) if self._timer is not None else nullcontext()
@@ -70,21 +73,25 @@ class GraphBuilder:
 
     # ------------------------------------------------------------------ nodes and odometry
     def add_submap(self, submap: Submap, previous: Submap | None, wheel_odometry: bool,
-                   information: np.ndarray | None = None) -> None:
+                   information: np.ndarray | None = None, tilt: np.ndarray | None = None) -> None:
         """Add ``submap``'s anchor, its odometry edge from ``previous`` and its ground prior; update.
 
         ``wheel_odometry``: the log has wheel odometry (planar refinement then follows it where
         scan matching is blind, which caps the odometry edge's registration covariance).
         ``information``: the edge's ``(6, 6)`` information as computed before (a resumed run),
-        instead of computing it. :attr:`odometry_information` keeps each edge's, by submap id.
+        instead of computing it, and ``tilt`` its registration's tilt correction (3D; None: none was
+        measured). :attr:`odometry_information` and :attr:`odometry_tilt` keep each edge's, by submap id.
         """
         info = T_prev_k = None
         if previous is not None:
             T_prev_k = inverse(previous.T_odom_anchor) @ submap.T_odom_anchor
             if information is not None:
                 info = information
+                if tilt is not None:
+                    self._add_tilt(submap.id, tilt, previous.distance)
             else:
-                info = odometry_information(T_prev_k, previous.distance, self.planar, self.config)
+                tilt_sigma = self.tilt_drift.sigma(previous.distance) if self.tilt_drift is not None else None
+                info = odometry_information(T_prev_k, previous.distance, self.planar, self.config, tilt_sigma)
                 if self.config.odometry_registration_covariance:
                     info = self._registration_shaped(info, previous, submap, T_prev_k, wheel_odometry)
                 if self.planar:
@@ -140,6 +147,8 @@ class GraphBuilder:
                                        refine_only=True, voxel_size=self.match_voxel)
         if res.overlap < 0.1:
             return info
+        if self.tilt_drift is not None:
+            self._add_tilt(new.id, TiltDrift.correction(T_prev_new, res.T_target_source), prev.distance)
         cov_reg = np.linalg.inv(0.5 * (res.information + res.information.T))
         # Never more than a cap in any direction: 2 m / 20 deg, or, where the wheel odometry
         # holds the directions scan matching cannot see (planar refinement), the wheel's drift
@@ -151,6 +160,12 @@ class GraphBuilder:
         cov_reg = cap_covariance(cov_reg, cap_m, cap_rad)
         cov = np.linalg.inv(info) + cov_reg
         return np.linalg.inv(0.5 * (cov + cov.T))
+
+    def _add_tilt(self, submap_id: int, correction: np.ndarray, distance: float) -> None:
+        """One edge's tilt correction ``(2,)`` [rad] into the run's tilt-drift estimate (kept by submap id)."""
+        if self.tilt_drift is not None:
+            self.tilt_drift.add(correction, distance)
+            self.odometry_tilt[submap_id] = np.asarray(correction, dtype=np.float64)
 
     # ------------------------------------------------------------------ loops
     def add_loops(self, records: list[LoopRecord]) -> None:

@@ -283,7 +283,8 @@ class SubmapSLAM:
         previous = self.submaps[submap.id - 1] if submap.id > 0 else None
         replay = self._replay if self._replay is not None and submap.id < self._replay.n_submaps else None
         self._graph_builder.add_submap(submap, previous, wheel_odometry=wheel_odometry,
-                                       information=replay.odometry_information.get(submap.id) if replay else None)
+                                       information=replay.odometry_information.get(submap.id) if replay else None,
+                                       tilt=replay.odometry_tilt.get(submap.id) if replay else None)
         records: list[LoopRecord] = []
         if self._loop_closer is not None:
             if replay is not None:
@@ -341,6 +342,7 @@ class SubmapSLAM:
             odometry_poses=np.array(self._odom_poses).reshape(-1, 4, 4),
             planar_poses=planar,
             odometry_information=dict(self._graph_builder.odometry_information) if self._graph_builder else {},
+            odometry_tilt=dict(self._graph_builder.odometry_tilt) if self._graph_builder else {},
             loop_records={k: [copy.copy(r) for r in recs] for k, recs in self._records_by_submap.items()},
             source=source,
         )
@@ -539,6 +541,7 @@ class SubmapSLAM:
             submap_dynamic_points=[s.dynamic_points for s in self.submaps] if self._movers is not None else None,
             final_check=final_check,
             scan_refinement=refinement,
+            odometry_tilt_drift=self._graph_builder.tilt_drift.summary() if self._graph_builder.tilt_drift else {},
         )
 
     def _refine_scans(self, poses: np.ndarray) -> tuple[np.ndarray, dict]:

@@ -134,6 +134,7 @@ class SlamResult:
     final_check: dict = field(default_factory=dict)
     submap_scan_no_returns: list[list[np.ndarray]] = field(default_factory=list)
     scan_refinement: dict = field(default_factory=dict)
+    odometry_tilt_drift: dict = field(default_factory=dict)
 
     @property
     def n_scans(self) -> int:
@@ -227,5 +228,6 @@ class SlamResult:
             "failure": self.failure,
             **({"final_check": self.final_check} if self.final_check else {}),
             **({"scan_refinement": self.scan_refinement} if self.scan_refinement else {}),
+            **({"odometry_tilt_drift": self.odometry_tilt_drift} if self.odometry_tilt_drift else {}),
             "consistency": self.odometry_consistency(),
         }

@@ -34,10 +34,11 @@ from .geometry import rotation_angle
 #: Monte Carlo: yaw 0.01, x 0.02, y 0.01; Intel raw: yaw 0.26, x 1.62, y 1.69 -> Intel's (roll,
 #: pitch and z are pinned in planar runs and keep their pinned sigma)
 COVARIANCE_SCALE_PLANAR = (1.0, 1.0, 0.26, 1.62, 1.69, 1.0)
-#: variance scale per axis (GTSAM order) of 3D runs. Terrain city 05 Monte Carlo: roll 0.62, pitch
-#: 2.35, yaw 0.005, x 0.36, y 0.03, z 2.28; Livox loop raw: roll 0.22, pitch 0.09, yaw 0.16, x 0.18,
-#: y 0.96, z 0.25 -> yaw and y from the Livox loop, the rest from the Monte Carlo
-COVARIANCE_SCALE_3D = (0.62, 2.35, 0.16, 0.36, 0.96, 2.28)
+#: variance scale per axis (GTSAM order) of 3D runs. Terrain city 05 Monte Carlo (with the odometry
+#: edges' measured tilt, TiltDrift): roll 0.66, pitch 1.72, yaw 0.01, x 0.34, y 0.03, z 1.83; Livox
+#: loop raw: roll 0.22, pitch 0.09, yaw 0.16, x 0.18, y 0.96, z 0.25 -> yaw and y from the Livox
+#: loop, the rest from the Monte Carlo
+COVARIANCE_SCALE_3D = (0.66, 1.72, 0.16, 0.34, 0.96, 1.83)
 
 
 def covariance_scale(config: BackendConfig, planar: bool) -> np.ndarray:
@@ -54,13 +55,16 @@ def calibrate(covariances: np.ndarray, scale: np.ndarray) -> np.ndarray:
     return np.asarray(covariances, dtype=np.float64) * np.outer(d, d)
 
 
-def odometry_information(T_i_j: np.ndarray, distance: float, planar: bool, config: BackendConfig) -> np.ndarray:
+def odometry_information(T_i_j: np.ndarray, distance: float, planar: bool, config: BackendConfig,
+                         tilt_sigma: float | None = None) -> np.ndarray:
     """Information ``(6, 6)`` (GTSAM order) of an odometry edge between consecutive anchors.
 
     Drift model of scan-to-map odometry: translation sigma ``odometry_drift`` of the distance
     travelled plus a floor; rotation sigma ``odometry_drift_deg_per_m`` per metre plus a
-    fraction of the turned angle plus a floor (:meth:`BackendConfig.rotation_drift`). For planar
-    logs z, roll and pitch are pinned (they are not observable and must not drift).
+    fraction of the turned angle plus a floor (:meth:`BackendConfig.rotation_drift`). 3D:
+    ``tilt_sigma`` [rad], when given and smaller, replaces the model's roll and pitch sigma
+    (:class:`TiltDrift`: what the run's own odometry achieves). For planar logs z, roll and
+    pitch are pinned (they are not observable and must not drift).
     """
     angle = rotation_angle(T_i_j)
     per_m, turn = config.rotation_drift(planar)
@@ -69,7 +73,65 @@ def odometry_information(T_i_j: np.ndarray, distance: float, planar: bool, confi
     sig = np.array([s_r, s_r, s_r, s_t, s_t, s_t])
     if planar:
         sig[[0, 1, 5]] = 1e-4
+    elif tilt_sigma is not None:
+        sig[[0, 1]] = min(s_r, tilt_sigma)
     return np.diag(1.0 / sig**2)
+
+
+class TiltDrift:
+    """How far the run's own odometry tilts (roll and pitch) between consecutive anchors,
+    estimated from the run itself.
+
+    The drift model of :func:`odometry_information` is one sigma for all three rotations, sized
+    for a 16-ring sensor on a town drive. A denser sensor holds roll and pitch ten times better,
+    and the ground priors, weighed against that loose model, then bend a good odometry towards a
+    flat world (terrain 00, 64 rings: odometry 0.12 m, graph 0.18 m). Each odometry edge is
+    registered submap to submap anyway (the covariance shaping); the tilt by which that
+    registration corrects the odometry is a sample of the odometry's tilt error, but not the
+    whole of it: the two share the sensor's bias (on the flat city the 16-ring odometry pitches
+    0.11 deg per 12 m the same way every time, which no registration between its own submaps
+    sees), and on the terrain cities the true error was 1.5-4x the correction's RMS per axis.
+    Per edge ``d^2 / distance`` [rad^2 / m] of roll and pitch; the robust variance per metre is
+    the samples' median over chi-square(1)'s median (0.455). An edge's tilt sigma is
+    ``factor`` times its square root times ``sqrt(distance)``, at least ``floor``; None until
+    ``min_edges`` edges were measured. (``backend.odometry_tilt_factor``: 3 by default; 2 let the
+    flat city's bias through, BENCHMARKS.md.)
+    """
+
+    def __init__(self, factor: float, min_edges: int = 5, floor_rad: float = float(np.deg2rad(0.01))) -> None:
+        self.factor = factor
+        self.min_edges = min_edges
+        self.floor_rad = floor_rad
+        self.samples: list[float] = []  # per edge and axis: d^2 / distance [rad^2 / m]
+
+    @staticmethod
+    def correction(T_odometry: np.ndarray, T_registered: np.ndarray) -> np.ndarray:
+        """``(2,)`` roll and pitch [rad] by which the registration's ``(4, 4)`` ``T_prev_new``
+        turns the odometry's, in the new anchor's frame."""
+        from .geometry import so3_log
+
+        return so3_log(T_odometry[:3, :3].T @ T_registered[:3, :3])[:2]
+
+    def add(self, correction: np.ndarray, distance: float) -> None:
+        """One edge's :meth:`correction` ``(2,)`` [rad] over ``distance`` [m]."""
+        self.samples.extend(float(c) ** 2 / max(distance, 1.0) for c in correction)
+
+    def per_sqrt_metre(self) -> float | None:
+        """The edges' roll/pitch sigma [rad / sqrt(m)] before the floor, or None (too few edges yet)."""
+        if len(self.samples) < 2 * self.min_edges:
+            return None
+        return self.factor * float(np.sqrt(np.median(self.samples) / 0.455))
+
+    def sigma(self, distance: float) -> float | None:
+        """Roll/pitch sigma [rad] of an edge over ``distance`` [m], or None (too few edges yet)."""
+        per = self.per_sqrt_metre()
+        return None if per is None else max(self.floor_rad, per * float(np.sqrt(max(distance, 1.0))))
+
+    def summary(self) -> dict:
+        """What ``summary.json`` says of it: edges measured and the sigma it gives 12 m of odometry."""
+        per = self.per_sqrt_metre()
+        return {"edges_measured": len(self.samples) // 2,
+                "sigma_deg_over_12_m": None if per is None else round(float(np.rad2deg(self.sigma(12.0))), 4)}
 
 
 def within_submap_covariance(T_anchor_scan: np.ndarray, distance: float, planar: bool,

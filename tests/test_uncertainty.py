@@ -10,8 +10,10 @@ from submapslam.errors import ConfigError
 from submapslam.uncertainty import (
     COVARIANCE_SCALE_3D,
     COVARIANCE_SCALE_PLANAR,
+    TiltDrift,
     calibrate,
     covariance_scale,
+    odometry_information,
     scan_covariances,
 )
 
@@ -59,3 +61,96 @@ def test_scan_covariance_carries_the_anchor_and_grows_along_the_submap():
     np.testing.assert_allclose(scaled[-1, 3, 3] - 0.01, 4 * (covs[-1, 3, 3] - 0.01))
     result.submap_covariances = np.full((1, 6, 6), np.nan)  # a failed final optimisation: no covariances
     assert scan_covariances(result) is None
+
+
+def _tilt(roll_deg: float, pitch_deg: float) -> np.ndarray:
+    from submapslam.geometry import so3_exp
+
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(np.deg2rad([roll_deg, pitch_deg, 0.0]))
+    T[0, 3] = 12.0
+    return T
+
+
+def test_tilt_drift_is_measured_from_the_registration_and_ignores_a_few_bad_ones():
+    """Registrations that tilt the odometry by N(0, s sqrt(d)) per axis: the estimate is
+    ``factor`` s within 15 %, also with every tenth registration 10x off; nothing before
+    ``min_edges`` edges; never below the floor."""
+    rng = np.random.default_rng(3)
+    per_sqrt_m = np.deg2rad(0.03)  # 0.1 deg over 12 m
+    for outliers in (False, True):
+        drift = TiltDrift(factor=2.0)
+        for k in range(200):
+            dist = rng.uniform(8.0, 14.0)
+            roll, pitch = rng.normal(0.0, np.rad2deg(per_sqrt_m) * np.sqrt(dist), 2) * (10 if outliers and k % 10 == 0
+                                                                                       else 1)
+            correction = TiltDrift.correction(_tilt(0.0, 0.0), _tilt(roll, pitch))
+            np.testing.assert_allclose(correction, np.deg2rad([roll, pitch]), atol=1e-9)
+            drift.add(correction, dist)
+            if k < drift.min_edges - 1:
+                assert drift.sigma(12.0) is None and drift.summary()["sigma_deg_over_12_m"] is None
+        assert drift.per_sqrt_metre() == pytest.approx(2.0 * per_sqrt_m, rel=0.15)
+        assert drift.sigma(12.0) == pytest.approx(2.0 * per_sqrt_m * np.sqrt(12.0), rel=0.15)
+    still = TiltDrift(factor=2.0)
+    for _ in range(10):
+        still.add(np.zeros(2), 12.0)
+    assert still.sigma(12.0) == still.floor_rad
+
+
+def test_odometry_tilt_sigma_only_tightens_roll_and_pitch():
+    config = BackendConfig()
+    T = _tilt(0.0, 0.0)
+    model = odometry_information(T, 12.0, False, config)
+    tight = odometry_information(T, 12.0, False, config, tilt_sigma=np.deg2rad(0.03))
+    np.testing.assert_allclose(np.diag(tight)[:2], [1 / np.deg2rad(0.03) ** 2] * 2)
+    np.testing.assert_allclose(np.diag(tight)[2:], np.diag(model)[2:])  # yaw and translation: the model's
+    loose = odometry_information(T, 12.0, False, config, tilt_sigma=np.deg2rad(5.0))
+    np.testing.assert_allclose(loose, model)  # never looser than the model
+    planar = odometry_information(T, 12.0, True, config, tilt_sigma=np.deg2rad(0.03))
+    np.testing.assert_allclose(planar, odometry_information(T, 12.0, True, config))  # pinned anyway
+
+
+def test_a_measured_tilt_drift_keeps_real_grades_the_priors_would_flatten():
+    """A drive over hills (the grade swings +-1.5 deg over 288 m, changing by up to 0.4 deg from
+    one anchor to the next) with an odometry that tilts 0.02 deg wrong per edge, as a 64-ring sensor's does,
+    and the ground priors at their defaults. Weighed against the drift model (0.3 deg) the priors
+    bend the chain towards a flat world; with the odometry's measured tilt sigma the heights are
+    the odometry's own."""
+    from submapslam.backend.pose_graph import PoseGraph
+    from submapslam.geometry import inverse, so3_exp
+
+    n, step = 60, 12.0
+    grade = np.deg2rad(1.5) * np.sin(np.arange(n) * 2 * np.pi / 24)
+    truth = [np.eye(4)]
+    for k in range(1, n):
+        T = np.eye(4)
+        T[:3, :3] = so3_exp([0.0, -(grade[k] - grade[k - 1]), 0.0])
+        T[0, 3] = step
+        truth.append(truth[-1] @ T)
+    noise = np.random.default_rng(1)
+    measured = []
+    for k in range(1, n):
+        err = np.eye(4)
+        err[:3, :3] = so3_exp(np.deg2rad(noise.normal(0.0, 0.02, 3)))
+        measured.append(inverse(truth[k - 1]) @ truth[k] @ err)
+    dead_reckoned = [np.eye(4)]
+    for meas in measured:
+        dead_reckoned.append(dead_reckoned[-1] @ meas)
+    odometry_error = max(abs(a[2, 3] - b[2, 3]) for a, b in zip(dead_reckoned, truth))
+    config = BackendConfig(robust_kernel="none")
+    up = np.array([0.0, 0.0, 1.0])  # the ground straight below each anchor
+    height_error = {}
+    for name, tilt_sigma in (("model", None), ("measured", np.deg2rad(2.0 * 0.02))):
+        g = PoseGraph(config)
+        g.add_node(0, truth[0], np.diag([1e8] * 6))
+        for k, meas in enumerate(measured, start=1):
+            g.add_node(k, g.pose(k - 1) @ meas)
+            g.add_between(k - 1, k, meas, odometry_information(meas, step, False, config, tilt_sigma), "odometry")
+            g.add_attitude(k, up, up, np.deg2rad(config.ground_attitude_sigma_deg))
+            g.add_relative_attitude(k - 1, k, up, up, meas, np.deg2rad(config.ground_tilt_change_sigma_deg))
+        g.update()
+        g.optimize_batch()
+        height_error[name] = max(abs(g.pose(k)[2, 3] - truth[k][2, 3]) for k in range(n))
+    assert np.ptp([T[2, 3] for T in truth]) > 2.0  # hills
+    assert height_error["measured"] < 1.5 * odometry_error + 0.1, (height_error, odometry_error)
+    assert height_error["model"] > 2.0 * height_error["measured"], height_error

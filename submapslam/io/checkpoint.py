@@ -29,7 +29,7 @@ from ..config import PipelineConfig, config_from_dict, dump_config
 from ..errors import InputError
 from ..result import LoopRecord
 
-VERSION = 1
+VERSION = 2
 
 
 def checkpoint_folder(out_dir: str | Path) -> Path:
@@ -72,7 +72,9 @@ def write_checkpoint(out_dir: str | Path, checkpoint: Checkpoint, config: Pipeli
     np.savez(tmp / "checkpoint.npz", timestamps=checkpoint.timestamps, odometry_poses=checkpoint.odometry_poses,
              planar_poses=(checkpoint.planar_poses if checkpoint.planar_poses is not None else np.zeros((0, 3))),
              information_ids=np.asarray(ids, dtype=np.int64),
-             information=np.asarray([checkpoint.odometry_information[k] for k in ids]).reshape(-1, 6, 6))
+             information=np.asarray([checkpoint.odometry_information[k] for k in ids]).reshape(-1, 6, 6),
+             tilt_ids=np.asarray(sorted(checkpoint.odometry_tilt), dtype=np.int64),
+             tilt=np.asarray([checkpoint.odometry_tilt[k] for k in sorted(checkpoint.odometry_tilt)]).reshape(-1, 2))
     loops = {str(k): [_record_to_json(r) for r in recs] for k, recs in sorted(checkpoint.loop_records.items())}
     (tmp / "loops.json").write_text(json.dumps(loops) + "\n")
     (tmp / "config.yaml").write_text(dump_config(config))
@@ -112,6 +114,7 @@ def read_checkpoint(out_dir: str | Path) -> tuple[Checkpoint, PipelineConfig, di
     checkpoint = Checkpoint(
         timestamps=arrays["timestamps"], odometry_poses=arrays["odometry_poses"], planar_poses=planar,
         odometry_information={int(k): info for k, info in zip(arrays["information_ids"], arrays["information"])},
+        odometry_tilt={int(k): t for k, t in zip(arrays["tilt_ids"], arrays["tilt"])},
         loop_records={int(k): [_record_from_json(d) for d in recs] for k, recs in loops.items()},
         source=run.get("source", ""))
     return checkpoint, config, run
