@@ -2,10 +2,12 @@
 
 :class:`GraphBuilder` owns the :class:`~submapslam.backend.pose_graph.PoseGraph`. It turns each
 closed submap into a node with its odometry edge (a drift model, shaped by a registration
-between consecutive submaps) and, for 3D logs, a soft ground-level attitude prior; it adds the
-loop constraints the closer returns (information floored: no registration is trusted beyond
-a few centimetres); and at the end it runs the batch pass, the final check and the marginals.
-Nothing else writes the graph; the loop closer reads it through :meth:`estimate`.
+between consecutive submaps; for 3D logs its roll and pitch sigma follow the tilt those
+registrations corrected so far in the run, :class:`~submapslam.uncertainty.TiltDrift`) and, for
+3D logs, a soft ground-level attitude prior; it adds the loop constraints the closer returns
+(information floored: no registration is trusted beyond a few centimetres); and at the end it
+runs the batch pass, the final check and the marginals. Nothing else writes the graph; the loop
+closer reads it through :meth:`estimate`.
 """
 
 from __future__ import annotations

@@ -541,7 +541,8 @@ class SubmapSLAM:
             submap_dynamic_points=[s.dynamic_points for s in self.submaps] if self._movers is not None else None,
             final_check=final_check,
             scan_refinement=refinement,
-            odometry_tilt_drift=self._graph_builder.tilt_drift.summary() if self._graph_builder.tilt_drift else {},
+            odometry_tilt_drift=(self._graph_builder.tilt_drift.summary()
+                                 if self._graph_builder.tilt_drift is not None else {}),
         )
 
     def _refine_scans(self, poses: np.ndarray) -> tuple[np.ndarray, dict]:

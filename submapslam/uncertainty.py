@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .config import BackendConfig
-from .geometry import rotation_angle
+from .geometry import rotation_angle, so3_log
 
 #: variance scale per axis (GTSAM order: roll, pitch, yaw, x, y, z) of planar runs. Rectangle
 #: Monte Carlo: yaw 0.01, x 0.02, y 0.01; Intel raw: yaw 0.26, x 1.62, y 1.69 -> Intel's (roll,
@@ -108,8 +108,6 @@ class TiltDrift:
     def correction(T_odometry: np.ndarray, T_registered: np.ndarray) -> np.ndarray:
         """``(2,)`` roll and pitch [rad] by which the registration's ``(4, 4)`` ``T_prev_new``
         turns the odometry's, in the new anchor's frame."""
-        from .geometry import so3_log
-
         return so3_log(T_odometry[:3, :3].T @ T_registered[:3, :3])[:2]
 
     def add(self, correction: np.ndarray, distance: float) -> None:
