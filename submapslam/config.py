@@ -208,6 +208,12 @@ class BackendConfig(_Strict):
         "the yaw and the positions stay free) that keeps the odometry's small pitch bias from adding up: on three "
         "600-scan drives ATE 0.10-0.24 -> 0.07-0.13 m, the height error most of it. null: off (terrain whose "
         "slope changes sharply, ramps)")
+    ground_tilt_change_from_data: bool = Field(
+        True, description="3D logs: the tilt-change prior's sigma is the larger of ground_tilt_change_sigma_deg and "
+        "the spread of the tilt changes the run itself sees between consecutive anchors (their ground normals "
+        "carried through the odometry; a robust sigma over the pairs so far, uncertainty.TiltChangeSpread): a "
+        "hilly road or a rough ground plane loosens it, a flat town keeps it. The priors wait for the first 5 pairs. "
+        "false: the configured sigma alone")
     ground_prior_kernel: float | None = Field(
         1.0, gt=0, description="3D logs: Cauchy kernel width [whitened units, sigmas] on the ground priors "
         "(attitude and tilt change): a prior the data contradict by many sigmas (a change of grade, a crest, "

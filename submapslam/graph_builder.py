@@ -21,7 +21,7 @@ from .config import BackendConfig, OdometryConfig
 from .geometry import inverse
 from .result import LoopRecord
 from .submaps import Submap
-from .uncertainty import TiltDrift, odometry_information
+from .uncertainty import TiltChangeSpread, TiltDrift, odometry_information
 
 PRIOR_INFORMATION = np.diag([1e8] * 6)  # the first anchor is the world frame
 
@@ -65,6 +65,10 @@ class GraphBuilder:
         self._ground_up: dict[int, np.ndarray] = {}  # 3D: submap id -> (3,) ground normal in its anchor frame
         factor = config.odometry_tilt_factor
         self.tilt_drift = TiltDrift(factor) if factor is not None and not planar else None
+        change = config.ground_tilt_change_sigma_deg
+        self.tilt_change = (TiltChangeSpread(float(np.deg2rad(change)))
+                            if change is not None and config.ground_tilt_change_from_data and not planar else None)
+        self._pending_tilt_changes: list[tuple] = []  # tilt-change priors waiting for tilt_change's sigma
 
     def _time(self, stage: str):
         return self._timer(stage) if self._timer is not None else nullcontext()
@@ -127,8 +131,22 @@ class GraphBuilder:
                 self._world_up = submap.T_odom_anchor[:3, :3] @ up  # the odometry frame is the world frame
             self.graph.add_attitude(submap.id, up, self._world_up, np.deg2rad(sigma))
         up_before = self._ground_up.get(previous.id) if previous is not None else None
-        if change is not None and up_before is not None:
+        if change is None or up_before is None:
+            return
+        if self.tilt_change is None:
             self.graph.add_relative_attitude(previous.id, submap.id, up_before, up, T_prev_k, np.deg2rad(change))
+            return
+        self.tilt_change.add(TiltChangeSpread.observed(up_before, up, T_prev_k))
+        self._pending_tilt_changes.append((previous.id, submap.id, up_before, up, T_prev_k))
+        sigma = self.tilt_change.sigma()
+        if sigma is not None:
+            self._add_pending_tilt_changes(sigma)
+
+    def _add_pending_tilt_changes(self, sigma_rad: float) -> None:
+        """The tilt-change priors held back until the run's spread was known, at ``sigma_rad``."""
+        for i, j, up_i, up_j, T_i_j in self._pending_tilt_changes:
+            self.graph.add_relative_attitude(i, j, up_i, up_j, T_i_j, sigma_rad)
+        self._pending_tilt_changes.clear()
 
     def _registration_shaped(self, info: np.ndarray, prev: Submap, new: Submap, T_prev_new: np.ndarray,
                              wheel_odometry: bool) -> np.ndarray:
@@ -192,6 +210,9 @@ class GraphBuilder:
         Returns ``({(i, j): why} of loop edges the solution rejected, {node: (6, 6) marginal
         covariance}``); the graph keeps only the loops it did not reject.
         """
+        if self._pending_tilt_changes:  # a run too short to measure the spread: the configured sigma
+            self._add_pending_tilt_changes(self.tilt_change.floor_rad)
+            self.graph.update()
         with self._time("optimisation"):
             weights, dropped = {}, []
             if self.config.final_batch and self.graph.edges:

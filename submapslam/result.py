@@ -135,6 +135,7 @@ class SlamResult:
     submap_scan_no_returns: list[list[np.ndarray]] = field(default_factory=list)
     scan_refinement: dict = field(default_factory=dict)
     odometry_tilt_drift: dict = field(default_factory=dict)
+    ground_tilt_change: dict = field(default_factory=dict)  # uncertainty.TiltChangeSpread.summary()
 
     @property
     def n_scans(self) -> int:
@@ -229,5 +230,6 @@ class SlamResult:
             **({"final_check": self.final_check} if self.final_check else {}),
             **({"scan_refinement": self.scan_refinement} if self.scan_refinement else {}),
             **({"odometry_tilt_drift": self.odometry_tilt_drift} if self.odometry_tilt_drift else {}),
+            **({"ground_tilt_change": self.ground_tilt_change} if self.ground_tilt_change else {}),
             "consistency": self.odometry_consistency(),
         }

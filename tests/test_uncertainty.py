@@ -154,3 +154,74 @@ def test_a_measured_tilt_drift_keeps_real_grades_the_priors_would_flatten():
     assert np.ptp([T[2, 3] for T in truth]) > 2.0  # hills
     assert height_error["measured"] < 1.5 * odometry_error + 0.1, (height_error, odometry_error)
     assert height_error["model"] > 2.0 * height_error["measured"], height_error
+
+
+def test_tilt_change_spread_recovers_the_ground_normals_spread_above_its_floor():
+    """Ground normals whose tilt from one anchor to the next is off by sigma per axis give back
+    sigma; a spread below the floor keeps the floor; nothing before 5 pairs."""
+    from submapslam.geometry import so3_exp
+    from submapslam.uncertainty import TiltChangeSpread
+
+    rng = np.random.default_rng(5)
+    for sigma_deg, want_deg in ((0.8, 0.8), (0.05, 0.2)):
+        spread = TiltChangeSpread(np.deg2rad(0.2))
+        for k in range(400):
+            if k == 4:
+                assert spread.sigma() is None
+            T = np.eye(4)
+            T[:3, :3] = so3_exp(np.deg2rad([0.0, 0.0, rng.uniform(-20, 20)]))  # any turn between the anchors
+            up = so3_exp(np.deg2rad(np.r_[rng.normal(0.0, sigma_deg, 2), 0.0])) @ np.array([0.0, 0.0, 1.0])
+            spread.add(TiltChangeSpread.observed(np.array([0.0, 0.0, 1.0]), T[:3, :3].T @ up, T))
+        assert np.rad2deg(spread.sigma()) == pytest.approx(want_deg, rel=0.15)
+        assert spread.summary()["pairs"] == 400
+
+
+def _ground_submap(k: int, step: float, up: np.ndarray):
+    """A fake submap ``k`` of a straight drive along x (``step`` m apart): a 30 x 30 m ground patch
+    around its anchor whose normal is ``up`` ``(3,)`` in the anchor's frame, 1.7 m below it."""
+    g = np.stack(np.meshgrid(np.linspace(-15, 15, 31), np.linspace(-15, 15, 31)), -1).reshape(-1, 2)
+    z = -1.7 - (up[0] * g[:, 0] + up[1] * g[:, 1]) / up[2]
+    T = np.eye(4)
+    T[0, 3] = k * step
+    return SimpleNamespace(id=k, T_odom_anchor=T, points=np.c_[g, z], distance=step)
+
+
+def test_tilt_change_priors_take_the_runs_own_spread_and_stop_bending_a_good_odometry():
+    """A level straight drive with a perfect odometry, whose ground planes are rough (each
+    normal 1 deg off): the tilt-change priors at the configured 0.2 deg bend the early odometry
+    edges (still on the drift model) by tenths of a degree; measured from the run (held back
+    until 5 pairs, then at the pairs' spread) they leave it within hundredths. A run with fewer
+    pairs still gets its priors, at the configured sigma."""
+    from submapslam.config import OdometryConfig
+    from submapslam.geometry import inverse, so3_exp, so3_log
+    from submapslam.graph_builder import GraphBuilder
+
+    rng = np.random.default_rng(2)
+    n, step = 14, 12.0
+    ups = [so3_exp(np.deg2rad(np.r_[rng.normal(0.0, 1.0, 2), 0.0])) @ np.array([0.0, 0.0, 1.0]) for _ in range(n)]
+    submaps = [_ground_submap(k, step, ups[k]) for k in range(n)]
+    bend = {}
+    for from_data in (False, True):
+        config = BackendConfig(odometry_registration_covariance=False, ground_tilt_change_from_data=from_data,
+                               ground_attitude_sigma_deg=None, robust_kernel="none")
+        builder = GraphBuilder(config, OdometryConfig(), planar=False, match_voxel=0.5)
+        counts = []
+        for k, sm in enumerate(submaps):
+            builder.add_submap(sm, submaps[k - 1] if k else None, False)
+            counts.append(sum(kind == "ground tilt-change prior" for kind, *_ in builder.graph._priors.values()))
+        builder.finish()
+        if from_data:
+            assert counts[:5] == [0] * 5 and counts[5] == 5 and counts[-1] == n - 1  # held, then all added
+            assert np.rad2deg(builder.tilt_change.sigma()) > 0.5
+        else:
+            assert counts == list(range(n))
+        bend[from_data] = max(np.rad2deg(np.linalg.norm(so3_log(
+            (inverse(builder.graph.pose(k - 1)) @ builder.graph.pose(k))[:3, :3]))) for k in range(1, n))
+    assert bend[False] > 0.1 and bend[True] < 0.5 * bend[False], bend
+
+    short = GraphBuilder(BackendConfig(odometry_registration_covariance=False), OdometryConfig(), planar=False,
+                         match_voxel=0.5)
+    for k, sm in enumerate(submaps[:3]):
+        short.add_submap(sm, submaps[k - 1] if k else None, False)
+    short.finish()
+    assert sum(kind == "ground tilt-change prior" for kind, *_ in short.graph._priors.values()) == 2
