@@ -4,9 +4,10 @@
 closed submap into a node with its odometry edge (a drift model, shaped by a registration
 between consecutive submaps; for 3D logs its roll and pitch sigma follow the tilt those
 registrations corrected so far in the run, :class:`~submapslam.uncertainty.TiltDrift`) and, for
-3D logs, a soft ground-level attitude prior; it adds the loop constraints the closer returns
-(information floored: no registration is trusted beyond a few centimetres); and at the end it
-runs the batch pass, the final check and the marginals. Nothing else writes the graph; the loop
+3D logs, soft ground priors: level, and tilted like the anchor before within the spread of
+tilt changes the run itself sees (:class:`~submapslam.uncertainty.TiltChangeSpread`); it adds the
+loop constraints the closer returns (information floored: no registration is trusted beyond a few
+centimetres); and at the end it runs the batch pass, the final check and the marginals. Nothing else writes the graph; the loop
 closer reads it through :meth:`estimate`.
 """
 
@@ -210,10 +211,10 @@ class GraphBuilder:
         Returns ``({(i, j): why} of loop edges the solution rejected, {node: (6, 6) marginal
         covariance}``); the graph keeps only the loops it did not reject.
         """
-        if self._pending_tilt_changes:  # a run too short to measure the spread: the configured sigma
-            self._add_pending_tilt_changes(self.tilt_change.floor_rad)
-            self.graph.update()
         with self._time("optimisation"):
+            if self._pending_tilt_changes:  # a run too short to measure the spread: the configured sigma
+                self._add_pending_tilt_changes(self.tilt_change.floor_rad)
+                self.graph.update()
             weights, dropped = {}, []
             if self.config.final_batch and self.graph.edges:
                 weights = self.graph.optimize_batch()

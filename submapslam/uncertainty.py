@@ -161,6 +161,7 @@ class TiltChangeSpread:
         return float(np.arccos(np.clip(c, -1.0, 1.0)))
 
     def add(self, angle_rad: float) -> None:
+        """One pair's :meth:`observed` angle [rad]."""
         self.angles.append(float(angle_rad))
 
     def spread(self) -> float | None:
