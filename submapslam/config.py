@@ -211,9 +211,9 @@ class BackendConfig(_Strict):
     ground_tilt_change_from_data: bool = Field(
         True, description="3D logs: the tilt-change prior's sigma is the larger of ground_tilt_change_sigma_deg and "
         "the spread of the tilt changes the run itself sees between consecutive anchors (their ground normals "
-        "carried through the odometry; a robust sigma over the pairs so far, uncertainty.TiltChangeSpread): a "
-        "hilly road or a rough ground plane loosens it, a flat town keeps it. The priors wait for the first 5 pairs. "
-        "false: the configured sigma alone")
+        "carried through the odometry; a robust sigma over the pairs so far, less the odometry's own tilt sigma "
+        "per edge; uncertainty.TiltChangeSpread): a hilly road or a rough ground plane loosens it, a flat town "
+        "keeps it. The priors wait for the first 5 pairs. false: the configured sigma alone")
     ground_prior_kernel: float | None = Field(
         1.0, gt=0, description="3D logs: Cauchy kernel width [whitened units, sigmas] on the ground priors "
         "(attitude and tilt change): a prior the data contradict by many sigmas (a change of grade, a crest, "

@@ -70,6 +70,7 @@ class GraphBuilder:
         self.tilt_change = (TiltChangeSpread(float(np.deg2rad(change)))
                             if change is not None and config.ground_tilt_change_from_data and not planar else None)
         self._pending_tilt_changes: list[tuple] = []  # tilt-change priors waiting for tilt_change's sigma
+        self._tilt_change_sigma: float | None = None  # [rad] the sigma the last of them took
 
     def _time(self, stage: str):
         return self._timer(stage) if self._timer is not None else nullcontext()
@@ -139,15 +140,22 @@ class GraphBuilder:
             return
         self.tilt_change.add(TiltChangeSpread.observed(up_before, up, T_prev_k))
         self._pending_tilt_changes.append((previous.id, submap.id, up_before, up, T_prev_k))
-        sigma = self.tilt_change.sigma()
+        odometry = self.tilt_drift.sigma(previous.distance) if self.tilt_drift is not None else None
+        sigma = self.tilt_change.sigma(odometry)
         if sigma is not None:
             self._add_pending_tilt_changes(sigma)
 
     def _add_pending_tilt_changes(self, sigma_rad: float) -> None:
         """The tilt-change priors held back until the run's spread was known, at ``sigma_rad``."""
+        self._tilt_change_sigma = sigma_rad
         for i, j, up_i, up_j, T_i_j in self._pending_tilt_changes:
             self.graph.add_relative_attitude(i, j, up_i, up_j, T_i_j, sigma_rad)
         self._pending_tilt_changes.clear()
+
+    def tilt_change_summary(self) -> dict:
+        """``summary.json``'s ``ground_tilt_change``: pairs, their spread and the sigma in use
+        (:class:`~submapslam.uncertainty.TiltChangeSpread`); empty when the sigma is not measured."""
+        return self.tilt_change.summary(self._tilt_change_sigma) if self.tilt_change is not None else {}
 
     def _registration_shaped(self, info: np.ndarray, prev: Submap, new: Submap, T_prev_new: np.ndarray,
                              wheel_odometry: bool) -> np.ndarray:

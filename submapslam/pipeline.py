@@ -543,8 +543,7 @@ class SubmapSLAM:
             scan_refinement=refinement,
             odometry_tilt_drift=(self._graph_builder.tilt_drift.summary()
                                  if self._graph_builder.tilt_drift is not None else {}),
-            ground_tilt_change=(self._graph_builder.tilt_change.summary()
-                                if self._graph_builder.tilt_change is not None else {}),
+            ground_tilt_change=self._graph_builder.tilt_change_summary(),
         )
 
     def _refine_scans(self, poses: np.ndarray) -> tuple[np.ndarray, dict]:

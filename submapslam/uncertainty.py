@@ -143,8 +143,9 @@ class TiltChangeSpread:
     sensor on hilly ground: 0.83 deg), and a prior 4x too tight bends a good odometry (that drive:
     ATE 0.09 m odometry, 0.61 m graph). Per pair of anchors the angle [rad] between their ground
     normals carried through the odometry; a 2-D isotropic error of sigma has the median angle
-    ``sigma sqrt(2 ln 2)``, so the spread is the median over that. The sigma is the larger of it
-    and ``floor``; None until ``min_pairs`` pairs were seen.
+    ``sigma sqrt(2 ln 2)``, so the spread is the median over that. The sigma is what is left of it
+    once the odometry's own tilt error is taken out, at least ``floor``; None until ``min_pairs``
+    pairs were seen.
     """
 
     def __init__(self, floor_rad: float, min_pairs: int = 5) -> None:
@@ -170,17 +171,24 @@ class TiltChangeSpread:
             return None
         return float(np.median(self.angles)) / float(np.sqrt(2.0 * np.log(2.0)))
 
-    def sigma(self) -> float | None:
-        """The prior's sigma [rad]: at least ``floor_rad``; None until ``min_pairs`` pairs."""
+    def sigma(self, odometry_sigma_rad: float | None = None) -> float | None:
+        """The prior's sigma [rad]: the spread less the odometry's own tilt error between two
+        anchors (``odometry_sigma_rad``, per axis, as the graph weighs it: the observed change is
+        the ground's plus the odometry's, and the prior is there to correct the latter), at least
+        ``floor_rad``; None until ``min_pairs`` pairs."""
         spread = self.spread()
-        return None if spread is None else max(self.floor_rad, spread)
+        if spread is None:
+            return None
+        odometry = odometry_sigma_rad or 0.0
+        return max(self.floor_rad, float(np.sqrt(max(spread**2 - odometry**2, 0.0))))
 
-    def summary(self) -> dict:
-        """What ``summary.json`` says of it: pairs seen, their spread and the sigma used [deg]."""
+    def summary(self, sigma_rad: float | None) -> dict:
+        """What ``summary.json`` says of it: pairs seen, their spread and ``sigma_rad``, the sigma
+        the priors took last (None: no prior yet) [deg]."""
         spread = self.spread()
         return {"pairs": len(self.angles),
                 "spread_deg": None if spread is None else round(float(np.rad2deg(spread)), 4),
-                "sigma_deg": None if spread is None else round(float(np.rad2deg(self.sigma())), 4)}
+                "sigma_deg": None if sigma_rad is None else round(float(np.rad2deg(sigma_rad)), 4)}
 
 
 def within_submap_covariance(T_anchor_scan: np.ndarray, distance: float, planar: bool,

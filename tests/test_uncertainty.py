@@ -158,7 +158,8 @@ def test_a_measured_tilt_drift_keeps_real_grades_the_priors_would_flatten():
 
 def test_tilt_change_spread_recovers_the_ground_normals_spread_above_its_floor():
     """Ground normals whose tilt from one anchor to the next is off by sigma per axis give back
-    sigma; a spread below the floor keeps the floor; nothing before 5 pairs."""
+    sigma; a spread below the floor keeps the floor; nothing before 5 pairs; the odometry's own
+    tilt sigma is taken out."""
     from submapslam.geometry import so3_exp
     from submapslam.uncertainty import TiltChangeSpread
 
@@ -173,7 +174,12 @@ def test_tilt_change_spread_recovers_the_ground_normals_spread_above_its_floor()
             up = so3_exp(np.deg2rad(np.r_[rng.normal(0.0, sigma_deg, 2), 0.0])) @ np.array([0.0, 0.0, 1.0])
             spread.add(TiltChangeSpread.observed(np.array([0.0, 0.0, 1.0]), T[:3, :3].T @ up, T))
         assert np.rad2deg(spread.sigma()) == pytest.approx(want_deg, rel=0.15)
-        assert spread.summary()["pairs"] == 400
+        assert spread.summary(None)["pairs"] == 400
+    # the odometry's own tilt error is taken out of the spread (the prior is there to correct it)
+    rough = np.deg2rad(0.8)
+    spread.angles = [rough * np.sqrt(2.0 * np.log(2.0))] * 10
+    assert spread.sigma(np.deg2rad(0.6)) == pytest.approx(np.sqrt(rough**2 - np.deg2rad(0.6) ** 2))
+    assert spread.sigma(np.deg2rad(1.0)) == spread.floor_rad
 
 
 def _ground_submap(k: int, step: float, up: np.ndarray):
@@ -212,7 +218,7 @@ def test_tilt_change_priors_take_the_runs_own_spread_and_stop_bending_a_good_odo
         builder.finish()
         if from_data:
             assert counts[:5] == [0] * 5 and counts[5] == 5 and counts[-1] == n - 1  # held, then all added
-            assert np.rad2deg(builder.tilt_change.sigma()) > 0.5
+            assert builder.tilt_change_summary()["sigma_deg"] > 0.5
         else:
             assert counts == list(range(n))
         bend[from_data] = max(np.rad2deg(np.linalg.norm(so3_log(
