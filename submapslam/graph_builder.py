@@ -7,8 +7,8 @@ registrations corrected so far in the run, :class:`~submapslam.uncertainty.TiltD
 3D logs, soft ground priors: level, and tilted like the anchor before within the spread of
 tilt changes the run itself sees (:class:`~submapslam.uncertainty.TiltChangeSpread`); it adds the
 loop constraints the closer returns (information floored: no registration is trusted beyond a few
-centimetres); and at the end it runs the batch pass, the final check and the marginals. Nothing else writes the graph; the loop
-closer reads it through :meth:`estimate`.
+centimetres); and at the end it runs the batch pass, the final check and the marginals. Nothing
+else writes the graph; the loop closer reads it through :meth:`estimate`.
 """
 
 from __future__ import annotations
