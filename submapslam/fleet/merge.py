@@ -167,7 +167,9 @@ def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo]
     """3D: the engine's soft priors on the ground under each anchor (as the graph builder adds
     them): level, in the up direction of the map frame for placed sessions and of its own frame
     for an unplaced one (without it the merged graph may tilt where the links are few), and
-    tilted like the ground under the session's previous anchor. ``ground_ups``: each submap's
+    tilted like the ground under the session's previous anchor, at the configured
+    ``ground_tilt_change_sigma_deg`` (a single run measures that sigma from its own odometry,
+    :class:`~submapslam.uncertainty.TiltChangeSpread`; a merge does not yet). ``ground_ups``: each submap's
     ground normal in its anchor frame (or None), filled in here where missing and kept by the
     caller (a submap's points never change; the merge optimises many times)."""
     sigma = config.backend.ground_attitude_sigma_deg
