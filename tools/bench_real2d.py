@@ -3,6 +3,7 @@
 Usage:
     python tools/bench_real2d.py [--data ../shared/data/carmen] [--logs intel fr079 mit-csail]
                                  [--config FILE] [--out DIR] [--json FILE] [--markdown FILE]
+                                 [--numeric native avx2 sse]
 
 Each log runs in its own child process (``submapslam.api.run_log``, all output files written);
 the parent measures the child's wall time and peak resident set (``os.wait4``). Reported per
@@ -11,6 +12,12 @@ against the corrected log (scans matched by logger time, CSAIL's by identical ra
 hypotheses tested / accepted, and the relations error on relations *derived* from the corrected
 log (:func:`submapslam.evaluation.derived_relations.derive_relations`: pairs close in time plus
 pairs across loops; not the benchmark's own relation files). Prints one markdown table.
+
+``--numeric`` runs every log once per *numeric variant*: the same code and wheels with numpy's
+SIMD kernels and OpenBLAS's core type held to what another CPU would pick (environment variables
+``NPY_DISABLE_CPU_FEATURES`` and ``OPENBLAS_CORETYPE``). Sums and products then differ in their
+last bits, as they do between two users' machines; a run's ATE spread over the variants says how
+much of a difference between two figures is the machine and not the code.
 """
 
 from __future__ import annotations
@@ -32,6 +39,12 @@ LOGS = {
     "intel": ("intel.clf.bz2", "corrected/intel-corrected.log.gz"),
     "fr079": ("fr079.clf.bz2", "corrected/freiburg-079-corrected.log.gz"),
     "mit-csail": ("mit-csail.clf.bz2", "corrected/mit-csail-corrected.log.gz"),
+}
+#: numeric variant -> environment of the child (see the module docstring); "native": as the CPU picks
+NUMERIC = {
+    "native": {},
+    "avx2": {"NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR", "OPENBLAS_CORETYPE": "Haswell"},
+    "sse": {"NPY_DISABLE_CPU_FEATURES": "X86_V3 X86_V4 AVX512_ICL AVX512_SPR", "OPENBLAS_CORETYPE": "Nehalem"},
 }
 #: Cartographer's published figures (Hess et al. 2016): ATE-like absolute error [m], rotation [deg]
 CARTOGRAPHER = {"intel": "0.0229 m / 0.453°", "fr079": "0.0452 m", "mit-csail": "0.0319 m"}
@@ -65,33 +78,36 @@ def child(log: Path, ref: Path, out: Path, config: Path | None, result_json: Pat
     result_json.write_text(json.dumps(doc, indent=1, default=float) + "\n")
 
 
-def run_child(name: str, data: Path, out: Path, config: Path | None) -> dict:
-    """One log in a child process; its figures plus ``wall_s`` and ``peak_rss_mib``."""
+def run_child(name: str, data: Path, out: Path, config: Path | None, numeric: str = "native") -> dict:
+    """One log in a child process under the ``numeric`` variant; its figures plus ``wall_s`` and
+    ``peak_rss_mib``."""
     raw, ref = LOGS[name]
-    result_json = out / f"{name}.json"
+    tag = name if numeric == "native" else f"{name}-{numeric}"
+    result_json = out / f"{tag}.json"
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", str(data / raw), str(data / ref),
-           str(out / name), str(result_json)] + (["--config", str(config)] if config else [])
+           str(out / tag), str(result_json)] + (["--config", str(config)] if config else [])
+    env = {k: v for k, v in os.environ.items() if k not in ("NPY_DISABLE_CPU_FEATURES", "OPENBLAS_CORETYPE")}
     t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd)
+    proc = subprocess.Popen(cmd, env={**env, **NUMERIC[numeric]})
     _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - t0
     proc.returncode = os.waitstatus_to_exitcode(status)
     if proc.returncode != 0:
         raise SystemExit(f"{name}: child exited with {proc.returncode}")
     doc = json.loads(result_json.read_text())
-    doc.update(name=name, wall_s=wall, peak_rss_mib=usage.ru_maxrss / 1024.0)
+    doc.update(name=name, numeric=numeric, wall_s=wall, peak_rss_mib=usage.ru_maxrss / 1024.0)
     return doc
 
 
 def table(rows: list[dict]) -> str:
     """The markdown table of :func:`run_child` results."""
-    head = ("| log | scans | wall [s] | peak RSS [MiB] | loops accepted / tested | ATE [m] | odometry-only ATE [m] "
+    head = ("| log | numeric | scans | wall [s] | peak RSS [MiB] | loops accepted / tested | ATE [m] | odometry-only ATE [m] "
             "| derived relations: trans [m] | rot [deg] | (count, across loops) | Cartographer (published) |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for d in rows:
         rel = d["relations_error"]
         lines.append(
-            f"| {d['name']} | {d['scans']} | {d['wall_s']:.1f} | {d['peak_rss_mib']:.0f} "
+            f"| {d['name']} | {d.get('numeric', 'native')} | {d['scans']} | {d['wall_s']:.1f} | {d['peak_rss_mib']:.0f} "
             f"| {d['loops_accepted']} / {d['loops_tested']} | **{d['ate']:.3f}** | {d['ate_odometry']:.3f} "
             f"| {rel['trans_mean']:.4f} ± {rel['trans_std']:.4f} | {rel['rot_mean_deg']:.3f} ± {rel['rot_std_deg']:.3f} "
             f"| {d['relations']}, {d['loop_relations']} | {CARTOGRAPHER.get(d['name'], '–')} |")
@@ -106,6 +122,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path)
     ap.add_argument("--json", type=Path)
     ap.add_argument("--markdown", type=Path)
+    ap.add_argument("--numeric", nargs="+", choices=list(NUMERIC), default=["native"],
+                    help="numeric variants to run each log under (default: native)")
     ap.add_argument("--child", nargs=4, metavar=("LOG", "REF", "OUT", "RESULT_JSON"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
@@ -116,9 +134,10 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name in args.logs:  # one after the other: the machine's cores are shared
-        rows.append(run_child(name, args.data, out, args.config))
-        print(f"{name}: ATE {rows[-1]['ate']:.3f} m, odometry {rows[-1]['ate_odometry']:.3f} m, "
-              f"{rows[-1]['wall_s']:.1f} s", file=sys.stderr)
+        for numeric in args.numeric:
+            rows.append(run_child(name, args.data, out, args.config, numeric))
+            print(f"{name} ({numeric}): ATE {rows[-1]['ate']:.3f} m, odometry {rows[-1]['ate_odometry']:.3f} m, "
+                  f"{rows[-1]['wall_s']:.1f} s", file=sys.stderr)
     md = table(rows)
     print(md)
     if args.json:
