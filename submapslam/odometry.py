@@ -10,6 +10,7 @@ scans (:mod:`.registration.point_to_line`), which removes point-to-point ICP's l
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import numpy as np
@@ -112,6 +113,7 @@ class Odometry:
         self.n_registered = 0
         self._scans_in_map = 0  # scans added to KISS-ICP's local map so far
         self.wheel_overruled = 0  # planar scans whose constant-velocity guess fitted better than the wheels'
+        self.registration_overruled = 0  # planar scans whose wheel pose fitted better than where registration went
         self._recent_fits: deque[float] = deque(maxlen=20)  # planar: fit of the last scans to the ones before
         self._refiner = None
         self.movers = None  # 3D: keeps what moved out of registration and the local map
@@ -196,17 +198,36 @@ class Odometry:
                 if alt_fit > fit:
                     xyt, initial_guess, fit = alt_xyt, alternative, alt_fit
                     self.wheel_overruled += 1
-                if self._recent_fits and fit < 0.5 * float(np.median(self._recent_fits)):
+                usual = 0.5 * float(np.median(self._recent_fits)) if self._recent_fits else 0.0
+                if fit < usual:
+                    # a turned guess wins only if it fits as the last scans did: where the scan sees
+                    # mostly new ground (a doorway), every guess fits poorly and the best of them is
+                    # noise (MIT CSAIL's scan 1807 once took a 76 deg turn the wheels put at 10)
+                    best, best_guess, best_fit = xyt, initial_guess, fit
                     for base in (self.last_pose @ prediction, alternative):
                         for turn in (-30.0, -20.0, -10.0, 10.0, 20.0, 30.0):
                             guess = base @ se2_to_matrix(0.0, 0.0, np.deg2rad(turn))
                             cand = self._refine(frame_down, self._align(source, guess), guess)
                             cand_fit = self._fit(frame_down, cand)
-                            if cand_fit > fit:
-                                xyt, initial_guess, fit = cand, guess, cand_fit
+                            if cand_fit > best_fit:
+                                best, best_guess, best_fit = cand, guess, cand_fit
+                    if best_fit >= usual:
+                        xyt, initial_guess, fit = best, best_guess, best_fit
                 self._recent_fits.append(fit)
             elif self._refiner is not None:
-                self._recent_fits.append(self._fit(frame_down, xyt))
+                fit = self._fit(frame_down, xyt)
+                poor = bool(self._recent_fits) and fit < 0.75 * float(np.median(self._recent_fits))
+                if poor and prediction is not self.last_delta and self._departs(initial_guess, xyt):
+                    # the wheels and the motion model agreed, yet registration ended far from both
+                    # and fits the last scans worse than usual (Intel's scan 11455 once turned 20 deg
+                    # where the wheels turned 0.4): the wheels' pose, refined, is tried too, and the
+                    # better fit wins. Wheels slip in turns, so a registration that fits as usual stays.
+                    kept = self._refine(frame_down, initial_guess, initial_guess)
+                    kept_fit = self._fit(frame_down, kept)
+                    if kept_fit > fit:
+                        xyt, fit = kept, kept_fit
+                        self.registration_overruled += 1
+                self._recent_fits.append(fit)
             if self._refiner is not None:
                 self._refiner.add(frame_down[:, :2], xyt)
             new_pose = se2_to_matrix(*xyt)
@@ -293,6 +314,14 @@ class Odometry:
         if self._refiner is None:
             return 0.0
         return self._refiner.fit(frame_down[:, :2], xyt, 0.5 * self.voxel_size)
+
+    def _departs(self, guess: np.ndarray, xyt: np.ndarray) -> bool:
+        """The planar pose ``xyt`` (3,) lies more than ``wheel_check_m`` or ``wheel_check_deg`` from
+        the ``guess`` (4, 4) it was registered from."""
+        c = self.config
+        g = matrix_to_se2(guess)
+        return bool(math.hypot(xyt[0] - g[0], xyt[1] - g[1]) > c.wheel_check_m
+                    or abs(math.degrees(math.remainder(xyt[2] - g[2], 2 * math.pi))) > c.wheel_check_deg)
 
     def _wheel_disagrees(self, prediction: np.ndarray) -> bool:
         """The wheel-odometry ``prediction`` (4, 4) is not the constant-velocity one and differs from

@@ -43,3 +43,54 @@ def test_trusting_the_stale_wheels_loses_the_heading():
     """The same spin with the check off (the behaviour before): ICP follows the wheels' jumps."""
     truth, est = _spin(OdometryConfig(wheel_check_deg=179.0, wheel_check_m=100.0))
     assert _yaw_error_deg(truth, est) > 5.0
+
+
+def _drive(odo: Odometry, n: int = 30, astray_at: int | None = None, turn_deg: float = 60.0) -> tuple[np.ndarray, np.ndarray]:
+    """A robot driving 5 cm a scan with true wheel odometry; at scan ``astray_at`` registration is
+    made to end ``turn_deg`` off the wheels' guess (a wrong ICP minimum). Returns the true and
+    estimated ``(x, y, yaw)`` of the last scan."""
+    align = odo._align
+    truth = [np.array([-2.0 + 0.05 * k, -1.5, np.deg2rad(0.3) * k]) for k in range(n)]
+    for k, xyt in enumerate(truth):
+        if k == astray_at:
+            odo._align = lambda source, guess: guess @ se2_to_matrix(0.0, 0.0, np.deg2rad(turn_deg))
+        pts = wall_points(ROOM, xyt, max_range=12.0)
+        odo.register(Scan(k, 0.1 * k, np.c_[pts, np.zeros(len(pts))], odometry=se2_to_matrix(*xyt), planar=True))
+        odo._align = align
+    return truth[-1], matrix_to_se2(odo.last_pose) + truth[0]
+
+
+def test_registration_far_from_agreeing_wheels_with_a_poor_fit_gives_way_to_them():
+    """Wheels and motion model agree, registration ends 60 deg away (the point-to-line refinement
+    cannot pull it back from there) and fits the last scans worse than usual (Intel's scan 11455
+    on one CPU): the wheels' pose, refined, is kept. Without the check the scan keeps the 60 deg."""
+    odo = Odometry(OdometryConfig(), planar=True)
+    truth, est = _drive(odo, astray_at=20)
+    assert odo.registration_overruled == 1
+    assert _yaw_error_deg(truth, est) < 0.5 and np.linalg.norm(truth[:2] - est[:2]) < 0.05
+
+
+def test_a_turned_guess_that_fits_no_better_than_new_ground_does_not_win(monkeypatch):
+    """Stale wheels and a poor fit start the search over turned guesses; a turned guess that fits
+    better, but still worse than half the usual fit, is noise (a doorway's new ground): the scan
+    keeps the better of the wheels' and the motion model's guesses. Registration and refinement
+    are held to their guesses, and the fits are given, so only the choice is tested."""
+    odo = Odometry(OdometryConfig(), planar=True)
+    _drive(odo, n=20)
+    before = matrix_to_se2(odo.last_pose)
+    fits = []
+
+    def fit(frame_down, xyt):  # wheels' guess 0.05, motion model's 0.1, every turned guess 0.3
+        fits.append(xyt)
+        return {1: 0.05, 2: 0.1}.get(len(fits), 0.3)
+
+    monkeypatch.setattr(odo, "_fit", fit)
+    monkeypatch.setattr(odo, "_align", lambda source, guess: guess)
+    monkeypatch.setattr(odo, "_refine", lambda frame_down, pose, guess: matrix_to_se2(pose))
+    odo._recent_fits.extend([0.9] * 10)  # usual fit 0.9: a turned guess would need 0.45
+    last_truth = np.array([-2.0 + 0.05 * 19, -1.5, np.deg2rad(0.3) * 19])
+    stale = se2_to_matrix(*last_truth) @ se2_to_matrix(0.0, 0.0, np.deg2rad(12.0))  # wheels: a 12 deg jump
+    pts = wall_points(ROOM, last_truth + [0.05, 0.0, 0.0], max_range=12.0)
+    odo.register(Scan(20, 2.0, np.c_[pts, np.zeros(len(pts))], odometry=stale, planar=True))
+    assert len(fits) > 2 and odo.wheel_overruled == 1  # the turned guesses were tried
+    assert _yaw_error_deg(matrix_to_se2(odo.last_pose), before) < 2.0  # the motion model's guess
