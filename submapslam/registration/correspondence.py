@@ -150,7 +150,8 @@ def _planar(source, target, initial_guess, yaw_hint, inlier, search_radius, yaw_
     yaw_window = np.deg2rad(yaw_window_deg) if (initial_guess is not None or yaw_hint is not None) else np.pi
     m = match_planar(source, target, initial_guess=initial_guess, yaw_hint=yaw_hint,
                      window=search_radius or 10.0, yaw_window=yaw_window, resolution=max(voxel_size, 0.1),
-                     inlier_distance=inlier, refine_only=refine_only)
+                     inlier_distance=inlier, refine_only=refine_only,
+                     resolve_ambiguity_above=gates["max_ambiguity"])
     T = m.T
     reverse = _directed_fitness(target[:, :2], planar_cloud(source).tree, np.linalg.inv(T), inlier)
     overlap = min(m.fitness, reverse)

@@ -78,18 +78,28 @@ def _likelihood_grid(target: np.ndarray, resolution: float, sigma: float, pad_m:
     return like, lo
 
 
-def _best_peaks(peaks: list[tuple[float, float, float, float]]) -> tuple[np.ndarray, float, float]:
-    """Best ``(score, x, y, yaw)`` and the ambiguity ratio of the best well-separated other peak."""
+def _best_peaks(peaks: list[tuple[float, float, float, float]]) -> tuple[np.ndarray, float, float, np.ndarray | None]:
+    """Best ``(x, y, yaw)``, its score, the ambiguity ratio of the best well-separated other peak
+    and that peak's ``(x, y, yaw)`` (None when there is none)."""
     best = max(peaks, key=lambda p: p[0])
-    second = 0.0
+    second, second_xyt = 0.0, None
     for sc, x, y, yaw in peaks:
-        far = np.hypot(x - best[1], y - best[2]) > 1.5 or abs(np.angle(np.exp(1j * (yaw - best[3])))) > np.deg2rad(10)
-        if far and sc > second:
-            second = sc
-    return np.array(best[1:]), best[0], (second / best[0] if best[0] > 0 else 1.0)
+        if _far(np.array([x, y, yaw]), np.array(best[1:])) and sc > second:
+            second, second_xyt = sc, np.array([x, y, yaw])
+    return np.array(best[1:]), best[0], (second / best[0] if best[0] > 0 else 1.0), second_xyt
 
 
-def coarse_search(
+def _far(a: np.ndarray, b: np.ndarray) -> bool:
+    """Two ``(x, y, yaw)`` peaks are distinct: more than 1.5 m or 10 degrees apart."""
+    return bool(np.hypot(a[0] - b[0], a[1] - b[1]) > 1.5 or abs(np.angle(np.exp(1j * (a[2] - b[2])))) > np.deg2rad(10))
+
+
+def coarse_search(source: np.ndarray, target: np.ndarray, **kwargs) -> tuple[np.ndarray, float, float]:
+    """:func:`coarse_peaks` without the second peak's pose: ``(x, y, yaw)``, score, ambiguity."""
+    return coarse_peaks(source, target, **kwargs)[:3]
+
+
+def coarse_peaks(
     source: np.ndarray,
     target: np.ndarray,
     *,
@@ -99,13 +109,14 @@ def coarse_search(
     window: float = 15.0,
     yaws: np.ndarray | None = None,
     max_source_points: int = 1000,
-) -> tuple[np.ndarray, float, float]:
+) -> tuple[np.ndarray, float, float, np.ndarray | None]:
     """Exhaustive correlative search; ``source``/``target`` are ``(N, 2)`` in their own frames.
 
     ``center`` is the expected source->target ``(x, y)`` (default 0) and ``window`` the half
     width [m] of the translation search around it. ``yaws`` are the candidate yaws [rad]
     (default: every 1.5 degrees). Small windows are scored directly, large ones by FFT
-    cross-correlation. Returns ``(x, y, yaw)``, the score in [0, 1] and the ambiguity ratio.
+    cross-correlation. Returns ``(x, y, yaw)``, the score in [0, 1], the ambiguity ratio and the
+    best well-separated other peak's ``(x, y, yaw)`` (or None).
     """
     rng = np.random.default_rng(0)
     center = np.zeros(2) if center is None else np.asarray(center, dtype=np.float64)
@@ -113,7 +124,7 @@ def coarse_search(
         yaws = np.deg2rad(np.arange(-180.0, 180.0, 1.5))
     sub = _subsample(source, resolution, max_source_points, rng)
     if len(sub) == 0 or len(target) == 0:
-        return np.zeros(3), 0.0, 1.0
+        return np.zeros(3), 0.0, 1.0, None
     c_src = sub.mean(axis=0)
     src = sub - c_src  # rotate about the source centroid: the translation window stays compact
     r_src = float(np.abs(src).max())
@@ -174,7 +185,7 @@ def coarse_search(
             t = np.array([cx[ia[a]], cy[ib[b]]]) - R @ c_src
             peaks.append((float(subc[a, b]) / len(src), t[0], t[1], float(yaw)))
     if not peaks:
-        return np.zeros(3), 0.0, 1.0
+        return np.zeros(3), 0.0, 1.0, None
     return _best_peaks(peaks)
 
 
@@ -314,7 +325,8 @@ def planar_cloud(points: np.ndarray) -> PlanarCloud:
 
 def match_planar(source: np.ndarray, target: np.ndarray, *, initial_guess: np.ndarray | None = None,
                  yaw_hint: float | None = None, window: float = 15.0, yaw_window: float = np.pi,
-                 resolution: float = 0.1, inlier_distance: float = 0.2, refine_only: bool = False) -> PlanarMatch:
+                 resolution: float = 0.1, inlier_distance: float = 0.2, refine_only: bool = False,
+                 resolve_ambiguity_above: float | None = None) -> PlanarMatch:
     """Match planar clouds ``(N, 3)`` / ``(M, 3)`` (z ignored); no initial guess needed.
 
     ``initial_guess`` (4x4 source->target) centres the translation window (half width
@@ -323,11 +335,17 @@ def match_planar(source: np.ndarray, target: np.ndarray, *, initial_guess: np.nd
     coarse grid (0.3 m or more, 2 degree steps) over the whole window, then ``resolution`` over
     +-0.6 m and +-3 degrees around the best cell, then ICP. ``refine_only`` skips the search
     (ICP from ``initial_guess``).
+
+    The coarse grid's scores are blurred (a corridor slid by a door's width scores nearly as well):
+    when the best distinct second peak scores above ``resolve_ambiguity_above`` of the best, it is
+    refined the same way, and the ambiguity becomes the ratio of the two refined fitnesses (0 when
+    both end at one pose); the better of the two is the match.
     """
     src = source[:, :2]
     cloud = planar_cloud(target)
     tgt, tree = cloud.xy, cloud.tree
     normals = cloud.normals  # shared by every information evaluation below
+    second = None
     if refine_only:
         if initial_guess is None:
             raise ValueError("refine_only needs an initial_guess")
@@ -345,17 +363,12 @@ def match_planar(source: np.ndarray, target: np.ndarray, *, initial_guess: np.nd
         if initial_guess is None:
             # the source centroid may land anywhere on the target (plus a margin)
             extent = float(np.abs(tgt - tgt.mean(axis=0)).max()) + 2.0
-            xyt_c, score, amb = _search_about_centroid(src, tgt, yaws, coarse_res, extent)
+            xyt_c, score, amb, second = _search_about_centroid(src, tgt, yaws, coarse_res, extent)
         else:
-            xyt_c, score, amb = coarse_search(src, tgt, resolution=coarse_res, sigma=max(0.3, 1.5 * coarse_res),
-                                              center=np.array([x, y]), window=window, yaws=yaws)
-        fine_yaws = xyt_c[2] + np.deg2rad(np.arange(-3.0, 3.01, 0.5))
-        xyt0, score_f, _ = coarse_search(src, tgt, resolution=resolution, center=xyt_c[:2], window=0.6,
-                                         yaws=fine_yaws)
-        score = score_f
-    xyt, _, _ = icp_2d(src, tgt, xyt0, max_distance=3 * resolution + inlier_distance,
-                       min_distance=inlier_distance, tree=tree)
-    info, fitness, rmse = registration_information(src, tgt, xyt, inlier_distance, tree, normals=normals)
+            xyt_c, score, amb, second = coarse_peaks(src, tgt, resolution=coarse_res, sigma=max(0.3, 1.5 * coarse_res),
+                                                     center=np.array([x, y]), window=window, yaws=yaws)
+        xyt0, score = _fine_search(src, tgt, xyt_c, resolution)
+    xyt, info, fitness, rmse = _icp(src, cloud, xyt0, resolution, inlier_distance)
     if initial_guess is not None and not refine_only:
         # The correlative score can prefer a slightly slid pose along self-similar corridors;
         # ICP straight from the guess competes, and the better fit wins.
@@ -366,12 +379,47 @@ def match_planar(source: np.ndarray, target: np.ndarray, *, initial_guess: np.nd
             xyt, info, fitness, rmse = xyt_g, info_g, fitness_g, rmse_g
     # point-to-point ICP follows where walls end and samples differ between submaps; a
     # point-to-line pass removes that bias (degenerate directions keep the ICP result)
+    xyt, info, fitness, rmse = _line_pass(src, cloud, xyt, info, fitness, rmse, inlier_distance)
+    if resolve_ambiguity_above is not None and second is not None and amb > resolve_ambiguity_above:
+        start = _fine_search(src, tgt, second, resolution)[0]
+        xyt2, info2, fitness2, rmse2 = _line_pass(src, cloud, *_icp(src, cloud, start, resolution, inlier_distance),
+                                                  inlier_distance)
+        if not _far(xyt2, xyt):
+            amb = 0.0  # both peaks lead to one alignment
+        elif fitness2 > fitness:
+            amb = fitness / fitness2
+            xyt, info, fitness, rmse = xyt2, info2, fitness2, rmse2
+        else:
+            amb = fitness2 / fitness if fitness > 0 else 1.0
+    return PlanarMatch(xyt=xyt, score=score, ambiguity=amb, fitness=fitness, inlier_rmse=rmse, information=info)
+
+
+def _fine_search(src: np.ndarray, tgt: np.ndarray, xyt_c: np.ndarray, resolution: float) -> tuple[np.ndarray, float]:
+    """The ``resolution`` grid over +-0.6 m and +-3 degrees around a coarse peak ``(x, y, yaw)``:
+    its best ``(x, y, yaw)`` and score."""
+    fine_yaws = xyt_c[2] + np.deg2rad(np.arange(-3.0, 3.01, 0.5))
+    xyt0, score, _ = coarse_search(src, tgt, resolution=resolution, center=xyt_c[:2], window=0.6, yaws=fine_yaws)
+    return xyt0, score
+
+
+def _icp(src: np.ndarray, cloud: PlanarCloud, xyt0: np.ndarray, resolution: float,
+         inlier_distance: float) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """Point-to-point ICP from ``xyt0``: ``(x, y, yaw)``, information ``(3, 3)``, fitness, RMSE [m]."""
+    xyt, _, _ = icp_2d(src, cloud.xy, xyt0, max_distance=3 * resolution + inlier_distance,
+                       min_distance=inlier_distance, tree=cloud.tree)
+    info, fitness, rmse = registration_information(src, cloud.xy, xyt, inlier_distance, cloud.tree, normals=cloud.normals)
+    return xyt, info, fitness, rmse
+
+
+def _line_pass(src, cloud: PlanarCloud, xyt, info, fitness, rmse, inlier_distance):
+    """The point-to-line pass from ``xyt``, kept unless it loses more than 0.02 of fitness."""
     refined = _point_to_line_pass(src, cloud, xyt, inlier_distance)
     if refined is not None:
-        info_r, fitness_r, rmse_r = registration_information(src, tgt, refined, inlier_distance, tree, normals=normals)
+        info_r, fitness_r, rmse_r = registration_information(src, cloud.xy, refined, inlier_distance, cloud.tree,
+                                                             normals=cloud.normals)
         if fitness_r >= fitness - 0.02:
-            xyt, info, fitness, rmse = refined, info_r, fitness_r, rmse_r
-    return PlanarMatch(xyt=xyt, score=score, ambiguity=amb, fitness=fitness, inlier_rmse=rmse, information=info)
+            return refined, info_r, fitness_r, rmse_r
+    return xyt, info, fitness, rmse
 
 
 def _point_to_line_pass(src: np.ndarray, cloud: PlanarCloud, xyt: np.ndarray,
@@ -394,13 +442,13 @@ def _search_about_centroid(src, tgt, yaws, resolution, window):
         mid = float(np.median(chunk))
         R = np.array([[np.cos(mid), -np.sin(mid)], [np.sin(mid), np.cos(mid)]])
         center = c_t - R @ c_s
-        res = coarse_search(src, tgt, resolution=resolution, center=center, window=window, yaws=chunk)
+        res = coarse_peaks(src, tgt, resolution=resolution, center=center, window=window, yaws=chunk)
         results.append(res)
         if best is None or res[1] > best[1]:
             best = res
     # ambiguity across chunks too
-    second = max((r[1] for r in results if r is not best and
-                  (np.hypot(*(r[0][:2] - best[0][:2])) > 1.5 or abs(np.angle(np.exp(1j * (r[0][2] - best[0][2])))) > np.deg2rad(10))),
-                 default=0.0)
-    amb = max(best[2], second / best[1] if best[1] > 0 else 1.0)
-    return best[0], best[1], amb
+    others = [r for r in results if r is not best and _far(r[0], best[0])]
+    other = max(others, key=lambda r: r[1], default=None)
+    if other is not None and best[1] > 0 and other[1] / best[1] > best[2]:
+        return best[0], best[1], other[1] / best[1], other[0]
+    return best
