@@ -159,3 +159,52 @@ def test_global_search_finds_a_piece_at_the_far_end_of_a_larger_submap():
                                   yaws=np.deg2rad(np.arange(0.0, 50.0, 2.0)))
     assert np.hypot(xyt[0] - x, xyt[1] - y) < 0.35 and abs(np.rad2deg(xyt[2] - yaw)) <= 2.0
     assert score > 0.8
+
+
+def _with_coarse_peaks(monkeypatch, second_xyt, ambiguity=0.95):
+    """The coarse (window > 1 m) correlative search reports the true pose and, ``ambiguity`` of its
+    score, a distinct second peak at ``second_xyt``; the fine searches run as they are."""
+    from submapslam.registration import planar
+
+    real = planar.coarse_peaks
+
+    def coarse_peaks(source, target, **kw):
+        best = real(source, target, **kw)
+        if kw.get("window", 15.0) <= 1.0:
+            return best
+        return best[0], best[1], ambiguity, np.asarray(second_xyt, dtype=float)
+
+    monkeypatch.setattr(planar, "coarse_peaks", coarse_peaks)
+
+
+def test_an_ambiguous_coarse_peak_that_refinement_tells_apart_is_resolved(monkeypatch):
+    """Coarse scores are blurred: the second peak, refined, fits the L-shaped corridor far worse
+    than the true pose (or ends on it), so the match is accepted; without the refinement the
+    correlative ratio alone rejects it."""
+    source = corridor_submap(0)
+    target = corridor_submap(1)
+    _with_coarse_peaks(monkeypatch, [2.5, 0.0, 0.0])
+    res = check_correspondence(source, target, planar=True, initial_guess=se2_to_matrix(0.3, 0.0, 0.0),
+                               search_radius=4.0)
+    assert res.accepted and res.ambiguity < 0.9, res.reason
+    assert np.linalg.norm(res.T_target_source[:2, 3]) < 0.05
+    from submapslam.registration import planar
+
+    unresolved = planar.match_planar(source, target, initial_guess=se2_to_matrix(0.3, 0.0, 0.0), window=4.0,
+                                     yaw_window=np.deg2rad(20.0))
+    assert unresolved.ambiguity == pytest.approx(0.95)
+
+
+def test_a_featureless_corridor_stays_ambiguous_after_refinement(monkeypatch):
+    """Two parallel walls and nothing else: slid 2.5 m along them the source fits as well as in
+    place, so the refined ratio stays near 1 and the match is rejected as ambiguous."""
+    def walls(x0, x1):
+        x = np.arange(x0, x1, 0.05)
+        xy = np.r_[np.c_[x, np.zeros_like(x)], np.c_[x, np.full_like(x, 3.0)]]
+        return np.c_[xy, np.zeros(len(xy))]
+
+    _with_coarse_peaks(monkeypatch, [2.5, 0.0, 0.0])
+    res = check_correspondence(walls(-4, 4), walls(-7, 7), planar=True, initial_guess=np.eye(4),
+                               search_radius=4.0)
+    assert not res.accepted and res.reason.startswith("ambiguous"), res.reason
+    assert res.ambiguity > 0.9
