@@ -411,8 +411,10 @@ def _icp(src: np.ndarray, cloud: PlanarCloud, xyt0: np.ndarray, resolution: floa
     return xyt, info, fitness, rmse
 
 
-def _line_pass(src, cloud: PlanarCloud, xyt, info, fitness, rmse, inlier_distance):
-    """The point-to-line pass from ``xyt``, kept unless it loses more than 0.02 of fitness."""
+def _line_pass(src: np.ndarray, cloud: PlanarCloud, xyt: np.ndarray, info: np.ndarray, fitness: float, rmse: float,
+               inlier_distance: float) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """The point-to-line pass from ``xyt`` (with its ICP ``info``, ``fitness``, ``rmse``): the refined
+    ``(x, y, yaw)``, information, fitness and RMSE, unless it loses more than 0.02 of fitness."""
     refined = _point_to_line_pass(src, cloud, xyt, inlier_distance)
     if refined is not None:
         info_r, fitness_r, rmse_r = registration_information(src, cloud.xy, refined, inlier_distance, cloud.tree,
