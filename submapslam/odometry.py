@@ -315,6 +315,15 @@ class Odometry:
             return 0.0
         return self._refiner.fit(frame_down[:, :2], xyt, 0.5 * self.voxel_size)
 
+    def checks(self) -> dict:
+        """Planar runs: how often a check overruled the first guess (``summary.json``
+        ``odometry_checks``): ``wheel_overruled`` scans whose constant-velocity guess fitted
+        better than the wheels', ``registration_overruled`` scans whose wheel pose fitted better
+        than where registration went. Empty for 3D runs."""
+        if not self.planar:
+            return {}
+        return {"wheel_overruled": self.wheel_overruled, "registration_overruled": self.registration_overruled}
+
     def _departs(self, guess: np.ndarray, xyt: np.ndarray) -> bool:
         """The planar pose ``xyt`` (3,) lies more than ``wheel_check_m`` or ``wheel_check_deg`` from
         the ``guess`` (4, 4) it was registered from."""

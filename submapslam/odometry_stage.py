@@ -67,6 +67,10 @@ class InlineOdometry:
         pose, frame = self._odometry.register(scan, known)
         return Registered(pose, frame, self._odometry.last_frame_down, self._odometry.last_xyt)
 
+    def checks(self) -> dict:
+        """:meth:`Odometry.checks` of the registration so far."""
+        return self._odometry.checks()
+
     def close(self) -> None:
         self._pending.clear()
 
@@ -214,6 +218,11 @@ class OdometryProcess:
             raise SubmapSlamError(f"odometry: {value}")
         pose, frame, frame_down, xyt = value
         return Registered(pose, points[frame] if frame.dtype == bool else frame, frame_down, xyt)
+
+    def checks(self) -> dict:
+        """Not reported from a child process (3D runs have none; a planar run forced into a child
+        process with ``odometry.separate_process`` does not report its counts)."""
+        return {}
 
     def close(self) -> None:
         """Stop the child (scans still in flight are dropped) and record its peak memory."""

@@ -457,6 +457,7 @@ class SubmapSLAM:
             raise SubmapSlamError(f"{source or 'log'}: no scans were processed")
         while self._in_flight:
             self.complete_scan()
+        odometry_checks = self._odometry.checks() if self._odometry is not None else {}
         self.close()
         try:
             if failure is None:  # after a failure the graph takes nothing more
@@ -541,6 +542,7 @@ class SubmapSLAM:
             submap_dynamic_points=[s.dynamic_points for s in self.submaps] if self._movers is not None else None,
             final_check=final_check,
             scan_refinement=refinement,
+            odometry_checks=odometry_checks,
             odometry_tilt_drift=(self._graph_builder.tilt_drift.summary()
                                  if self._graph_builder.tilt_drift is not None else {}),
             ground_tilt_change=self._graph_builder.tilt_change_summary(),

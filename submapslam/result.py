@@ -92,6 +92,8 @@ class SlamResult:
         submap_scan_no_returns: planar runs: per submap each scan's ``(m, 3)`` ends of the beams
             that returned nothing (free space in the grid; an empty list per submap when the log
             gives none, and for maps loaded from a map folder, which do not keep them).
+        odometry_checks: planar runs: how often the odometry's checks overruled its first guess
+            (:meth:`~submapslam.odometry.Odometry.checks`); empty otherwise.
         scan_refinement: planar runs: the figures of the scan-level refinement after the submap
             solve (:mod:`~submapslam.scan_refine`: keyframes, matches tried and kept, seconds);
             empty when it did not run. ``poses`` and ``submap_scan_poses`` are the refined ones.
@@ -134,6 +136,7 @@ class SlamResult:
     final_check: dict = field(default_factory=dict)
     submap_scan_no_returns: list[list[np.ndarray]] = field(default_factory=list)
     scan_refinement: dict = field(default_factory=dict)
+    odometry_checks: dict = field(default_factory=dict)
     odometry_tilt_drift: dict = field(default_factory=dict)
     ground_tilt_change: dict = field(default_factory=dict)  # uncertainty.TiltChangeSpread.summary()
 
@@ -228,6 +231,7 @@ class SlamResult:
             "optimiser_recoveries": list(self.optimiser_recoveries),
             "failure": self.failure,
             **({"final_check": self.final_check} if self.final_check else {}),
+            **({"odometry_checks": self.odometry_checks} if self.odometry_checks else {}),
             **({"scan_refinement": self.scan_refinement} if self.scan_refinement else {}),
             **({"odometry_tilt_drift": self.odometry_tilt_drift} if self.odometry_tilt_drift else {}),
             **({"ground_tilt_change": self.ground_tilt_change} if self.ground_tilt_change else {}),

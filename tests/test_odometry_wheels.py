@@ -66,7 +66,7 @@ def test_registration_far_from_agreeing_wheels_with_a_poor_fit_gives_way_to_them
     on one CPU): the wheels' pose, refined, is kept. Without the check the scan keeps the 60 deg."""
     odo = Odometry(OdometryConfig(), planar=True)
     truth, est = _drive(odo, astray_at=20)
-    assert odo.registration_overruled == 1
+    assert odo.checks() == {"wheel_overruled": 0, "registration_overruled": 1}  # summary.json's odometry_checks
     assert _yaw_error_deg(truth, est) < 0.5 and np.linalg.norm(truth[:2] - est[:2]) < 0.05
 
 
