@@ -11,6 +11,7 @@ from submapslam.geometry import (
     transform_points,
 )
 from submapslam.io.registry import open_log
+from submapslam.registration import planar
 from submapslam.registration.correspondence import check_correspondence
 from submapslam.topology.descriptors import DescriptorIndex, compute_descriptor, descriptor_distance
 
@@ -164,8 +165,6 @@ def test_global_search_finds_a_piece_at_the_far_end_of_a_larger_submap():
 def _with_coarse_peaks(monkeypatch, second_xyt, ambiguity=0.95):
     """The coarse (window > 1 m) correlative search reports the true pose and, ``ambiguity`` of its
     score, a distinct second peak at ``second_xyt``; the fine searches run as they are."""
-    from submapslam.registration import planar
-
     real = planar.coarse_peaks
 
     def coarse_peaks(source, target, **kw):
@@ -188,8 +187,6 @@ def test_an_ambiguous_coarse_peak_that_refinement_tells_apart_is_resolved(monkey
                                search_radius=4.0)
     assert res.accepted and res.ambiguity < 0.9, res.reason
     assert np.linalg.norm(res.T_target_source[:2, 3]) < 0.05
-    from submapslam.registration import planar
-
     unresolved = planar.match_planar(source, target, initial_guess=se2_to_matrix(0.3, 0.0, 0.0), window=4.0,
                                      yaw_window=np.deg2rad(20.0))
     assert unresolved.ambiguity == pytest.approx(0.95)
