@@ -27,8 +27,8 @@ def shared_data(*parts: str) -> Path:
 #: the test files that take longest (``make test`` prints the slowest tests), longest first. Under
 #: ``pytest -n auto --dist loadfile`` each file goes whole to one worker in collection order; when
 #: a long file comes last one core idles while it ends, so these are collected first
-LONGEST_FILES = ("test_real2d_logs.py", "test_two_lap_3d.py", "test_city_scale.py", "test_ray_cluster.py",
-                 "test_batch.py", "test_resume.py", "test_real3d_logs.py")
+LONGEST_FILES = ("test_real2d_logs.py", "test_two_lap_3d.py", "test_city_scale.py", "test_real2d_numeric.py",
+                 "test_ray_cluster.py", "test_batch.py", "test_resume.py", "test_real3d_logs.py")
 
 
 def pytest_collection_modifyitems(config, items) -> None:
