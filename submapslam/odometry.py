@@ -324,23 +324,26 @@ class Odometry:
             return {}
         return {"wheel_overruled": self.wheel_overruled, "registration_overruled": self.registration_overruled}
 
+    def _beyond_wheel_check(self, distance_m: float, turn_deg: float) -> bool:
+        """Two planar poses ``distance_m`` [m] and ``turn_deg`` [deg] apart differ by more than
+        ``wheel_check_m`` or ``wheel_check_deg``."""
+        return bool(distance_m > self.config.wheel_check_m or abs(turn_deg) > self.config.wheel_check_deg)
+
     def _departs(self, guess: np.ndarray, xyt: np.ndarray) -> bool:
-        """The planar pose ``xyt`` (3,) lies more than ``wheel_check_m`` or ``wheel_check_deg`` from
-        the ``guess`` (4, 4) it was registered from."""
-        c = self.config
+        """The planar pose ``xyt`` (3,) lies beyond the wheel check from the ``guess`` (4, 4) it was
+        registered from."""
         g = matrix_to_se2(guess)
-        return bool(math.hypot(xyt[0] - g[0], xyt[1] - g[1]) > c.wheel_check_m
-                    or abs(math.degrees(math.remainder(xyt[2] - g[2], 2 * math.pi))) > c.wheel_check_deg)
+        return self._beyond_wheel_check(math.hypot(xyt[0] - g[0], xyt[1] - g[1]),
+                                        math.degrees(math.remainder(xyt[2] - g[2], 2 * math.pi)))
 
     def _wheel_disagrees(self, prediction: np.ndarray) -> bool:
-        """The wheel-odometry ``prediction`` (4, 4) is not the constant-velocity one and differs from
-        it by more than ``wheel_check_m`` or ``wheel_check_deg``."""
+        """The wheel-odometry ``prediction`` (4, 4) is not the constant-velocity one and lies beyond
+        the wheel check from it."""
         c = self.config
         if self._refiner is None or not c.use_wheel_odometry or prediction is self.last_delta:
             return False
         diff = inverse(self.last_delta) @ prediction
-        return bool(np.linalg.norm(diff[:2, 3]) > c.wheel_check_m
-                    or abs(np.degrees(np.arctan2(diff[1, 0], diff[0, 0]))) > c.wheel_check_deg)
+        return self._beyond_wheel_check(np.linalg.norm(diff[:2, 3]), np.degrees(np.arctan2(diff[1, 0], diff[0, 0])))
 
     def _predicted_delta(self, scan: Scan) -> np.ndarray:
         wheel = scan.odometry if self.config.use_wheel_odometry else None

@@ -42,3 +42,11 @@ def test_edges_agree_with_the_truth_and_a_bent_reference_shows(tool, tmp_path):
     assert jump["error_m"] == pytest.approx(0.5, abs=0.05) and jump["chi2"] > 7.81
     before = [e["chi2"] for e in edges["odometry"] if e["j"] < anchor]
     np.testing.assert_allclose([e["chi2"] for e in bent["odometry"] if e["j"] < anchor], before)
+
+
+def test_a_folder_without_a_run_is_one_line_not_a_traceback(tool, tmp_path, capsys):
+    empty = tmp_path / "empty.clf"
+    empty.write_text("")
+    assert tool.main([str(tmp_path / "nothing"), str(empty), str(empty)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("edges_vs_reference: "), err

@@ -88,8 +88,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-gap", type=int, default=2, help="scans between an anchor and its corrected pose")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args(argv)
-    reference = carmen_reference_trajectory(args.corrected_log, args.raw_log)
-    figures = {kind: summarize(rows) for kind, rows in edge_errors(args.run, reference, args.max_gap).items()}
+    from submapslam.errors import SubmapSlamError
+
+    try:
+        reference = carmen_reference_trajectory(args.corrected_log, args.raw_log)
+        figures = {kind: summarize(rows) for kind, rows in edge_errors(args.run, reference, args.max_gap).items()}
+    except (OSError, SubmapSlamError, KeyError, ValueError) as exc:  # a missing or foreign file: one line
+        print(f"edges_vs_reference: {args.run}: {exc}", file=sys.stderr)
+        return 2
     print("| edges | count | mean chi2 | median chi2 | share > 7.81 | median error | median sigma |")
     print("|---|---|---|---|---|---|---|")
     for kind, f in figures.items():

@@ -83,14 +83,15 @@ def _best_peaks(peaks: list[tuple[float, float, float, float]]) -> tuple[np.ndar
     and that peak's ``(x, y, yaw)`` (None when there is none)."""
     best = max(peaks, key=lambda p: p[0])
     second, second_xyt = 0.0, None
-    for sc, x, y, yaw in peaks:
-        if _far(np.array([x, y, yaw]), np.array(best[1:])) and sc > second:
-            second, second_xyt = sc, np.array([x, y, yaw])
+    for peak in peaks:
+        if peak[0] > second and _far(peak[1:], best[1:]):
+            second, second_xyt = peak[0], np.array(peak[1:])
     return np.array(best[1:]), best[0], (second / best[0] if best[0] > 0 else 1.0), second_xyt
 
 
-def _far(a: np.ndarray, b: np.ndarray) -> bool:
-    """Two ``(x, y, yaw)`` peaks are distinct: more than 1.5 m or 10 degrees apart."""
+def _far(a, b) -> bool:
+    """Two ``(x, y, yaw)`` peaks (any sequences of three) are distinct: more than 1.5 m or 10
+    degrees apart."""
     return bool(np.hypot(a[0] - b[0], a[1] - b[1]) > 1.5 or abs(np.angle(np.exp(1j * (a[2] - b[2])))) > np.deg2rad(10))
 
 
