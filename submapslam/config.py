@@ -214,6 +214,12 @@ class BackendConfig(_Strict):
         "carried through the odometry; a robust sigma over the pairs so far, less the odometry's own tilt sigma "
         "per edge; uncertainty.TiltChangeSpread): a hilly road or a rough ground plane loosens it, a flat town "
         "keeps it. The priors wait for the first 5 pairs. false: the configured sigma alone")
+    ground_priors_level_test: bool = Field(
+        True, description="3D logs: at the end of the run, test whether the ground was level (the anchors' "
+        "ground normals, carried through the odometry, turn over 3 anchors by more than the odometry's own "
+        "tilt sigma can: uncertainty.LevelGroundTest); if it was not, the ground priors leave the graph when "
+        "they raise the loop closures' summed chi-square by more than 3.84 or when there is no closure "
+        "(summary.json: ground_priors). false: the priors always stay")
     ground_prior_kernel: float | None = Field(
         1.0, gt=0, description="3D logs: Cauchy kernel width [whitened units, sigmas] on the ground priors "
         "(attitude and tilt change): a prior the data contradict by many sigmas (a change of grade, a crest, "

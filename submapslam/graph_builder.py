@@ -22,7 +22,7 @@ from .config import BackendConfig, OdometryConfig
 from .geometry import inverse
 from .result import LoopRecord
 from .submaps import Submap
-from .uncertainty import TiltChangeSpread, TiltDrift, odometry_information
+from .uncertainty import LevelGroundTest, TiltChangeSpread, TiltDrift, odometry_information
 
 PRIOR_INFORMATION = np.diag([1e8] * 6)  # the first anchor is the world frame
 
@@ -71,6 +71,10 @@ class GraphBuilder:
                             if change is not None and config.ground_tilt_change_from_data and not planar else None)
         self._pending_tilt_changes: list[tuple] = []  # tilt-change priors waiting for tilt_change's sigma
         self._tilt_change_sigma: float | None = None  # [rad] the sigma the last of them took
+        priors = config.ground_attitude_sigma_deg is not None or change is not None
+        self.level_test = (LevelGroundTest() if priors and config.ground_priors_level_test and not planar
+                           and self.tilt_drift is not None else None)
+        self.ground_prior_test: dict = {}  # summary.json's ground_priors: the level test and what it decided
 
     def _time(self, stage: str):
         return self._timer(stage) if self._timer is not None else nullcontext()
@@ -128,6 +132,9 @@ class GraphBuilder:
         if up is None:
             return
         self._ground_up[submap.id] = up
+        if self.level_test is not None:
+            self.level_test.add(submap.id, submap.T_odom_anchor[:3, :3] @ up,
+                                previous.distance if previous is not None else 0.0)
         if sigma is not None:
             if self._world_up is None:
                 self._world_up = submap.T_odom_anchor[:3, :3] @ up  # the odometry frame is the world frame
@@ -151,6 +158,21 @@ class GraphBuilder:
         for i, j, up_i, up_j, T_i_j in self._pending_tilt_changes:
             self.graph.add_relative_attitude(i, j, up_i, up_j, T_i_j, sigma_rad)
         self._pending_tilt_changes.clear()
+
+    def _test_ground_priors(self) -> None:
+        """3D: if the run's ground is not level (:class:`~submapslam.uncertainty.LevelGroundTest`),
+        the ground priors stay only if loop closures vouch for them and do not contradict them
+        (:meth:`~submapslam.backend.pose_graph.PoseGraph.drop_ground_priors_unless_loops_agree`);
+        :attr:`ground_prior_test` says what was measured and decided."""
+        if self.level_test is None:
+            return
+        ratio = self.level_test.ratio(self.tilt_drift.sigma)
+        self.ground_prior_test = {"level_ratio": None if ratio is None else round(ratio, 3), "level": None, "kept": True}
+        if ratio is None:
+            return
+        self.ground_prior_test["level"] = ratio <= 1.0
+        if ratio > 1.0:
+            self.ground_prior_test.update(self.graph.drop_ground_priors_unless_loops_agree())
 
     def tilt_change_summary(self) -> dict:
         """``summary.json``'s ``ground_tilt_change``: pairs, their spread and the sigma in use
@@ -223,6 +245,7 @@ class GraphBuilder:
             if self._pending_tilt_changes:  # a run too short to measure the spread: the configured sigma
                 self._add_pending_tilt_changes(self.tilt_change.floor_rad)
                 self.graph.update()
+            self._test_ground_priors()
             weights, dropped = {}, []
             if self.config.final_batch and self.graph.edges:
                 weights = self.graph.optimize_batch()

@@ -546,6 +546,7 @@ class SubmapSLAM:
             odometry_tilt_drift=(self._graph_builder.tilt_drift.summary()
                                  if self._graph_builder.tilt_drift is not None else {}),
             ground_tilt_change=self._graph_builder.tilt_change_summary(),
+            ground_priors=self._graph_builder.ground_prior_test,
         )
 
     def _refine_scans(self, poses: np.ndarray) -> tuple[np.ndarray, dict]:

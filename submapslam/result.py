@@ -139,6 +139,7 @@ class SlamResult:
     odometry_checks: dict = field(default_factory=dict)
     odometry_tilt_drift: dict = field(default_factory=dict)
     ground_tilt_change: dict = field(default_factory=dict)  # uncertainty.TiltChangeSpread.summary()
+    ground_priors: dict = field(default_factory=dict)  # GraphBuilder.ground_prior_test: level test, kept or not
 
     @property
     def n_scans(self) -> int:
@@ -235,5 +236,6 @@ class SlamResult:
             **({"scan_refinement": self.scan_refinement} if self.scan_refinement else {}),
             **({"odometry_tilt_drift": self.odometry_tilt_drift} if self.odometry_tilt_drift else {}),
             **({"ground_tilt_change": self.ground_tilt_change} if self.ground_tilt_change else {}),
+            **({"ground_priors": self.ground_priors} if self.ground_priors else {}),
             "consistency": self.odometry_consistency(),
         }

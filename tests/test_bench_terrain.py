@@ -23,3 +23,13 @@ def test_bench_terrain_tiny_log(tmp_path, monkeypatch):
     with open(out / "loops.csv", newline="") as fh:
         assert row["closures_accepted"] == sum(r["accepted"] == "1" for r in csv.DictReader(fh))
     assert "| ter00_16_60 | 60 |" in (tmp_path / "b.md").read_text()
+    test = summary.get("ground_priors") or {}
+    assert row["ground_priors"] == ("-" if not test else bench._ground_priors(test))
+
+
+def test_ground_priors_in_a_few_words():
+    bench = load_tool("bench_terrain")
+    assert bench._ground_priors({}) == "-"
+    assert bench._ground_priors({"level_ratio": 0.43, "level": True, "kept": True}) == "level (0.43), kept"
+    assert bench._ground_priors({"level_ratio": 2.0, "level": False, "kept": False}) == "not level (2.0), dropped"
+    assert bench._ground_priors({"level_ratio": None, "level": None, "kept": True}) == "untested (None), kept"

@@ -3,11 +3,12 @@
 Usage:
     python tools/bench_terrain.py LOG... [--out DIR] [--config FILE] [--max-scans N] [--json FILE]
         [--markdown FILE]
-    python tools/bench_terrain.py --generate 00:16 05:16:1800 08:64:1800 --data-root /work/bench_data
+    python tools/bench_terrain.py --generate 00:16 05:16:1800 08:64:1800 09:livox --data-root /work/bench_data
 
 LOG is a synthetic cloud-folder log (``submapslam synth kitti --terrain``). ``--generate
 SEQ:RINGS[:SCANS]`` uses DATA_ROOT/terSEQ_RINGS[_SCANS] and writes it first (``synth kitti --path
-kitti_gt/SEQ.txt.xz --rings RINGS --terrain [--max-scans SCANS]``) when the folder is missing.
+kitti_gt/SEQ.txt.xz --rings RINGS --terrain [--max-scans SCANS]``) when the folder is missing;
+RINGS ``livox`` writes the Livox-like pattern with irregular keyframes (``--sensor livox --keyframes``).
 
 Each log runs as ``submapslam run LOG --out OUT/NAME`` in a child process. Per log: ATE RMSE
 after SE(3) alignment [m] and as % of the 3D ground-truth path, odometry ATE, closures accepted
@@ -15,7 +16,8 @@ after SE(3) alignment [m] and as % of the 3D ground-truth path, odometry ATE, cl
 closures dropped by the final check and rejected by GNC, and of those dropped how many join
 anchors the ground truth puts within twice the submap extent (a closure there may well be
 right; loops.csv keeps no relative pose, so this is an upper bound on true closures dropped),
-what the final check blamed instead (summary.json ``final_check``), the share of the map's
+what the final check blamed instead (summary.json ``final_check``), whether the ground priors
+stayed (summary.json ``ground_priors``: the run's level test), the share of the map's
 points in ``map_dynamic.ply`` (nothing moves in these worlds: every such point is a loss), and
 the wall time of the child.
 """
@@ -58,8 +60,9 @@ def generate(spec: str, root: Path) -> Path:
     name = f"ter{seq}_{rings}" + (f"_{parts[2]}" if len(parts) == 3 else "")
     out = root / name
     if not (out / "meta.yaml").exists():
+        sensor = ["--sensor", "livox", "--keyframes"] if rings == "livox" else ["--rings", rings]
         cmd = [sys.executable, "-m", "submapslam", "synth", "kitti", "--path", str(KITTI_GT / f"{seq}.txt.xz"),
-               "--rings", rings, "--terrain", "--out", str(out), "--overwrite"]
+               *sensor, "--terrain", "--out", str(out), "--overwrite"]
         if len(parts) == 3:
             cmd += ["--max-scans", parts[2]]
         subprocess.run(cmd, check=True, cwd=REPO)
@@ -100,6 +103,7 @@ def evaluate(log: Path, out: Path) -> dict:
         "dropped_final_check": len(dropped), "rejected_gnc": len(gnc),
         "dropped_near_in_truth": sum(near(r) for r in dropped + gnc),
         "gave_way": (summary.get("final_check") or {}).get("gave_way", []),
+        "ground_priors": _ground_priors(summary.get("ground_priors") or {}),
         "map_points": points, "map_dynamic_points": moved,
         "map_dynamic_pct": (round(100.0 * moved / max(points + moved, 1), 3)
                             if points is not None and moved is not None else None),
@@ -114,16 +118,27 @@ def _relief(log: Path) -> float | None:
     return (meta.get("terrain") or {}).get("relief_m")
 
 
+def _ground_priors(test: dict) -> str:
+    """summary.json's ``ground_priors`` in a few words: level or not (the ratio), kept or not."""
+    if not test:
+        return "-"
+    ratio = test.get("level_ratio")
+    level = "level" if test.get("level") else ("not level" if test.get("level") is False else "untested")
+    return f"{level} ({ratio}), " + ("kept" if test.get("kept") else "dropped")
+
+
 def markdown(rows: list[dict]) -> str:
     head = ("| log | scans | path [m] | relief [m] | ATE [m] | ATE % of path | odometry ATE [m] | closures accepted "
-            "(false) | dropped by the final check / GNC (near in truth) | gave way | map_dynamic % | wall [s] |")
-    lines = [head, "|" + "---|" * 12]
+            "(false) | dropped by the final check / GNC (near in truth) | gave way | ground priors | map_dynamic % "
+            "| wall [s] |")
+    lines = [head, "|" + "---|" * 13]
     for r in rows:
         gave = "; ".join(f"{g['constraint']} {g['i']}-{g['j']}" for g in r["gave_way"]) or "-"
         lines.append(f"| {r['log']} | {r['scans']} | {r['path_m']:.0f} | {r['relief_m']} | {r['ate_m']:.3f} | "
                      f"{r['ate_pct_of_path']:.4f} | {r['odometry_ate_m']:.3f} | {r['closures_accepted']} "
                      f"({r['false_closures']}) | {r['dropped_final_check']} / {r['rejected_gnc']} "
-                     f"({r['dropped_near_in_truth']}) | {gave} | {r['map_dynamic_pct']} | {r['wall_s']:.0f} |")
+                     f"({r['dropped_near_in_truth']}) | {gave} | {r['ground_priors']} | {r['map_dynamic_pct']} | "
+                     f"{r['wall_s']:.0f} |")
     return "\n".join(lines) + "\n"
 
 

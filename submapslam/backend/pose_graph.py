@@ -281,21 +281,76 @@ class PoseGraph:
     def _batch(self, lm, loop_factors: dict[int, int], weights: dict[tuple[int, int], float]
                ) -> dict[tuple[int, int], float]:
         gtsam = self._gtsam
-        if self.config.robust_kernel == "gnc" and loop_factors:
+        graph = self._active_graph()
+        # factor index in `graph` -> in `self._graph` (the active graph leaves the excluded ones out)
+        active = [idx for idx in range(self._graph.size()) if idx not in self._excluded]
+        loops_active = [pos for pos, idx in enumerate(active) if idx in loop_factors]
+        if self.config.robust_kernel == "gnc" and loops_active:
             params = gtsam.GncLMParams(lm)
             params.setLossType(gtsam.GncLossType.TLS)
-            params.setKnownInliers([i for i in range(self._graph.size()) if i not in loop_factors])
-            opt = gtsam.GncLMOptimizer(self._graph, self._estimate, params)
+            params.setKnownInliers([pos for pos in range(graph.size()) if active[pos] not in loop_factors])
+            opt = gtsam.GncLMOptimizer(graph, self._estimate, params)
             opt.setInlierCostThresholdsAtProbability(self.config.gnc_inlier_probability)
             self._estimate = opt.optimize()
             w = np.asarray(opt.getWeights())
-            for idx, key in loop_factors.items():
-                e = self.edges[key]
-                weights[(e.i, e.j)] = float(w[idx])
-            self._excluded |= {idx for idx in loop_factors if w[idx] < 0.5}
+            for pos in loops_active:
+                e = self.edges[loop_factors[active[pos]]]
+                weights[(e.i, e.j)] = float(w[pos])
+            self._excluded |= {active[pos] for pos in loops_active if w[pos] < 0.5}
         else:
-            self._estimate = gtsam.LevenbergMarquardtOptimizer(self._graph, self._estimate, lm).optimize()
+            self._estimate = gtsam.LevenbergMarquardtOptimizer(graph, self._estimate, lm).optimize()
         return weights
+
+    def drop_ground_priors_unless_loops_agree(self, limit: float = 22.46, margin: float = 3.84,
+                                              max_iterations: int = 100) -> dict:
+        """Keep the ground priors unless the loop closures contradict them, or none vouches for them.
+
+        For a world the run found not level (:class:`~submapslam.uncertainty.LevelGroundTest`):
+        the priors' flat-world bet is then tested against the closures, the one measurement of
+        the heights besides the odometry. The active graph is solved with and without every ground
+        prior (LM from the current estimate); each loop edge's whitened residual, capped at
+        ``limit`` (a wrong closure counts once), is summed for both. The priors stay when they
+        raise that sum by at most ``margin`` (chi-square, 1 DOF, 95 %); else, and with no closure
+        to vouch for them, they leave the graph and the solution without them becomes the
+        estimate. Returns ``{"kept", "priors", "loops", "loop_chi2_with", "loop_chi2_without"}``.
+        """
+        gtsam = self._gtsam
+        priors = {idx for idx in self._priors if idx not in self._excluded}
+        loops = [idx for idx, key in self._factor_edges.items()
+                 if self.edges[key].kind == "loop" and idx not in self._excluded]
+        out = {"kept": True, "priors": len(priors), "loops": len(loops),
+               "loop_chi2_with": None, "loop_chi2_without": None}
+        if not priors:
+            return out
+        if self._pending_graph.size() or self._pending_values.size():
+            self.update()
+        before = set(self._excluded)
+
+        def solve(excluded: set[int]):
+            self._excluded = before | excluded
+            try:
+                return gtsam.LevenbergMarquardtOptimizer(self._active_graph(), self._estimate,
+                                                         self._lm_params(max_iterations)).optimize()
+            finally:
+                self._excluded = set(before)
+
+        def loop_chi2(estimate) -> float:
+            return float(sum(min(2.0 * float(self._graph.at(idx).error(estimate)), limit) for idx in loops))
+
+        try:
+            without = solve(priors)
+            if loops:
+                c_with, c_without = loop_chi2(solve(set())), loop_chi2(without)
+                out.update(loop_chi2_with=round(c_with, 2), loop_chi2_without=round(c_without, 2))
+                if c_with - c_without <= margin:
+                    return out
+        except RuntimeError as exc:
+            log.warning("the ground-prior test failed (%s); the priors stay", _one_line(exc))
+            return out
+        out["kept"] = False
+        self._excluded |= priors
+        self._estimate = without
+        return out
 
     def edge_chi2(self) -> dict[int, float]:
         """Whitened squared residual of every active between-edge at the current estimate.

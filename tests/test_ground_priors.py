@@ -1,0 +1,150 @@
+"""The ground priors' flat-world bet, tested by the run: level ground keeps them; a road that
+climbs and dips keeps them only where the loop closures agree (issue 24)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from submapslam.config import BackendConfig, OdometryConfig
+from submapslam.geometry import inverse, so3_exp
+from submapslam.graph_builder import GraphBuilder
+from submapslam.uncertainty import LevelGroundTest, odometry_information
+
+UP = np.array([0.0, 0.0, 1.0])
+
+
+def _tilted(deg_pitch: float, deg_roll: float = 0.0) -> np.ndarray:
+    return so3_exp(np.deg2rad([deg_roll, deg_pitch, 0.0])) @ UP
+
+
+def test_level_ground_test_tells_a_level_town_from_a_hilly_one():
+    """Ground normals that wander by the odometry's own tilt error are level (ratio <= 1); ones that
+    turn by a degree an anchor over a 0.05 deg odometry are not; too few windows, or no tilt
+    estimate yet, give no answer."""
+    rng = np.random.default_rng(0)
+    level, hilly = LevelGroundTest(), LevelGroundTest()
+    for k in range(30):
+        level.add(k, _tilted(*rng.normal(0.0, 0.1, 2)), 12.0)
+        hilly.add(k, _tilted(3.0 * np.sin(k / 3.0)), 12.0)
+    sigma_16_rings = lambda d: np.deg2rad(0.2) * np.sqrt(d / 12.0)  # noqa: E731
+    sigma_64_rings = lambda d: np.deg2rad(0.05) * np.sqrt(d / 12.0)  # noqa: E731
+    assert level.ratio(sigma_16_rings) <= 1.0
+    assert hilly.ratio(sigma_64_rings) > 3.0
+    assert level.ratio(lambda d: None) is None
+    few = LevelGroundTest(min_windows=8)
+    for k in range(10):  # 7 windows of 3 anchors
+        few.add(k, _tilted(3.0 * k), 12.0)
+    assert few.ratio(sigma_64_rings) is None
+
+
+def _road_submap(k: int, T_odom_anchor: np.ndarray, step: float):
+    """A fake submap ``k`` at ``T_odom_anchor`` (4, 4): a 30 x 30 m ground patch 1.7 m below the
+    anchor, level in the anchor's own frame (the vehicle pitches with the road)."""
+    g = np.stack(np.meshgrid(np.linspace(-15, 15, 31), np.linspace(-15, 15, 31)), -1).reshape(-1, 2)
+    return SimpleNamespace(id=k, T_odom_anchor=T_odom_anchor, points=np.c_[g, np.full(len(g), -1.7)], distance=step)
+
+
+def _drive(grades_deg: list[float], step: float = 12.0, bias_deg: float = 0.0) -> tuple[list, list]:
+    """True anchors along x, each pitched up by its road grade [deg], and the odometry's view of
+    them (every step pitching ``bias_deg`` further up)."""
+    truth, odometry = [np.eye(4)], [np.eye(4)]
+    bias = np.eye(4)
+    bias[:3, :3] = so3_exp(np.deg2rad([0.0, -bias_deg, 0.0]))
+    for k in range(1, len(grades_deg)):
+        T = np.eye(4)
+        T[:3, :3] = so3_exp(np.deg2rad([0.0, -(grades_deg[k] - grades_deg[k - 1]), 0.0]))
+        T[0, 3] = step
+        truth.append(truth[-1] @ T)
+        odometry.append(odometry[-1] @ T @ bias)
+    return truth, odometry
+
+
+def _run(truth, odometry, step=12.0, loops=(), tilt_deg=0.02, loop_sigma=(0.5, 0.05),
+         **backend) -> tuple[GraphBuilder, float]:
+    """A GraphBuilder fed the odometry (its edges' tilt corrections ``tilt_deg``: 0.02, a good 3D odometry),
+    the road's ground under every anchor and true loop constraints ``(i, j)`` (sigma ``loop_sigma``:
+    deg, m; the graph builder floors them at 0.5 deg and 5 cm, as a run's); returns it after
+    ``finish`` and the largest anchor position error [m]."""
+    from submapslam.result import LoopRecord
+
+    config = BackendConfig(odometry_registration_covariance=False, **backend)
+    builder = GraphBuilder(config, OdometryConfig(), planar=False, match_voxel=0.5)
+    submaps = [_road_submap(k, T, step) for k, T in enumerate(odometry)]
+    for k, sm in enumerate(submaps):
+        prev = submaps[k - 1] if k else None
+        info = None
+        if prev is not None:
+            info = odometry_information(inverse(prev.T_odom_anchor) @ sm.T_odom_anchor, step, False, config)
+        builder.add_submap(sm, prev, False, information=info, tilt=np.deg2rad([tilt_deg, -tilt_deg]) if k else None)
+    info = np.diag([1 / np.deg2rad(loop_sigma[0]) ** 2] * 3 + [1 / loop_sigma[1] ** 2] * 3)
+    builder.add_loops([LoopRecord(i=i, j=j, source="spatial", accepted=True, fitness=1.0, overlap=1.0, inlier_rmse=0.0,
+                                  reason="", T_i_j=inverse(truth[i]) @ truth[j],
+                                  information=info) for i, j in loops])
+    builder.finish()
+    error = max(np.linalg.norm(builder.graph.pose(k)[:3, 3] - truth[k][:3, 3]) for k in range(len(truth)))
+    return builder, float(error)
+
+
+def test_a_climbing_road_without_closures_keeps_its_good_odometry():
+    """A good odometry over a road that climbs to 5 deg and dips back: the level prior pulls every
+    climbing anchor flat (metres of height lost); the run finds the ground not level, has no
+    closure to vouch for the priors, and drops them (the odometry's own heights, to centimetres)."""
+    grades = [min(5.0, 0.5 * k) if k < 25 else max(0.0, 5.0 - 0.5 * (k - 25)) for k in range(40)]
+    truth, odometry = _drive(grades)
+    fixed, error = _run(truth, odometry)
+    assert fixed.ground_prior_test["level"] is False and fixed.ground_prior_test["kept"] is False
+    assert fixed.ground_prior_test["priors"] > 0 and fixed.ground_prior_test["loops"] == 0
+    assert error < 0.05
+    _, error_before = _run(truth, odometry, ground_priors_level_test=False)
+    assert error_before > 1.0
+
+
+def test_priors_stay_on_level_ground_and_where_the_closures_agree_with_them():
+    """Level ground under a 16-ring-like odometry that pitches 0.1 deg up every step and whose
+    registrations correct its tilt by 0.1 deg: level, and the priors hold the climb the odometry
+    invents. The same bias under registrations that see only 0.02 deg: the normals turn more than
+    that allows (not level), but the closures fit as well with the priors as without, so they stay."""
+    truth, odometry = _drive([0.0] * 40, bias_deg=0.1)
+    loops = [(0, 39), (5, 30)]
+    _, error_without = _run(truth, odometry, loops=loops, ground_attitude_sigma_deg=None,
+                            ground_tilt_change_sigma_deg=None)
+    for tilt_deg, level in ((0.1, True), (0.02, False)):
+        builder, error = _run(truth, odometry, loops=loops, tilt_deg=tilt_deg)
+        assert builder.ground_prior_test["level"] is level and builder.ground_prior_test["kept"] is True
+        assert error < 0.5 * error_without, (tilt_deg, error, error_without)
+    assert builder.ground_prior_test["loop_chi2_with"] <= builder.ground_prior_test["loop_chi2_without"] + 3.84
+
+
+def test_closures_that_contradict_the_priors_win():
+    """A straight level drive whose ground planes claim a 10 deg tilt under Gaussian priors: with
+    two true closures the priors raise the closures' chi-square far beyond 3.84, so they leave
+    and the closures stay (the odometry's own poses); with no closure they leave too."""
+    from submapslam.backend.pose_graph import PoseGraph
+
+    for loops in ([(0, 19), (5, 19)], []):
+        config = BackendConfig(ground_prior_kernel=None)
+        truth = [np.eye(4) for _ in range(20)]
+        for k, T in enumerate(truth):
+            T[0, 3] = 12.0 * k
+        g = PoseGraph(config)
+        g.add_node(0, truth[0], np.diag([1e8] * 6))
+        for k in range(1, 20):
+            m = inverse(truth[k - 1]) @ truth[k]
+            g.add_node(k, g.pose(k - 1) @ m)
+            g.add_between(k - 1, k, m, odometry_information(m, 12.0, False, config), "odometry")
+            g.add_attitude(k, _tilted(10.0), UP, np.deg2rad(0.5))
+        for i, j in loops:
+            g.add_between(i, j, inverse(truth[i]) @ truth[j], np.diag([1 / np.deg2rad(0.5) ** 2] * 3 + [400.0] * 3),
+                          "loop")
+        g.update()
+        bent = max(np.linalg.norm(g.pose(k)[:3, 3] - truth[k][:3, 3]) for k in range(20))
+        test = g.drop_ground_priors_unless_loops_agree()
+        assert test["kept"] is False and test["priors"] == 19 and test["loops"] == len(loops)
+        if loops:
+            assert test["loop_chi2_with"] > test["loop_chi2_without"] + 3.84
+        g.optimize_batch()
+        assert bent > 1.0 and max(np.linalg.norm(g.pose(k)[:3, 3] - truth[k][:3, 3]) for k in range(20)) < 0.01
+        assert sum(e.kind == "loop" for e in g.active_edges()) == len(loops)
+        assert g.prior_chi2() == {}  # the priors left the graph
