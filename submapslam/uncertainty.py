@@ -23,6 +23,7 @@ untouched.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -220,7 +221,7 @@ class LevelGroundTest:
         self._ups[submap_id] = np.asarray(up_odometry, dtype=np.float64)
         self._distance[submap_id] = float(edge_distance)
 
-    def ratio(self, edge_tilt_sigma) -> float | None:
+    def ratio(self, edge_tilt_sigma: Callable[[float], float | None]) -> float | None:
         """The windows' RMS turn of the ground normals over the odometry's (median) allowance:
         ``edge_tilt_sigma(distance [m]) -> [rad] | None`` (:meth:`TiltDrift.sigma`). At most 1: level.
         The RMS, not the median: a few sag curves on an otherwise constant grade bend the chain too."""
