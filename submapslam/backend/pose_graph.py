@@ -228,15 +228,19 @@ class PoseGraph:
                 exc = again
         raise OptimisationError(f"the pose graph cannot be solved, even regularised: {_one_line(exc)}") from exc
 
-    def _active_graph(self, also_without: int | None = None):
-        """The graph without the factors at indices in ``self._excluded`` (rejected loops) and,
-        when given, the factor at index ``also_without``."""
-        if not self._excluded and not self._relaxed and also_without is None:
+    def _active_factors(self, leave_out: frozenset[int] | set[int] = frozenset()) -> list[int]:
+        """Indices (ascending) of the factors in the graph that are not in ``self._excluded``
+        (rejected loops, priors that gave way) nor in ``leave_out``."""
+        return [idx for idx in range(self._graph.size()) if idx not in self._excluded and idx not in leave_out]
+
+    def _active_graph(self, also_without: int | None = None, leave_out: frozenset[int] | set[int] = frozenset()):
+        """The graph of :meth:`_active_factors` (``leave_out`` left out too), odometry edges that
+        gave way as their weak stand-ins and, when given, without the factor at index
+        ``also_without`` (an odometry edge: its weak stand-in)."""
+        if not self._excluded and not self._relaxed and also_without is None and not leave_out:
             return self._graph
         graph = self._gtsam.NonlinearFactorGraph()
-        for idx in range(self._graph.size()):
-            if idx in self._excluded:
-                continue
+        for idx in self._active_factors(leave_out):
             if idx == also_without:
                 if idx in self._factor_edges and self.edges[self._factor_edges[idx]].kind == "odometry":
                     graph.add(self._weak(idx))  # the chain stays connected
@@ -252,6 +256,11 @@ class PoseGraph:
         return self._gtsam.BetweenFactorPose3(e.i, e.j, self._gtsam.Pose3(np.asarray(e.T_i_j, dtype=np.float64)),
                                               self._gtsam.noiseModel.Gaussian.Information(info))
 
+    def _flush_pending(self) -> None:
+        """An iSAM2 step with whatever was added since the last one, if anything was."""
+        if self._pending_graph.size() or self._pending_values.size():
+            self.update()
+
     def _lm_params(self, max_iterations: int):
         lm = self._gtsam.LevenbergMarquardtParams()
         lm.setMaxIterations(max_iterations)
@@ -266,8 +275,7 @@ class PoseGraph:
         ``{(i, j): w}`` (0 = rejected as an outlier; such edges leave the graph). Otherwise plain
         LM; weights are all 1.
         """
-        if self._pending_graph.size() or self._pending_values.size():
-            self.update()
+        self._flush_pending()
         lm = self._lm_params(max_iterations)
         loop_factors = {idx: key for idx, key in self._factor_edges.items() if self.edges[key].kind == "loop"}
         weights = {(e.i, e.j): 1.0 for e in self.edges if e.kind == "loop"}
@@ -282,8 +290,7 @@ class PoseGraph:
                ) -> dict[tuple[int, int], float]:
         gtsam = self._gtsam
         graph = self._active_graph()
-        # factor index in `graph` -> in `self._graph` (the active graph leaves the excluded ones out)
-        active = [idx for idx in range(self._graph.size()) if idx not in self._excluded]
+        active = self._active_factors()  # factor position in `graph` -> index in `self._graph`
         loops_active = [pos for pos, idx in enumerate(active) if idx in loop_factors]
         if self.config.robust_kernel == "gnc" and loops_active:
             params = gtsam.GncLMParams(lm)
@@ -322,17 +329,11 @@ class PoseGraph:
                "loop_chi2_with": None, "loop_chi2_without": None}
         if not priors:
             return out
-        if self._pending_graph.size() or self._pending_values.size():
-            self.update()
-        before = set(self._excluded)
+        self._flush_pending()
 
-        def solve(excluded: set[int]):
-            self._excluded = before | excluded
-            try:
-                return gtsam.LevenbergMarquardtOptimizer(self._active_graph(), self._estimate,
-                                                         self._lm_params(max_iterations)).optimize()
-            finally:
-                self._excluded = set(before)
+        def solve(leave_out: set[int]):
+            return gtsam.LevenbergMarquardtOptimizer(self._active_graph(leave_out=leave_out), self._estimate,
+                                                     self._lm_params(max_iterations)).optimize()
 
         def loop_chi2(estimate) -> float:
             return float(sum(min(2.0 * float(self._graph.at(idx).error(estimate)), limit) for idx in loops))
