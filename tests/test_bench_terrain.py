@@ -33,3 +33,16 @@ def test_ground_priors_in_a_few_words():
     assert bench._ground_priors({"level_ratio": 0.43, "level": True, "kept": True}) == "level (0.43), kept"
     assert bench._ground_priors({"level_ratio": 2.0, "level": False, "kept": False}) == "not level (2.0), dropped"
     assert bench._ground_priors({"level_ratio": None, "level": None, "kept": True}) == "untested (None), kept"
+
+
+def test_a_world_that_cannot_be_generated_ends_in_one_line(tmp_path, monkeypatch):
+    """A sensor synth does not know (7 rings) stops the bench with one line naming the spec and
+    synth's own reason, not a traceback."""
+    import pytest
+
+    bench = load_tool("bench_terrain")
+    monkeypatch.setattr(bench, "KITTI_GT", shared_data("trajectories", "kitti_gt", "00.txt.xz").parent)
+    with pytest.raises(SystemExit) as err:
+        bench.generate("00:7:5", tmp_path)
+    assert "'00:7:5'" in str(err.value) and "synth failed" in str(err.value) and "\n" not in str(err.value)
+    assert not (tmp_path / "ter00_7_5").exists()

@@ -65,7 +65,10 @@ def generate(spec: str, root: Path) -> Path:
                *sensor, "--terrain", "--out", str(out), "--overwrite"]
         if len(parts) == 3:
             cmd += ["--max-scans", parts[2]]
-        subprocess.run(cmd, check=True, cwd=REPO)
+        proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
+        if proc.returncode != 0:
+            why = (proc.stderr.strip() or proc.stdout.strip()).splitlines()[-1:] or ["no message"]
+            raise SystemExit(f"--generate {spec!r}: synth failed: {why[0]}")
     return out
 
 
