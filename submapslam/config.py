@@ -201,6 +201,14 @@ class BackendConfig(_Strict):
         "[deg] (a soft roll/pitch prior; the world's up is the first submap's ground normal). Without an IMU "
         "the vertical drifts: on a 3.7 km drive scan matching alone climbed 45 m on flat ground. null: off "
         "(e.g. a robot climbing ramps of more than a few degrees)")
+    wall_vertical_sigma_deg: float | None = Field(
+        0.5, gt=0, description="3D logs from spinning LiDARs: where a submap sees walls facing at least two ways, "
+        "its level prior holds the vertical those walls give (mapping.vertical: plumb whatever the road's grade) "
+        "within this sigma [deg], instead of its ground plane within ground_attitude_sigma_deg; once a run has "
+        "had such a prior (within its first 5 submaps), a submap without walls gets no level prior. These priors "
+        "are not a bet on level ground, so the level test does not take them out (summary.json ground_priors: "
+        "level_priors_from, wall_verticals). Narrow-field sensors (voxel_gicp odometry) keep their ground planes. "
+        "null: ground planes only (the behaviour before)")
     ground_tilt_change_sigma_deg: float | None = Field(
         0.2, gt=0, description="3D logs: consecutive submaps' ground planes, each seen under its own anchor, "
         "tilt alike within this sigma [deg]: the road's grade and cross-slope change by less than this from one "

@@ -25,6 +25,8 @@ from .submaps import Submap
 from .uncertainty import LevelGroundTest, TiltChangeSpread, TiltDrift, odometry_information
 
 PRIOR_INFORMATION = np.diag([1e8] * 6)  # the first anchor is the world frame
+WALL_VERTICAL_PRIOR = "wall vertical prior"  # the kind of a level prior whose up comes from the walls
+LEVEL_SOURCE_WAIT = 5  # submaps without walls after which the level priors come from the ground
 
 
 #: GTSAM-order indices of what a planar log cannot observe: roll, pitch, z
@@ -75,6 +77,15 @@ class GraphBuilder:
         self.level_test = (LevelGroundTest() if priors and config.ground_priors_level_test and not planar
                            and self.tilt_drift is not None else None)
         self.ground_prior_test: dict = {}  # summary.json's ground_priors: the level test and what it decided
+        self._level_from: str | None = None  # 3D: where the level priors' up comes from: "walls" or "ground"
+        self._pending_level: list[tuple[int, np.ndarray, np.ndarray]] = []  # (id, ground up, R_odom_anchor) waiting
+        self._submaps_without_walls = 0  # 3D: submaps seen before the level priors' source was chosen
+        # the walls' vertical: spinning LiDARs only. A narrow-field sensor's odometry holds its tilt to
+        # 0.01 deg a submap, and on two of four Livox-like drives the wall priors cost lateral accuracy
+        # (BENCHMARKS.md, "Level priors from the walls")
+        self._walls_apply = (not planar and config.ground_attitude_sigma_deg is not None
+                             and config.wall_vertical_sigma_deg is not None and odometry.registration != "voxel_gicp")
+        self.wall_verticals = 0  # 3D: level priors from walls (summary.json ground_priors)
 
     def _time(self, stage: str):
         return self._timer(stage) if self._timer is not None else nullcontext()
@@ -109,36 +120,87 @@ class GraphBuilder:
                 if self.planar:
                     info = pin_planar(info)
             self.odometry_information[submap.id] = info
+        up = vertical = None
+        if not self.planar and (self.config.ground_attitude_sigma_deg is not None
+                                or self.config.ground_tilt_change_sigma_deg is not None):
+            from .mapping.height_band import ground_normal
+
+            with self._time("vertical"):
+                up = ground_normal(submap.points)
+                vertical = self._wall_vertical(submap, up)
         with self._time("optimisation"):
             if previous is None:
                 self.graph.add_node(submap.id, submap.T_odom_anchor, PRIOR_INFORMATION)
             else:
                 self.graph.add_node(submap.id, self.graph.pose(previous.id) @ T_prev_k)
                 self.graph.add_between(previous.id, submap.id, T_prev_k, info, "odometry")
-            self._add_ground_attitude(submap, previous, T_prev_k)
+            if up is not None or vertical is not None:
+                self._add_ground_attitude(submap, previous, T_prev_k, up, vertical)
             self.graph.update()
 
-    def _add_ground_attitude(self, submap: Submap, previous: Submap | None, T_prev_k: np.ndarray | None) -> None:
-        """3D: the soft prior that the ground under each anchor is level in the world (the
-        world's up is the ground normal under the first anchor that sees ground), and that it
-        tilts like the ground under the previous anchor (``T_prev_k``: the odometry between them)."""
+    def _wall_vertical(self, submap: Submap, up: np.ndarray | None) -> np.ndarray | None:
+        """3D: the vertical ``(3,)`` the submap's walls give in its anchor frame
+        (:func:`~submapslam.mapping.vertical.structure_vertical`), or None: none found, level priors
+        off, a narrow-field sensor, or the run's level priors come from the ground."""
+        if not self._walls_apply or self._level_from == "ground":
+            return None
+        from .mapping.vertical import structure_vertical
+
+        guess = up if up is not None else np.array([0.0, 0.0, 1.0])
+        voxel = max(0.5, self.match_voxel / 2.0)  # the submap's own voxel or coarser: a block holds a wall's points
+        return structure_vertical(np.asarray(submap.points, dtype=np.float64), guess, voxel=voxel, query_cell=2.0 * voxel)
+
+    def _add_level_prior(self, submap: Submap, up: np.ndarray | None, vertical: np.ndarray | None) -> None:
+        """3D: the soft prior that each anchor is level in the world. Its up comes from one
+        source for the whole run, so that all the priors agree on the world's up: the walls
+        (``vertical``, ``wall_vertical_sigma_deg``) when the run's first submaps show them, else
+        the ground planes (``up``, ``ground_attitude_sigma_deg``: the world's up is the first
+        anchor's ground normal). Until the source is chosen (walls seen, or
+        :data:`LEVEL_SOURCE_WAIT` submaps without), ground priors wait."""
+        R = submap.T_odom_anchor[:3, :3]  # the odometry frame is the world frame
+        if vertical is not None:
+            if self._level_from is None:
+                self._level_from, self._world_up = "walls", R @ vertical
+                self._pending_level.clear()
+            self.wall_verticals += 1
+            self.graph.add_attitude(submap.id, vertical, self._world_up,
+                                    np.deg2rad(self.config.wall_vertical_sigma_deg), kind=WALL_VERTICAL_PRIOR)
+            return
+        if self._level_from == "walls" or up is None:
+            return
+        self._pending_level.append((submap.id, up, R))
+        if self._level_from is None:
+            self._submaps_without_walls += 1
+            if self._walls_apply and self._submaps_without_walls < LEVEL_SOURCE_WAIT:
+                return
+            self._level_from = "ground"
+        self._add_pending_ground_levels()
+
+    def _add_pending_ground_levels(self) -> None:
+        """The ground-plane level priors held back while the walls might still have been the source."""
+        sigma = np.deg2rad(self.config.ground_attitude_sigma_deg)
+        for key, up, R in self._pending_level:
+            if self._world_up is None:
+                self._world_up = R @ up
+            self.graph.add_attitude(key, up, self._world_up, sigma)
+        self._pending_level.clear()
+
+    def _add_ground_attitude(self, submap: Submap, previous: Submap | None, T_prev_k: np.ndarray | None,
+                             up: np.ndarray | None, vertical: np.ndarray | None) -> None:
+        """3D: the soft prior that each anchor is level in the world (:meth:`_add_level_prior`:
+        from its walls' ``vertical`` or its ground normal ``up``, each ``(3,)`` in the anchor frame),
+        and that its ground tilts like the ground under the previous anchor (``T_prev_k``: the
+        odometry between them)."""
         sigma = self.config.ground_attitude_sigma_deg
         change = self.config.ground_tilt_change_sigma_deg
-        if self.planar or (sigma is None and change is None):
-            return
-        from .mapping.height_band import ground_normal
-
-        up = ground_normal(submap.points)
+        if sigma is not None:
+            self._add_level_prior(submap, up, vertical)
         if up is None:
             return
         self._ground_up[submap.id] = up
         if self.level_test is not None:
             self.level_test.add(submap.id, submap.T_odom_anchor[:3, :3] @ up,
                                 previous.distance if previous is not None else 0.0)
-        if sigma is not None:
-            if self._world_up is None:
-                self._world_up = submap.T_odom_anchor[:3, :3] @ up  # the odometry frame is the world frame
-            self.graph.add_attitude(submap.id, up, self._world_up, np.deg2rad(sigma))
         up_before = self._ground_up.get(previous.id) if previous is not None else None
         if change is None or up_before is None:
             return
@@ -167,12 +229,13 @@ class GraphBuilder:
         if self.level_test is None:
             return
         ratio = self.level_test.ratio(self.tilt_drift.sigma)
-        self.ground_prior_test = {"level_ratio": None if ratio is None else round(ratio, 3), "level": None, "kept": True}
+        self.ground_prior_test = {"level_ratio": None if ratio is None else round(ratio, 3), "level": None, "kept": True,
+                                  "level_priors_from": self._level_from, "wall_verticals": self.wall_verticals}
         if ratio is None:
             return
         self.ground_prior_test["level"] = ratio <= 1.0
         if ratio > 1.0:
-            self.ground_prior_test.update(self.graph.drop_ground_priors_unless_loops_agree())
+            self.ground_prior_test.update(self.graph.drop_ground_priors_unless_loops_agree(keep_kinds={WALL_VERTICAL_PRIOR}))
 
     def tilt_change_summary(self) -> dict:
         """``summary.json``'s ``ground_tilt_change``: pairs, their spread and the sigma in use
@@ -244,6 +307,10 @@ class GraphBuilder:
         with self._time("optimisation"):
             if self._pending_tilt_changes:  # a run too short to measure the spread: the configured sigma
                 self._add_pending_tilt_changes(self.tilt_change.floor_rad)
+                self.graph.update()
+            if self._pending_level:  # a short run without walls: its ground planes
+                self._level_from = "ground"
+                self._add_pending_ground_levels()
                 self.graph.update()
             self._test_ground_priors()
             weights, dropped = {}, []

@@ -148,3 +148,47 @@ def test_closures_that_contradict_the_priors_win():
         assert bent > 1.0 and max(np.linalg.norm(g.pose(k)[:3, 3] - truth[k][:3, 3]) for k in range(20)) < 0.01
         assert sum(e.kind == "loop" for e in g.active_edges()) == len(loops)
         assert g.prior_chi2() == {}  # the priors left the graph
+
+
+def _walled_submap(k: int, T_odom_anchor: np.ndarray, R_world_anchor: np.ndarray, step: float):
+    """:func:`_road_submap` with three plumb walls beside the road (a facade on each side and one
+    across the street ahead, 6 m high, every 0.25 m), placed by the anchor's true attitude
+    ``R_world_anchor`` (3, 3): in the anchor's frame they lean by the road's grade."""
+    sm = _road_submap(k, T_odom_anchor, step)
+    u, h = np.meshgrid(np.arange(-8.0, 8.0, 0.25), np.arange(-1.7, 4.3, 0.25))
+    u, h = u.ravel(), h.ravel()
+    walls = np.concatenate([np.c_[u, np.full_like(u, 9.0), h], np.c_[u, np.full_like(u, -9.0), h],
+                            np.c_[np.full_like(u, 14.0), 0.5 * u, h]])
+    sm.points = np.concatenate([sm.points, walls @ R_world_anchor])  # R^T w, row-wise
+    return sm
+
+
+def test_walls_hold_the_vertical_where_the_road_climbs():
+    """A road that climbs to 5 deg and dips back, under an odometry that pitches 0.1 deg up every
+    step. The ground planes cannot tell the grade from that drift: as priors they are dropped
+    (not level, no closure) and the drift stays, or, kept, they flatten the climb. The walls beside
+    the road stand plumb: their vertical holds the true attitude, so the heights come back."""
+    grades = [min(5.0, 0.5 * k) if k < 25 else max(0.0, 5.0 - 0.5 * (k - 25)) for k in range(40)]
+    truth, odometry = _drive(grades, bias_deg=0.1)
+
+    def run(walls: bool, **backend):
+        config = BackendConfig(odometry_registration_covariance=False, **backend)
+        builder = GraphBuilder(config, OdometryConfig(), planar=False, match_voxel=0.5)
+        make = (lambda k: _walled_submap(k, odometry[k], truth[k][:3, :3], 12.0)) if walls else (
+            lambda k: _road_submap(k, odometry[k], 12.0))
+        submaps = [make(k) for k in range(len(truth))]
+        for k, sm in enumerate(submaps):
+            prev = submaps[k - 1] if k else None
+            info = None if prev is None else odometry_information(
+                inverse(prev.T_odom_anchor) @ sm.T_odom_anchor, 12.0, False, config)
+            builder.add_submap(sm, prev, False, information=info, tilt=np.deg2rad([0.1, -0.1]) if k else None)
+        builder.finish()
+        return builder, max(np.linalg.norm(builder.graph.pose(k)[:3, 3] - truth[k][:3, 3]) for k in range(len(truth)))
+
+    walled, error = run(True)
+    test = walled.ground_prior_test
+    assert test["level_priors_from"] == "walls" and test["wall_verticals"] == len(truth)
+    _, ground_only = run(True, wall_vertical_sigma_deg=None)
+    _, no_walls = run(False)
+    assert error < 0.25 * min(ground_only, no_walls), (error, ground_only, no_walls)
+    assert error < 1.0

@@ -140,15 +140,17 @@ class PoseGraph:
             self._pending_graph.add(f)
             self._graph.add(f)
 
-    def add_attitude(self, key: int, up_in_node: np.ndarray, up_in_world: np.ndarray, sigma_rad: float) -> None:
+    def add_attitude(self, key: int, up_in_node: np.ndarray, up_in_world: np.ndarray, sigma_rad: float,
+                     kind: str = "ground attitude prior") -> None:
         """Soft prior that the node's ``up_in_node`` ``(3,)`` direction points along the world's
-        ``up_in_world`` ``(3,)``: constrains roll and pitch, never yaw or position (2 DOF)."""
+        ``up_in_world`` ``(3,)``: constrains roll and pitch, never yaw or position (2 DOF). ``kind``
+        names it in the final check's and the ground-prior test's accounts."""
         gtsam = self._gtsam
         f = gtsam.AttitudeFactorPose3(key, gtsam.Unit3(np.asarray(up_in_world, dtype=np.float64)),
                                       self._prior_noise(gtsam.noiseModel.Isotropic.Sigma(2, float(sigma_rad))),
                                       gtsam.Unit3(np.asarray(up_in_node, dtype=np.float64)))
         self._pending_graph.add(f)
-        self._priors[self._graph.size()] = ("ground attitude prior", key, key, np.eye(2) / float(sigma_rad) ** 2)
+        self._priors[self._graph.size()] = (kind, key, key, np.eye(2) / float(sigma_rad) ** 2)
         self._graph.add(f)
 
     def add_relative_attitude(self, i: int, j: int, up_i: np.ndarray, up_j: np.ndarray, T_i_j: np.ndarray,
@@ -309,7 +311,8 @@ class PoseGraph:
         return weights
 
     def drop_ground_priors_unless_loops_agree(self, limit: float = 22.46, margin: float = 3.84,
-                                              max_iterations: int = 100) -> dict:
+                                              max_iterations: int = 100,
+                                              keep_kinds: frozenset[str] | set[str] = frozenset()) -> dict:
         """Keep the ground priors unless the loop closures contradict them, or none vouches for them.
 
         For a world the run found not level (:class:`~submapslam.uncertainty.LevelGroundTest`):
@@ -319,10 +322,12 @@ class PoseGraph:
         ``limit`` (a wrong closure counts once), is summed for both. The priors stay when they
         raise that sum by at most ``margin`` (chi-square, 1 DOF, 95 %); else, and with no closure
         to vouch for them, they leave the graph and the solution without them becomes the
-        estimate. Returns ``{"kept", "priors", "loops", "loop_chi2_with", "loop_chi2_without"}``.
+        estimate. Priors of ``keep_kinds`` (not a bet on level ground: the walls' vertical) are
+        neither tested nor dropped. Returns ``{"kept", "priors", "loops", "loop_chi2_with",
+        "loop_chi2_without"}``.
         """
         gtsam = self._gtsam
-        priors = {idx for idx in self._priors if idx not in self._excluded}
+        priors = {idx for idx, p in self._priors.items() if idx not in self._excluded and p[0] not in keep_kinds}
         loops = [idx for idx, key in self._factor_edges.items()
                  if self.edges[key].kind == "loop" and idx not in self._excluded]
         out = {"kept": True, "priors": len(priors), "loops": len(loops),

@@ -27,7 +27,7 @@ import numpy as np
 
 from ..config import PipelineConfig
 from ..geometry import blend_poses_many, inverse
-from ..graph_builder import PRIOR_INFORMATION
+from ..graph_builder import PRIOR_INFORMATION, WALL_VERTICAL_PRIOR
 from ..result import SlamResult
 from ..session_map import SessionInfo, SessionMap
 from ..submaps import Submap
@@ -163,47 +163,62 @@ def _scan_poses_after(result: SlamResult, sessions: list[SessionInfo], new_ancho
 
 
 def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo], config: PipelineConfig,
-                          ground_ups: dict[int, np.ndarray | None]) -> None:
-    """3D: the engine's soft priors on the ground under each anchor (as the graph builder adds
-    them): level, in the up direction of the map frame for placed sessions and of its own frame
-    for an unplaced one (without it the merged graph may tilt where the links are few), and
+                          ground_ups: dict[int, tuple[np.ndarray | None, np.ndarray | None]]) -> None:
+    """3D: the engine's soft priors on each anchor's attitude (as the graph builder adds them):
+    level, in the up direction of the map frame for placed sessions and of its own frame for an
+    unplaced one (without it the merged graph may tilt where the links are few), and the ground
     tilted like the ground under the session's previous anchor, at the configured
     ``ground_tilt_change_sigma_deg`` (a single run measures that sigma from its own odometry,
-    :class:`~submapslam.uncertainty.TiltChangeSpread`; a merge does not yet). ``ground_ups``: each submap's
-    ground normal in its anchor frame (or None), filled in here where missing and kept by the
+    :class:`~submapslam.uncertainty.TiltChangeSpread`; a merge does not yet). The level priors
+    come from the walls' vertical (``wall_vertical_sigma_deg``; spinning LiDARs) when any submap of
+    the merge has one, else from the ground planes. ``ground_ups``: each submap's ``(ground normal, walls'
+    vertical)`` in its anchor frame (either None), filled in here where missing and kept by the
     caller (a submap's points never change; the merge optimises many times)."""
     sigma = config.backend.ground_attitude_sigma_deg
     change = config.backend.ground_tilt_change_sigma_deg
     if result.planar or (sigma is None and change is None):
         return
     from ..mapping.height_band import ground_normal
+    from ..mapping.vertical import structure_vertical
 
+    narrow = result.odometry_registration == "voxel_gicp"  # a narrow-field sensor keeps its ground planes
+    walls_sigma = config.backend.wall_vertical_sigma_deg if sigma is not None and not narrow else None
+    voxel = max(0.5, float(result.map_voxel_size))  # the submaps' voxel or coarser, as the graph builder takes it
+    for s in sessions:
+        for k in s.submaps:
+            if k not in ground_ups:
+                up = ground_normal(result.submap_points[k])
+                vertical = None if walls_sigma is None else structure_vertical(
+                    np.asarray(result.submap_points[k], dtype=np.float64),
+                    up if up is not None else np.array([0.0, 0.0, 1.0]), voxel=voxel, query_cell=2.0 * voxel)
+                ground_ups[k] = (up, vertical)
+    walls = walls_sigma is not None and any(ground_ups[k][1] is not None for s in sessions for k in s.submaps)
+    level_sigma = np.deg2rad(walls_sigma if walls else sigma) if sigma is not None else None
     map_up = None
     for s in sessions:
         own_up = None
         up_before = None
         for k in s.submaps:
-            if k not in ground_ups:
-                ground_ups[k] = ground_normal(result.submap_points[k])
-            up = ground_ups[k]
+            up, vertical = ground_ups[k]
             if up is not None and change is not None and up_before is not None:
                 T_guess = inverse(result.submap_poses[k - 1]) @ result.submap_poses[k]
                 graph.add_relative_attitude(k - 1, k, up_before, up, T_guess, np.deg2rad(change))
             up_before = up
-            if up is None or sigma is None:
+            level = vertical if walls else up
+            if level is None or level_sigma is None:
                 continue
-            world = result.submap_poses[k][:3, :3] @ up
+            world = result.submap_poses[k][:3, :3] @ level
             if s.placed:
                 map_up = world if map_up is None else map_up
                 target = map_up
             else:
                 own_up = world if own_up is None else own_up
                 target = own_up
-            graph.add_attitude(k, up, target, np.deg2rad(sigma))
+            graph.add_attitude(k, level, target, level_sigma, kind=WALL_VERTICAL_PRIOR if walls else "ground attitude prior")
 
 
 def _optimise(result: SlamResult, sessions: list[SessionInfo], config: PipelineConfig,
-              ground_ups: dict[int, np.ndarray | None], frozen: tuple[int, int] = (0, 0)) -> list[tuple[int, int, str]]:
+              ground_ups: dict[int, tuple], frozen: tuple[int, int] = (0, 0)) -> list[tuple[int, int, str]]:
     """Optimise the merged graph in place: anchors, scans, covariances, edges kept
     (``ground_ups``: see :func:`_add_ground_attitudes`). ``frozen``: (scans, submaps) at the
     start of the result that belong to a frozen base map: held, and returned exactly as they were.
@@ -288,7 +303,7 @@ class SessionMerger:
         self._n_base = base.n_sessions
         self._frozen = (result.n_scans, result.n_submaps) if freeze_base else (0, 0)  # held scans, submaps
         self._tried_at: dict[int, int] = {}  # session index -> sessions placed when it was last tried
-        self._ground_ups: dict[int, np.ndarray | None] = {}  # 3D: submap id -> ground normal (global ids)
+        self._ground_ups: dict[int, tuple] = {}  # 3D: submap id -> (ground normal, walls' vertical) (global ids)
         planar = base.result.planar
         cfg = self.config
         voxel = cfg.submaps.voxel_size or _submap_voxel(base.result)
