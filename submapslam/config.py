@@ -215,7 +215,8 @@ class BackendConfig(_Strict):
         "anchor to the next (~12 m). A soft prior on the relative roll and pitch (a constant slope satisfies it; "
         "the yaw and the positions stay free) that keeps the odometry's small pitch bias from adding up: on three "
         "600-scan drives ATE 0.10-0.24 -> 0.07-0.13 m, the height error most of it. null: off (terrain whose "
-        "slope changes sharply, ramps)")
+        "slope changes sharply, ramps). Not added where the level priors come from the walls "
+        "(wall_vertical_sigma_deg), which hold each anchor's tilt themselves")
     ground_tilt_change_from_data: bool = Field(
         True, description="3D logs: the tilt-change prior's sigma is the larger of ground_tilt_change_sigma_deg and "
         "the spread of the tilt changes the run itself sees between consecutive anchors (their ground normals "

@@ -162,6 +162,7 @@ class GraphBuilder:
             if self._level_from is None:
                 self._level_from, self._world_up = "walls", R @ vertical
                 self._pending_level.clear()
+                self._pending_tilt_changes.clear()
             self.wall_verticals += 1
             self.graph.add_attitude(submap.id, vertical, self._world_up,
                                     np.deg2rad(self.config.wall_vertical_sigma_deg), kind=WALL_VERTICAL_PRIOR)
@@ -189,8 +190,8 @@ class GraphBuilder:
                              up: np.ndarray | None, vertical: np.ndarray | None) -> None:
         """3D: the soft prior that each anchor is level in the world (:meth:`_add_level_prior`:
         from its walls' ``vertical`` or its ground normal ``up``, each ``(3,)`` in the anchor frame),
-        and that its ground tilts like the ground under the previous anchor (``T_prev_k``: the
-        odometry between them)."""
+        and, unless the walls are that source, that its ground tilts like the ground under the
+        previous anchor (``T_prev_k``: the odometry between them)."""
         sigma = self.config.ground_attitude_sigma_deg
         change = self.config.ground_tilt_change_sigma_deg
         if sigma is not None:
@@ -202,8 +203,8 @@ class GraphBuilder:
             self.level_test.add(submap.id, submap.T_odom_anchor[:3, :3] @ up,
                                 previous.distance if previous is not None else 0.0)
         up_before = self._ground_up.get(previous.id) if previous is not None else None
-        if change is None or up_before is None:
-            return
+        if change is None or up_before is None or self._level_from == "walls":
+            return  # the walls hold each anchor's tilt: the ground's changes of grade are no prior then
         if self.tilt_change is None:
             self.graph.add_relative_attitude(previous.id, submap.id, up_before, up, T_prev_k, np.deg2rad(change))
             return
@@ -215,8 +216,11 @@ class GraphBuilder:
             self._add_pending_tilt_changes(sigma)
 
     def _add_pending_tilt_changes(self, sigma_rad: float) -> None:
-        """The tilt-change priors held back until the run's spread was known, at ``sigma_rad``."""
+        """The tilt-change priors held back until the run's spread was known, at ``sigma_rad``
+        (none once the walls are the level priors' source)."""
         self._tilt_change_sigma = sigma_rad
+        if self._level_from == "walls":
+            self._pending_tilt_changes.clear()
         for i, j, up_i, up_j, T_i_j in self._pending_tilt_changes:
             self.graph.add_relative_attitude(i, j, up_i, up_j, T_i_j, sigma_rad)
         self._pending_tilt_changes.clear()

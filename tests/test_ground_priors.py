@@ -151,14 +151,14 @@ def test_closures_that_contradict_the_priors_win():
 
 
 def _walled_submap(k: int, T_odom_anchor: np.ndarray, R_world_anchor: np.ndarray, step: float):
-    """:func:`_road_submap` with three plumb walls beside the road (a facade on each side and one
-    across the street ahead, 6 m high, every 0.25 m), placed by the anchor's true attitude
+    """:func:`_road_submap` with three plumb walls (a facade on each side, 16 m off, and one across
+    the street 20 m ahead, 6 m high, every 0.25 m), placed by the anchor's true attitude
     ``R_world_anchor`` (3, 3): in the anchor's frame they lean by the road's grade."""
     sm = _road_submap(k, T_odom_anchor, step)
     u, h = np.meshgrid(np.arange(-8.0, 8.0, 0.25), np.arange(-1.7, 4.3, 0.25))
     u, h = u.ravel(), h.ravel()
-    walls = np.concatenate([np.c_[u, np.full_like(u, 9.0), h], np.c_[u, np.full_like(u, -9.0), h],
-                            np.c_[np.full_like(u, 14.0), 0.5 * u, h]])
+    walls = np.concatenate([np.c_[u, np.full_like(u, 16.0), h], np.c_[u, np.full_like(u, -16.0), h],
+                            np.c_[np.full_like(u, 20.0), 0.5 * u, h]])  # beyond the 15 m the ground plane is fitted in
     sm.points = np.concatenate([sm.points, walls @ R_world_anchor])  # R^T w, row-wise
     return sm
 
@@ -167,7 +167,8 @@ def test_walls_hold_the_vertical_where_the_road_climbs():
     """A road that climbs to 5 deg and dips back, under an odometry that pitches 0.1 deg up every
     step. The ground planes cannot tell the grade from that drift: as priors they are dropped
     (not level, no closure) and the drift stays, or, kept, they flatten the climb. The walls beside
-    the road stand plumb: their vertical holds the true attitude, so the heights come back."""
+    the road stand plumb: their vertical holds the true attitude, so the heights come back (and the
+    ground's tilt-change priors, which would fight the changes of grade, are not added)."""
     grades = [min(5.0, 0.5 * k) if k < 25 else max(0.0, 5.0 - 0.5 * (k - 25)) for k in range(40)]
     truth, odometry = _drive(grades, bias_deg=0.1)
 
@@ -188,6 +189,8 @@ def test_walls_hold_the_vertical_where_the_road_climbs():
     walled, error = run(True)
     test = walled.ground_prior_test
     assert test["level_priors_from"] == "walls" and test["wall_verticals"] == len(truth)
+    assert test["level_ratio"] is not None  # the ground was seen under every anchor ...
+    assert len(walled.graph.prior_chi2()) == len(truth)  # ... but the priors are the walls' alone: no tilt change
     _, ground_only = run(True, wall_vertical_sigma_deg=None)
     _, no_walls = run(False)
     assert error < 0.25 * min(ground_only, no_walls), (error, ground_only, no_walls)

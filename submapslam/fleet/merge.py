@@ -166,8 +166,8 @@ def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo]
                           ground_ups: dict[int, tuple[np.ndarray | None, np.ndarray | None]]) -> None:
     """3D: the engine's soft priors on each anchor's attitude (as the graph builder adds them):
     level, in the up direction of the map frame for placed sessions and of its own frame for an
-    unplaced one (without it the merged graph may tilt where the links are few), and the ground
-    tilted like the ground under the session's previous anchor, at the configured
+    unplaced one (without it the merged graph may tilt where the links are few), and (unless the
+    walls give the level) the ground tilted like the ground under the session's previous anchor, at the configured
     ``ground_tilt_change_sigma_deg`` (a single run measures that sigma from its own odometry,
     :class:`~submapslam.uncertainty.TiltChangeSpread`; a merge does not yet). The level priors
     come from the walls' vertical (``wall_vertical_sigma_deg``; spinning LiDARs) when any submap of
@@ -200,7 +200,7 @@ def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo]
         up_before = None
         for k in s.submaps:
             up, vertical = ground_ups[k]
-            if up is not None and change is not None and up_before is not None:
+            if up is not None and change is not None and up_before is not None and not walls:
                 T_guess = inverse(result.submap_poses[k - 1]) @ result.submap_poses[k]
                 graph.add_relative_attitude(k - 1, k, up_before, up, T_guess, np.deg2rad(change))
             up_before = up
