@@ -205,7 +205,8 @@ class BackendConfig(_Strict):
         0.5, gt=0, description="3D logs from spinning LiDARs: where a submap sees walls facing at least two ways, "
         "its level prior holds the vertical those walls give (mapping.vertical: plumb whatever the road's grade) "
         "within this sigma [deg], instead of its ground plane within ground_attitude_sigma_deg; once a run has "
-        "had such a prior (within its first 5 submaps), a submap without walls gets no level prior. These priors "
+        "had such a prior (within its first 5 submaps), a submap without walls gets its ground plane's prior against "
+        "the walls' up (ground_attitude_sigma_deg). The walls' priors "
         "are not a bet on level ground, so the level test does not take them out (summary.json ground_priors: "
         "level_priors_from, wall_verticals). Narrow-field sensors (voxel_gicp odometry) keep their ground planes. "
         "null: ground planes only (the behaviour before)")

@@ -151,12 +151,13 @@ class GraphBuilder:
         return structure_vertical(np.asarray(submap.points, dtype=np.float64), guess, voxel=voxel, query_cell=2.0 * voxel)
 
     def _add_level_prior(self, submap: Submap, up: np.ndarray | None, vertical: np.ndarray | None) -> None:
-        """3D: the soft prior that each anchor is level in the world. Its up comes from one
-        source for the whole run, so that all the priors agree on the world's up: the walls
-        (``vertical``, ``wall_vertical_sigma_deg``) when the run's first submaps show them, else
-        the ground planes (``up``, ``ground_attitude_sigma_deg``: the world's up is the first
-        anchor's ground normal). Until the source is chosen (walls seen, or
-        :data:`LEVEL_SOURCE_WAIT` submaps without), ground priors wait."""
+        """3D: the soft prior that each anchor is level in the world. The world's up comes from one
+        source for the whole run, so that all the priors agree on it: the walls (``vertical``,
+        ``wall_vertical_sigma_deg``) when the run's first submaps show them, else the ground planes
+        (``up``, ``ground_attitude_sigma_deg``: the world's up is the first anchor's ground normal).
+        Until the source is chosen (walls seen, or :data:`LEVEL_SOURCE_WAIT` submaps without),
+        ground priors wait. Once it is the walls, a submap without walls gets its ground plane's
+        prior against the walls' up (the bet on level ground, where nothing better is seen)."""
         R = submap.T_odom_anchor[:3, :3]  # the odometry frame is the world frame
         if vertical is not None:
             if self._level_from is None:
@@ -167,7 +168,10 @@ class GraphBuilder:
             self.graph.add_attitude(submap.id, vertical, self._world_up,
                                     np.deg2rad(self.config.wall_vertical_sigma_deg), kind=WALL_VERTICAL_PRIOR)
             return
-        if self._level_from == "walls" or up is None:
+        if up is None:
+            return
+        if self._level_from == "walls":  # no walls here (a field, a highway): the ground plane, against the walls' up
+            self.graph.add_attitude(submap.id, up, self._world_up, np.deg2rad(self.config.ground_attitude_sigma_deg))
             return
         self._pending_level.append((submap.id, up, R))
         if self._level_from is None:

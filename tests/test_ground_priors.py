@@ -195,3 +195,26 @@ def test_walls_hold_the_vertical_where_the_road_climbs():
     _, no_walls = run(False)
     assert error < 0.25 * min(ground_only, no_walls), (error, ground_only, no_walls)
     assert error < 1.0
+
+
+def test_a_stretch_without_walls_keeps_its_ground_planes_against_the_walls_up():
+    """Walls for the first ten submaps, then a field with none, on level ground under an odometry
+    that pitches 0.1 deg up every step. The walls set the world's up; the field's submaps get
+    their ground planes' level priors against it, so its heights stay held (without any prior
+    there the odometry climbs metres)."""
+    truth, odometry = _drive([0.0] * 30, bias_deg=0.1)
+    config = BackendConfig(odometry_registration_covariance=False)
+    builder = GraphBuilder(config, OdometryConfig(), planar=False, match_voxel=0.5)
+    submaps = [_walled_submap(k, odometry[k], truth[k][:3, :3], 12.0) if k < 10 else _road_submap(k, odometry[k], 12.0)
+               for k in range(len(truth))]
+    for k, sm in enumerate(submaps):
+        prev = submaps[k - 1] if k else None
+        info = None if prev is None else odometry_information(
+            inverse(prev.T_odom_anchor) @ sm.T_odom_anchor, 12.0, False, config)
+        builder.add_submap(sm, prev, False, information=info, tilt=np.deg2rad([0.1, -0.1]) if k else None)
+    builder.finish()
+    assert builder.ground_prior_test["level_priors_from"] == "walls" and builder.ground_prior_test["wall_verticals"] == 10
+    assert len(builder.graph.prior_chi2()) == len(truth)  # ten walls' priors, twenty ground planes'
+    error = max(np.linalg.norm(builder.graph.pose(k)[:3, 3] - truth[k][:3, 3]) for k in range(len(truth)))
+    drift = max(np.linalg.norm(odometry[k][:3, 3] - truth[k][:3, 3]) for k in range(len(truth)))
+    assert drift > 3.0 and error < 0.2 * drift, (error, drift)
