@@ -140,15 +140,13 @@ class GraphBuilder:
 
     def _wall_vertical(self, submap: Submap, up: np.ndarray | None) -> np.ndarray | None:
         """3D: the vertical ``(3,)`` the submap's walls give in its anchor frame
-        (:func:`~submapslam.mapping.vertical.structure_vertical`), or None: none found, level priors
+        (:func:`~submapslam.mapping.vertical.submap_vertical`), or None: none found, level priors
         off, a narrow-field sensor, or the run's level priors come from the ground."""
         if not self._walls_apply or self._level_from == "ground":
             return None
-        from .mapping.vertical import structure_vertical
+        from .mapping.vertical import submap_vertical
 
-        guess = up if up is not None else np.array([0.0, 0.0, 1.0])
-        voxel = max(0.5, self.match_voxel / 2.0)  # the submap's own voxel or coarser: a block holds a wall's points
-        return structure_vertical(np.asarray(submap.points, dtype=np.float64), guess, voxel=voxel, query_cell=2.0 * voxel)
+        return submap_vertical(submap.points, up, self.match_voxel / 2.0)  # 3D submaps: half the match voxel
 
     def _add_level_prior(self, submap: Submap, up: np.ndarray | None, vertical: np.ndarray | None) -> None:
         """3D: the soft prior that each anchor is level in the world. The world's up comes from one

@@ -163,6 +163,20 @@ def _walled_submap(k: int, T_odom_anchor: np.ndarray, R_world_anchor: np.ndarray
     return sm
 
 
+def _feed(submaps: list, truth: list, **backend) -> tuple[GraphBuilder, float]:
+    """A GraphBuilder fed ``submaps`` (12 m apart, their edges' tilt corrections 0.1 deg: a 16-ring
+    odometry), finished; returns it and the largest anchor position error [m] against ``truth``."""
+    config = BackendConfig(odometry_registration_covariance=False, **backend)
+    builder = GraphBuilder(config, OdometryConfig(), planar=False, match_voxel=0.5)
+    for k, sm in enumerate(submaps):
+        prev = submaps[k - 1] if k else None
+        info = None if prev is None else odometry_information(
+            inverse(prev.T_odom_anchor) @ sm.T_odom_anchor, 12.0, False, config)
+        builder.add_submap(sm, prev, False, information=info, tilt=np.deg2rad([0.1, -0.1]) if k else None)
+    builder.finish()
+    return builder, max(np.linalg.norm(builder.graph.pose(k)[:3, 3] - truth[k][:3, 3]) for k in range(len(truth)))
+
+
 def test_walls_hold_the_vertical_where_the_road_climbs():
     """A road that climbs to 5 deg and dips back, under an odometry that pitches 0.1 deg up every
     step. The ground planes cannot tell the grade from that drift: as priors they are dropped
@@ -173,18 +187,9 @@ def test_walls_hold_the_vertical_where_the_road_climbs():
     truth, odometry = _drive(grades, bias_deg=0.1)
 
     def run(walls: bool, **backend):
-        config = BackendConfig(odometry_registration_covariance=False, **backend)
-        builder = GraphBuilder(config, OdometryConfig(), planar=False, match_voxel=0.5)
         make = (lambda k: _walled_submap(k, odometry[k], truth[k][:3, :3], 12.0)) if walls else (
             lambda k: _road_submap(k, odometry[k], 12.0))
-        submaps = [make(k) for k in range(len(truth))]
-        for k, sm in enumerate(submaps):
-            prev = submaps[k - 1] if k else None
-            info = None if prev is None else odometry_information(
-                inverse(prev.T_odom_anchor) @ sm.T_odom_anchor, 12.0, False, config)
-            builder.add_submap(sm, prev, False, information=info, tilt=np.deg2rad([0.1, -0.1]) if k else None)
-        builder.finish()
-        return builder, max(np.linalg.norm(builder.graph.pose(k)[:3, 3] - truth[k][:3, 3]) for k in range(len(truth)))
+        return _feed([make(k) for k in range(len(truth))], truth, **backend)
 
     walled, error = run(True)
     test = walled.ground_prior_test
@@ -203,18 +208,10 @@ def test_a_stretch_without_walls_keeps_its_ground_planes_against_the_walls_up():
     their ground planes' level priors against it, so its heights stay held (without any prior
     there the odometry climbs metres)."""
     truth, odometry = _drive([0.0] * 30, bias_deg=0.1)
-    config = BackendConfig(odometry_registration_covariance=False)
-    builder = GraphBuilder(config, OdometryConfig(), planar=False, match_voxel=0.5)
     submaps = [_walled_submap(k, odometry[k], truth[k][:3, :3], 12.0) if k < 10 else _road_submap(k, odometry[k], 12.0)
                for k in range(len(truth))]
-    for k, sm in enumerate(submaps):
-        prev = submaps[k - 1] if k else None
-        info = None if prev is None else odometry_information(
-            inverse(prev.T_odom_anchor) @ sm.T_odom_anchor, 12.0, False, config)
-        builder.add_submap(sm, prev, False, information=info, tilt=np.deg2rad([0.1, -0.1]) if k else None)
-    builder.finish()
+    builder, error = _feed(submaps, truth)
     assert builder.ground_prior_test["level_priors_from"] == "walls" and builder.ground_prior_test["wall_verticals"] == 10
     assert len(builder.graph.prior_chi2()) == len(truth)  # ten walls' priors, twenty ground planes'
-    error = max(np.linalg.norm(builder.graph.pose(k)[:3, 3] - truth[k][:3, 3]) for k in range(len(truth)))
     drift = max(np.linalg.norm(odometry[k][:3, 3] - truth[k][:3, 3]) for k in range(len(truth)))
     assert drift > 3.0 and error < 0.2 * drift, (error, drift)

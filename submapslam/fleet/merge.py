@@ -179,18 +179,16 @@ def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo]
     if result.planar or (sigma is None and change is None):
         return
     from ..mapping.height_band import ground_normal
-    from ..mapping.vertical import structure_vertical
+    from ..mapping.vertical import submap_vertical
 
     narrow = result.odometry_registration == "voxel_gicp"  # a narrow-field sensor keeps its ground planes
     walls_sigma = config.backend.wall_vertical_sigma_deg if sigma is not None and not narrow else None
-    voxel = max(0.5, float(result.map_voxel_size))  # the submaps' voxel or coarser, as the graph builder takes it
     for s in sessions:
         for k in s.submaps:
-            if k not in ground_ups:
+            if k not in ground_ups:  # 3D: the map voxel is the submaps' (at least 0.1 m)
                 up = ground_normal(result.submap_points[k])
-                vertical = None if walls_sigma is None else structure_vertical(
-                    np.asarray(result.submap_points[k], dtype=np.float64),
-                    up if up is not None else np.array([0.0, 0.0, 1.0]), voxel=voxel, query_cell=2.0 * voxel)
+                vertical = (None if walls_sigma is None
+                            else submap_vertical(result.submap_points[k], up, result.map_voxel_size))
                 ground_ups[k] = (up, vertical)
     walls = walls_sigma is not None and any(ground_ups[k][1] is not None for s in sessions for k in s.submaps)
     level_sigma = np.deg2rad(walls_sigma if walls else sigma) if sigma is not None else None

@@ -56,6 +56,16 @@ def structure_vertical(points: np.ndarray, up_guess: np.ndarray, voxel: float = 
     return vertical if across.min() >= min_across else None
 
 
+def submap_vertical(points: np.ndarray, ground_up: np.ndarray | None, submap_voxel: float) -> np.ndarray | None:
+    """:func:`structure_vertical` of a submap's points ``(N, 3)`` at the scale its points allow:
+    blocks of voxels no finer than 0.5 m nor than the ``submap_voxel`` [m] (so a block holds a
+    wall's points), one normal per cell twice that; the guessed up is the submap's ground normal
+    ``ground_up`` ``(3,)``, or its frame's z."""
+    voxel = max(0.5, float(submap_voxel))
+    guess = ground_up if ground_up is not None else np.array([0.0, 0.0, 1.0])
+    return structure_vertical(np.asarray(points, dtype=np.float64), guess, voxel=voxel, query_cell=2.0 * voxel)
+
+
 def _tilt_levers(walls: np.ndarray, vertical: np.ndarray) -> np.ndarray:
     """``(2,)``: how strongly the unit ``walls`` ``(W, 3)`` fix the tilt of ``vertical`` about each of
     two horizontal axes (its eigen-axes): the mean of ``(n . (a x v))^2``, 1 when every wall's
