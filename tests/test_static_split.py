@@ -146,3 +146,32 @@ def test_with_the_floor_rule_a_steep_road_keeps_its_ground_and_the_car_still_goe
     points, moved = _split_drive(car_until=10, grade=0.15, params=floor)
     car = _inside(points, CAR)
     assert moved[car].mean() > 0.8 and moved[~car].mean() <= 0.005
+
+
+def test_a_steep_road_keeps_its_ground_at_the_defaults_and_the_car_still_goes():
+    """A road climbing 20 % ahead: beams skim over the slope and land on it metres on. Only beams
+    at or below a voxel's height count (``pass_above`` 0), so none of the hill goes (with beams
+    on either side counting, 2.3 % of it went) and the car that drove off still does."""
+    points, moved = _split_drive(car_until=0, grade=0.2)
+    far = points[:, 0] > HILL + 5.0
+    assert far.sum() > 1000
+    assert moved.mean() <= 0.001 and moved[far].mean() <= 0.001, (moved.mean(), moved[far].mean())
+    points, moved = _split_drive(car_until=10, grade=0.2)
+    car = _inside(points, CAR)
+    assert moved[car].mean() > 0.8 and moved[~car].mean() <= 0.001
+
+
+def test_a_beam_over_a_point_is_not_a_beam_through_it():
+    """RangeImage.passes with ``above`` 0: a beam 0.1 m under a voxel that ends 20 m beyond sees
+    through it; one 0.1 m over it (over a roof, along the ground) does not, unless either side counts."""
+    from submapslam.mapping.dynamic_removal import RangeImage
+
+    def margin(r: np.ndarray) -> np.ndarray:
+        return np.full(len(r), 0.5)
+
+    for rise, free_one_sided in ((-0.1, True), (0.1, False)):
+        beam = np.array([[40.0, 0.0, 40.0 * np.tan(rise / 20.0)]])  # passes the voxel at (20, 0, 0) by ``rise``
+        image = RangeImage(beam, 0.5, 0.4)
+        voxel = np.array([[20.0, 0.0, 0.0]])
+        assert image.passes(voxel, 0.3, margin)[1].tolist() == [True]
+        assert image.passes(voxel, 0.3, margin, above=0.0)[1].tolist() == [free_one_sided]

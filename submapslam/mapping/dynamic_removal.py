@@ -337,11 +337,13 @@ class RangeImage:
         return np.array([[-np.sin(start), np.cos(start), 0.0],  # counter-clockwise of start
                          [np.sin(end), -np.cos(end), 0.0]])  # clockwise of end
 
-    def passes(self, points_sensor: np.ndarray, tolerance: float, margin: Callable[[np.ndarray], np.ndarray]):
+    def passes(self, points_sensor: np.ndarray, tolerance: float, margin: Callable[[np.ndarray], np.ndarray],
+               above: float = np.inf):
         """For sensor-frame voxel centres ``(M, 3)``: ``(r, free, hit)``, each ``(M,)``.
 
         A beam *passes* a centre when its direction comes within ``tolerance`` [m] of it (the
-        beams of the centre's pixel and the pixels above and below). ``free``: at least one beam
+        beams of the centre's pixel and the pixels above and below) and passes it at most
+        ``above`` [m] higher (elevation offset x range; inf: either side). ``free``: at least one beam
         passes and every passing beam ended more than ``margin(r)`` beyond the centre; ``hit``:
         a passing beam ended within ``margin(r)`` of it, before or beyond (a beam that ended
         well short of it, on something in front, is neither).
@@ -371,7 +373,8 @@ class RangeImage:
             slot = self._slot[np.where(inside, rr, 0) * self.cols + cols]
             measured = self._range[slot]
             d_az = _wrap(self._az[slot] - az)
-            passing = inside & (measured > 0) & (np.abs(self._el[slot] - el) * r < tolerance) \
+            rise = (self._el[slot] - el) * r  # [m] how far above the centre the beam passes
+            passing = inside & (measured > 0) & (np.abs(rise) < tolerance) & (rise <= above) \
                 & (d_az * cos_el * r < tolerance)
             any_pass |= passing
             short |= passing & (measured <= r + m)

@@ -19,9 +19,10 @@ Two users, both with bounded memory (a few recent range images, one submap's sca
   the place descriptors and loop registration use. A map keeps what several scans saw, so this
   side asks for more evidence (:data:`SPLIT_PARAMS`, DUFOMap's hit extension among them): a
   scan's beam that passed just over a roof, under a canopy or beside a pole, on a 16-ring
-  sensor, does not count when that scan has a return within ``near_radius`` of the voxel; a
-  voxel needs more scans that saw through it than ``hit_weight`` x the scans whose beam ended
-  at it; an earlier submap's voxel that the new submap's scans hit again stays; and a beam
+  sensor, does not count when that scan has a return within ``near_radius`` of the voxel, nor
+  does any beam passing above the voxel (``pass_above``: far ground, a roof, a bonnet under a
+  beam that lands beyond on the same surface); a voxel needs more scans that saw through it
+  than ``hit_weight`` x the scans whose beam ended at it; an earlier submap's voxel that the new submap's scans hit again stays; and a beam
   that meets the surface at the voxel at a grazing angle (the ground far from the sensor: the
   surface's normal from the submap's points, :func:`~submapslam.mapping.local_normals.
   local_normals`) must end ``d x tan(angle to the normal)`` farther beyond it, since a beam
@@ -59,7 +60,8 @@ class MoverParams:
     voxel: float = 0.4  # [m] cluster / decision voxel
     margin: float = 0.5  # [m] a beam must end this far beyond a point to see through it ...
     margin_per_m: float = 0.05  # ... or this fraction of the point's range, whichever is larger
-    tolerance: float = 0.25  # [m] a beam passes a point when its direction comes this close
+    tolerance: float = 0.25  # [m] a beam passes a point when its direction comes this close ...
+    pass_above: float = float("inf")  # ... and passes at most this far above it (inf: either side)
     cluster_fraction: float = 0.3  # a cluster with this fraction of seen-through voxels moved ...
     min_votes: int = 2  # ... and at least this many
     ground_band: float = 0.3  # [m] points this close above the scan's ground are never tested
@@ -79,13 +81,17 @@ class MoverParams:
     floor_reach: int = 1  # ... vote: it stays a member of its cluster, never the reason it moves
 
 
-SPLIT_PARAMS = MoverParams(near_radius=0.3, hit_weight=0.5, protect_seen_again=True, protect_min_scans=4,
-                           incidence=True)
+SPLIT_PARAMS = MoverParams(tolerance=0.3, pass_above=0.0, near_radius=0.3, hit_weight=0.5, protect_seen_again=True,
+                           protect_min_scans=10, incidence=True)
 """The submap split's settings (:class:`SubmapMovers`): the odometry's test (:class:`MoverFilter`) keeps
 the plain ones. A map keeps what several scans saw: a voxel leaves it only when a scan saw through
 it with no return of its own within ``near_radius`` (and beyond the incidence margin), more scans
-saw through it than half those that ended their beam at it, and (earlier submaps) the new
-submap's scans did not hit it again."""
+saw through it than half those that ended their beam at it, and (earlier submaps) 10 of the new
+submap's scans did not hit it again. Only beams at or below a voxel's height count (``pass_above``
+0): a beam passing just over the ground, a roof or a bonnet lands beyond it on the same surface
+(metres on at a grazing angle, farther still past a crest) and says nothing of the space at the
+voxel, while a beam through or under it went where a mover stood; the window is 0.3 m instead of
+0.25 since it is one-sided."""
 
 
 
@@ -197,7 +203,7 @@ class ViewStack:
                 if graze:  # a beam passing the voxel grazes its surface: it ends on it up to d x tan(angle) on
                     extra = reach * grazing_tan(local, normals[idx] @ T[:3, :3].T, p.max_tan)
                     m = functools.partial(_plus, margin, extra)
-                _, f, h = image.passes(local, p.tolerance, m)
+                _, f, h = image.passes(local, p.tolerance, m, p.pass_above)
                 if p.near_radius > 0 and f.any():
                     f[f] = ~image.returns_near(local[f], p.near_radius)
                 free[idx[f]] += 1
