@@ -175,3 +175,31 @@ def test_a_beam_over_a_point_is_not_a_beam_through_it():
         voxel = np.array([[20.0, 0.0, 0.0]])
         assert image.passes(voxel, 0.3, margin)[1].tolist() == [True]
         assert image.passes(voxel, 0.3, margin, above=0.0)[1].tolist() == [free_one_sided]
+
+
+def _later_test_of_a_car(distance: float, params: MoverParams = SPLIT_PARAMS) -> float:
+    """Share of an earlier submap's car ``distance`` [m] ahead of it that goes when the new
+    submap's scans, driving away from it, see through where it stood (a wall 12 m beyond)."""
+    rng = np.random.default_rng(1)
+    car = (np.array([distance, -3.5, 0.2]), np.array([distance + 4.5, -1.7, 1.6]))
+    wall = (np.array([distance + 12.0, -30.0, 0.0]), np.array([distance + 13.0, 30.0, 10.0]))
+    origins = [np.array([-0.5 * k, 0.0, MOUNT]) for k in range(6)]
+    seen = np.vstack([_cast(o, [car, wall], rng) + o for o in origins[:2]])  # anchor = world frame
+    earlier = seen[_inside(seen, car)]
+    movers = SubmapMovers(params=params)
+    for k, origin in enumerate(origins):  # the new submap: the car has gone
+        T = np.eye(4)
+        T[:3, 3] = origin
+        scan = _cast(origin, [wall], rng)
+        movers.add(k, T, scan[::2], scan)
+    return float(movers.seen_through_later(movers.take(list(range(6))), np.eye(4), earlier).mean())
+
+
+def test_later_scans_test_earlier_submaps_within_their_range_only():
+    """An earlier submap's points get evidence from the new submap's scans within
+    ``later_max_range`` (30 m) only: beyond, the odometry's tilt drift between two submaps moves a
+    passing beam by a decimetre or more. A car that left 15 m away goes; 40 m away it stays (it
+    went with evidence from up to 50 m)."""
+    assert _later_test_of_a_car(15.0) == 1.0
+    assert _later_test_of_a_car(40.0) == 0.0
+    assert _later_test_of_a_car(40.0, dataclasses.replace(SPLIT_PARAMS, later_max_range=50.0)) == 1.0

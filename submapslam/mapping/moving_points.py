@@ -22,7 +22,8 @@ Two users, both with bounded memory (a few recent range images, one submap's sca
   sensor, does not count when that scan has a return within ``near_radius`` of the voxel, nor
   does any beam passing above the voxel (``pass_above``: far ground, a roof, a bonnet under a
   beam that lands beyond on the same surface); a voxel needs more scans that saw through it
-  than ``hit_weight`` x the scans whose beam ended at it; an earlier submap's voxel that the new submap's scans hit again stays; and a beam
+  than ``hit_weight`` x the scans whose beam ended at it; an earlier submap's voxel that the new
+  submap's scans hit again stays, and only its scans within ``later_max_range`` test it; and a beam
   that meets the surface at the voxel at a grazing angle (the ground far from the sensor: the
   surface's normal from the submap's points, :func:`~submapslam.mapping.local_normals.
   local_normals`) must end ``d x tan(angle to the normal)`` farther beyond it, since a beam
@@ -35,6 +36,7 @@ moved by ``T_base_sensor`` first), poses ``T_world_sensor`` ``(4, 4)``. Units: m
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import hashlib
 from collections.abc import Callable
@@ -65,7 +67,8 @@ class MoverParams:
     cluster_fraction: float = 0.3  # a cluster with this fraction of seen-through voxels moved ...
     min_votes: int = 2  # ... and at least this many
     ground_band: float = 0.3  # [m] points this close above the scan's ground are never tested
-    max_range: float = 50.0  # [m] points farther from a scan get no evidence from it
+    max_range: float = 50.0  # [m] points farther from a scan get no evidence from it ...
+    later_max_range: float = 50.0  # ... and in the test of earlier submaps by later scans, farther than this
     el_bin_deg: float = 0.5  # range-image pixel: elevation ...
     az_bin_deg: float = 0.4  # ... and azimuth
     near_radius: float = 0.0  # [m] a scan with a return this close to a point did not see through it (0: off)
@@ -82,7 +85,7 @@ class MoverParams:
 
 
 SPLIT_PARAMS = MoverParams(tolerance=0.3, pass_above=0.0, near_radius=0.3, hit_weight=0.5, protect_seen_again=True,
-                           protect_min_scans=10, incidence=True)
+                           protect_min_scans=10, incidence=True, later_max_range=30.0)
 """The submap split's settings (:class:`SubmapMovers`): the odometry's test (:class:`MoverFilter`) keeps
 the plain ones. A map keeps what several scans saw: a voxel leaves it only when a scan saw through
 it with no return of its own within ``near_radius`` (and beyond the incidence margin), more scans
@@ -91,7 +94,9 @@ submap's scans did not hit it again. Only beams at or below a voxel's height cou
 0): a beam passing just over the ground, a roof or a bonnet lands beyond it on the same surface
 (metres on at a grazing angle, farther still past a crest) and says nothing of the space at the
 voxel, while a beam through or under it went where a mover stood; the window is 0.3 m instead of
-0.25 since it is one-sided."""
+0.25 since it is one-sided. An earlier submap's points are tested by the later scans within 30 m
+only (``later_max_range``): farther, the odometry's drift between the two submaps (a few tenths of
+a degree of tilt) moves a passing beam by a decimetre or more."""
 
 
 
@@ -118,10 +123,11 @@ class ViewStack:
         self.index[k], self.valid[k] = index, True
         self.T_sensor_world[k] = np.linalg.inv(np.asarray(T_world_sensor, dtype=np.float64))
 
-    def subset(self, slots: np.ndarray) -> ViewStack:
+    def subset(self, slots: np.ndarray, params: MoverParams | None = None) -> ViewStack:
         """A stack of only the scans in ``slots`` (the images shared, not copied: an image never
-        changes), e.g. for work in another thread while this stack takes new scans."""
-        out = ViewStack(max(1, len(slots)), self.params)
+        changes), e.g. for work in another thread while this stack takes new scans; ``params``:
+        its own settings (None: this stack's)."""
+        out = ViewStack(max(1, len(slots)), self.params if params is None else params)
         for j, k in enumerate(slots):
             out.images[j], out.index[j], out.valid[j] = self.images[k], self.index[k], True
             out.T_sensor_world[j] = self.T_sensor_world[k]
@@ -581,13 +587,16 @@ class SubmapMovers:
     def seen_through_later(self, evidence: tuple, T_odom_anchor: np.ndarray, points: np.ndarray) -> np.ndarray:
         """``(M,)`` bool over an *earlier* submap's ``points`` (its anchor frame, anchor at
         ``T_odom_anchor``): the clusters the new submap's scans (after its first, which the
-        earlier submap shares) saw through: a parked car that left, a car seen at the edge of
-        its own submap's window. ``evidence``: the new submap's, from :meth:`take`."""
+        earlier submap shares, within ``later_max_range`` of a point) saw through: a parked car
+        that left, a car seen at the edge of its own submap's window. ``evidence``: the new
+        submap's, from :meth:`take`."""
         members, views, first = evidence
         later = views.slots(first + 1, 1 << 62, self.later_views)
+        p = self.params
+        near = views.subset(later, dataclasses.replace(p, max_range=min(p.max_range, p.later_max_range)))
         T = np.asarray(T_odom_anchor, dtype=np.float64)
         placed = self._placed(points, T)
-        votes = scan_votes(points, T, views, later, self.params, placed)
+        votes = scan_votes(points, T, near, np.arange(len(later)), p, placed)
         if self.params.protect_seen_again and votes.any():  # what the new submap's scans hit is still there
             votes[votes] = ~self._seen_again(members, first, transform_points(T, points[votes]))
         return clusters_moved(points, T, votes, self.params, placed)
