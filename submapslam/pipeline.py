@@ -194,10 +194,11 @@ class SubmapSLAM:
         if not self.planar and cfg.mapping.split_movers:
             import dataclasses
 
-            from .mapping.moving_points import SPLIT_PARAMS, SubmapMovers
+            from .mapping.moving_points import NARROW_SPLIT_PARAMS, SPLIT_PARAMS, SubmapMovers
 
+            split = NARROW_SPLIT_PARAMS if self.odometry_config.registration == "voxel_gicp" else SPLIT_PARAMS
             floor = cfg.mapping.split_floor_cell
-            self._movers = SubmapMovers(SPLIT_PARAMS if floor is None else dataclasses.replace(SPLIT_PARAMS, floor_cell=floor))
+            self._movers = SubmapMovers(split if floor is None else dataclasses.replace(split, floor_cell=floor))
         if not self.planar:  # prepared clouds, shared by odometry-edge registration and loop tests
             from .registration.spatial import SubmapClouds
 

@@ -177,13 +177,14 @@ def test_a_beam_over_a_point_is_not_a_beam_through_it():
         assert image.passes(voxel, 0.3, margin, above=0.0)[1].tolist() == [free_one_sided]
 
 
-def _later_test_of_a_car(distance: float, params: MoverParams = SPLIT_PARAMS) -> float:
+def _later_test_of_a_car(distance: float, params: MoverParams = SPLIT_PARAMS, step: float = -0.5) -> float:
     """Share of an earlier submap's car ``distance`` [m] ahead of it that goes when the new
-    submap's scans, driving away from it, see through where it stood (a wall 12 m beyond)."""
+    submap's scans, driving ``step`` [m] a scan along x (away from it when negative), see through
+    where it stood (a wall 12 m beyond)."""
     rng = np.random.default_rng(1)
     car = (np.array([distance, -3.5, 0.2]), np.array([distance + 4.5, -1.7, 1.6]))
     wall = (np.array([distance + 12.0, -30.0, 0.0]), np.array([distance + 13.0, 30.0, 10.0]))
-    origins = [np.array([-0.5 * k, 0.0, MOUNT]) for k in range(6)]
+    origins = [np.array([step * k, 0.0, MOUNT]) for k in range(6)]
     seen = np.vstack([_cast(o, [car, wall], rng) + o for o in origins[:2]])  # anchor = world frame
     earlier = seen[_inside(seen, car)]
     movers = SubmapMovers(params=params)
@@ -203,3 +204,12 @@ def test_later_scans_test_earlier_submaps_within_their_range_only():
     assert _later_test_of_a_car(15.0) == 1.0
     assert _later_test_of_a_car(40.0) == 0.0
     assert _later_test_of_a_car(40.0, dataclasses.replace(SPLIT_PARAMS, later_max_range=50.0)) == 1.0
+
+
+def test_a_forward_looking_sensor_counts_beams_on_either_side():
+    """Scans nearing a car that left pass a little above the earlier hits on its side: the
+    one-sided window keeps the car, the narrow sensor's settings (both sides, 0.25 m) take it."""
+    from submapslam.mapping.moving_points import NARROW_SPLIT_PARAMS
+
+    assert _later_test_of_a_car(15.0, SPLIT_PARAMS, step=0.5) == 0.0
+    assert _later_test_of_a_car(15.0, NARROW_SPLIT_PARAMS, step=0.5) > 0.9
