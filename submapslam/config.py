@@ -28,6 +28,13 @@ def _require_order(low_name: str, low: float | None, high_name: str, high: float
         raise ValueError(f"{low_name} ({low}) must be less than {high_name} ({high})")
 
 
+def narrow_field(registration: str) -> bool:
+    """Whether a run's resolved ``odometry.registration`` is the narrow-field sensors' (voxel_gicp):
+    how the stages after the odometry tell a forward-looking solid-state sensor's run (Livox-like)
+    from a spinning LiDAR's."""
+    return registration == "voxel_gicp"
+
+
 class OdometryConfig(_Strict):
     """KISS-ICP scan-to-map registration, seeded by wheel odometry when the log has it."""
 

@@ -18,7 +18,7 @@ from contextlib import nullcontext
 import numpy as np
 
 from .backend.pose_graph import PoseGraph, cap_covariance, floor_information
-from .config import BackendConfig, OdometryConfig
+from .config import BackendConfig, OdometryConfig, narrow_field
 from .geometry import inverse
 from .result import LoopRecord
 from .submaps import Submap
@@ -84,7 +84,7 @@ class GraphBuilder:
         # 0.01 deg a submap, and on two of four Livox-like drives the wall priors cost lateral accuracy
         # (BENCHMARKS.md, "Level priors from the walls")
         self._walls_apply = (not planar and config.ground_attitude_sigma_deg is not None
-                             and config.wall_vertical_sigma_deg is not None and odometry.registration != "voxel_gicp")
+                             and config.wall_vertical_sigma_deg is not None and not narrow_field(odometry.registration))
         self.wall_verticals = 0  # 3D: level priors from walls (summary.json ground_priors)
 
     def _time(self, stage: str):

@@ -16,7 +16,7 @@ from contextlib import contextmanager
 import numpy as np
 
 from .checkpoint import Checkpoint
-from .config import PipelineConfig
+from .config import PipelineConfig, narrow_field
 from .errors import InputError, OptimisationError, SubmapSlamError
 from .geometry import blend_poses_many, inverse
 from .graph_builder import GraphBuilder
@@ -196,7 +196,7 @@ class SubmapSLAM:
 
             from .mapping.moving_points import NARROW_SPLIT_PARAMS, SPLIT_PARAMS, SubmapMovers
 
-            split = NARROW_SPLIT_PARAMS if self.odometry_config.registration == "voxel_gicp" else SPLIT_PARAMS
+            split = NARROW_SPLIT_PARAMS if narrow_field(self.odometry_config.registration) else SPLIT_PARAMS
             floor = cfg.mapping.split_floor_cell
             self._movers = SubmapMovers(split if floor is None else dataclasses.replace(split, floor_cell=floor))
         if not self.planar:  # prepared clouds, shared by odometry-edge registration and loop tests

@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..config import PipelineConfig
+from ..config import PipelineConfig, narrow_field
 from ..geometry import blend_poses_many, inverse
 from ..graph_builder import PRIOR_INFORMATION, WALL_VERTICAL_PRIOR
 from ..result import SlamResult
@@ -181,8 +181,9 @@ def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo]
     from ..mapping.height_band import ground_normal
     from ..mapping.vertical import submap_vertical
 
-    narrow = result.odometry_registration == "voxel_gicp"  # a narrow-field sensor keeps its ground planes
-    walls_sigma = config.backend.wall_vertical_sigma_deg if sigma is not None and not narrow else None
+    # a narrow-field sensor keeps its ground planes
+    walls_sigma = (config.backend.wall_vertical_sigma_deg if sigma is not None
+                   and not narrow_field(result.odometry_registration) else None)
     for s in sessions:
         for k in s.submaps:
             if k not in ground_ups:  # 3D: the map voxel is the submaps' (at least 0.1 m)

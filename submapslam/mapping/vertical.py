@@ -70,7 +70,7 @@ def _tilt_levers(walls: np.ndarray, vertical: np.ndarray) -> np.ndarray:
     """``(2,)``: how strongly the unit ``walls`` ``(W, 3)`` fix the tilt of ``vertical`` about each of
     two horizontal axes (its eigen-axes): the mean of ``(n . (a x v))^2``, 1 when every wall's
     normal is perpendicular to the axis, 0 when all lie along it."""
-    levers = walls @ np.cross(np.eye(3), vertical).T  # (W, 3): n . (e_k x v) for the frame's axes
-    basis = np.linalg.svd(np.eye(3) - np.outer(vertical, vertical))[0][:, :2]  # two axes perpendicular to v
-    values = np.linalg.eigvalsh(basis.T @ (levers.T @ levers) @ basis / len(walls))
+    axes = np.linalg.svd(np.eye(3) - np.outer(vertical, vertical))[0][:, :2]  # two axes perpendicular to v
+    levers = walls @ np.cross(axes.T, vertical).T  # (W, 2): n . (a x v) for each axis a
+    values = np.linalg.eigvalsh(levers.T @ levers / len(walls))
     return np.maximum(values, 0.0)
