@@ -213,3 +213,31 @@ def test_a_forward_looking_sensor_counts_beams_on_either_side():
 
     assert _later_test_of_a_car(15.0, SPLIT_PARAMS, step=0.5) == 0.0
     assert _later_test_of_a_car(15.0, NARROW_SPLIT_PARAMS, step=0.5) > 0.9
+
+
+def test_map_and_dynamic_cloud_share_no_voxel():
+    """A voxel one submap's split took out but another submap kept stays in map.ply and is not
+    reported in map_dynamic.ply; a voxel no submap kept is reported (fails when the dynamic cloud
+    is every submap's split-off points, as before)."""
+    from submapslam.config import PipelineConfig
+    from submapslam.mapping.global_map import build_map_outputs
+    from submapslam.result import SlamResult
+
+    cfg = PipelineConfig()
+    cfg.mapping.write_grid = False
+    wall = np.array([[10.05, 0.05, 1.05], [10.05, 0.45, 1.05]])  # submap 0 keeps both voxels
+    shifted = np.eye(4)
+    shifted[0, 3] = 1.0  # submap 1's anchor 1 m along x: its points are world x + 1
+    held = [9.1, 0.1, 1.1]  # world (10.1, 0.1, 1.1): the voxel of submap 0's first wall point
+    gone = [19.1, 0.1, 1.1]  # world (20.1, 0.1, 1.1): nobody kept it
+    result = SlamResult(
+        timestamps=np.zeros(2), poses=np.tile(np.eye(4), (2, 1, 1)), odometry_poses=np.tile(np.eye(4), (2, 1, 1)),
+        submap_poses=np.stack([np.eye(4), shifted]), submap_covariances=np.tile(np.eye(6), (2, 1, 1)),
+        submap_points=[wall, np.zeros((0, 3))], submap_scan_indices=[[0], [1]],
+        submap_scan_poses=[np.eye(4)[None], np.eye(4)[None]], submap_scan_points=[[], []], edges=[], loops=[],
+        planar=False, config=cfg, map_voxel_size=0.4,
+        submap_dynamic_points=[np.zeros((0, 3)), np.array([held, gone])])
+    maps = build_map_outputs(result)
+    assert len(maps.points) == 2
+    np.testing.assert_allclose(maps.dynamic_points, [[20.1, 0.1, 1.1]], atol=1e-5)
+    assert maps.moved_points_in_map == 1

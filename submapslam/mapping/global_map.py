@@ -179,9 +179,11 @@ def _voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
 
 
 def fuse_clouds(clouds: Iterable[tuple[np.ndarray, np.ndarray]], voxel: float,
-                chunk_points: int = 300_000) -> np.ndarray:
+                chunk_points: int = 300_000, with_keys: bool = False):
     """Clouds ``(T_world_cloud (4, 4), points (N, 3))`` fused into one float32 ``(M, 3)`` world
-    cloud, the first point of each ``voxel`` [m] kept (clouds in the given order).
+    cloud, the first point of each ``voxel`` [m] kept (clouds in the given order). ``with_keys``:
+    ``(cloud, keys)``, ``keys`` ``(M,)`` int64 the voxel each point was kept for (computed from
+    the float64 world point, so exact where the float32 copy sits on a voxel's face).
 
     Streaming: the clouds are moved into the world frame about ``chunk_points`` points at a time;
     a chunk's voxels not yet in the map are appended. Memory holds the map (three float32 a
@@ -191,6 +193,7 @@ def fuse_clouds(clouds: Iterable[tuple[np.ndarray, np.ndarray]], voxel: float,
     """
     keys = np.zeros(0, dtype=np.int64)  # sorted voxel keys of the map
     pieces: list[np.ndarray] = []
+    piece_keys: list[np.ndarray] = []
     chunk: list[np.ndarray] = []
     size = 0
 
@@ -202,6 +205,8 @@ def fuse_clouds(clouds: Iterable[tuple[np.ndarray, np.ndarray]], voxel: float,
         known = pos < len(keys)
         known[known] = keys[pos[known]] == chunk_keys[known]
         pieces.append(pts[first[~known]].astype(np.float32))
+        if with_keys:
+            piece_keys.append(chunk_keys[~known])
         keys = np.insert(keys, pos[~known], chunk_keys[~known])
 
     for T, points in clouds:
@@ -213,7 +218,18 @@ def fuse_clouds(clouds: Iterable[tuple[np.ndarray, np.ndarray]], voxel: float,
     if chunk:
         merge()
     del keys
-    return np.concatenate(pieces) if pieces else np.zeros((0, 3), dtype=np.float32)
+    cloud = np.concatenate(pieces) if pieces else np.zeros((0, 3), dtype=np.float32)
+    if with_keys:
+        return cloud, np.concatenate(piece_keys) if piece_keys else np.zeros(0, dtype=np.int64)
+    return cloud
+
+
+def in_voxels(keys: np.ndarray, sorted_keys: np.ndarray) -> np.ndarray:
+    """``(N,)`` bool: each of ``keys`` ``(N,)`` is among ``sorted_keys`` (ascending int64)."""
+    if not len(sorted_keys):
+        return np.zeros(len(keys), dtype=bool)
+    pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+    return sorted_keys[pos] == keys
 
 
 def fused_map(result: SlamResult, voxel: float | None = None) -> np.ndarray:
@@ -230,7 +246,7 @@ class MapOutputs:
     grid's ``origin`` ``(2,)`` [m] and ``resolution`` [m]; ``cleared_cells``: occupied cells later
     submaps saw free (what moved); ``seconds``: wall time spent building them;
     ``dynamic_points``: ``(D, 3)`` float32 world cloud of what the run found moving (3D runs with
-    ``mapping.split_movers``), else None.
+    ``mapping.split_movers``), else None; it shares no voxel with ``points``.
     """
 
     points: np.ndarray
@@ -241,6 +257,7 @@ class MapOutputs:
     seconds: float = 0.0
     dynamic_points: np.ndarray | None = None
     vacated_points: int = 0  # of ``points``, moved to ``dynamic_points`` where the grid saw something leave
+    moved_points_in_map: int = 0  # split off a submap where another submap's point keeps the voxel in ``points``
 
 
 def build_map_outputs(result: SlamResult, session_starts: list[int] | None = None,
@@ -251,12 +268,20 @@ def build_map_outputs(result: SlamResult, session_starts: list[int] | None = Non
     cloud's points where the grid saw something leave between sessions
     (:func:`points_in_vacated_cells`) go to the dynamic cloud — a car parked in one session and
     gone in a later one. ``local_grids``: the submaps' local grids made elsewhere
-    (:func:`build_global_grid`)."""
+    (:func:`build_global_grid`).
+
+    The two clouds share no voxel: what one submap's split took out (``submap_dynamic_points``)
+    where another submap kept a point in the same map voxel is still in the map (the map holds
+    the place), so it is not reported as moved (counted in ``moved_points_in_map``)."""
     t0 = time.perf_counter()
-    out = MapOutputs(points=fused_map(result))
+    voxel = result.map_voxel_size
+    out = MapOutputs(points=np.zeros((0, 3), dtype=np.float32))
+    out.points, map_keys = fuse_clouds(zip(result.submap_poses, result.submap_points), voxel, with_keys=True)
+    moved, moved_keys = None, None
     if result.submap_dynamic_points is not None:
-        out.dynamic_points = fuse_clouds(((T, p) for T, p in zip(result.submap_poses, result.submap_dynamic_points)
-                                          if p is not None), result.map_voxel_size)
+        moved, moved_keys = fuse_clouds(((T, p) for T, p in zip(result.submap_poses, result.submap_dynamic_points)
+                                         if p is not None), voxel, with_keys=True)
+    gone = None
     if result.config.mapping.write_grid and any(len(p) for scans in result.submap_scan_points for p in scans):
         vacate = bool(session_starts) and len(session_starts) > 1 and not result.planar
         left: list[np.ndarray] = []
@@ -266,12 +291,18 @@ def build_map_outputs(result: SlamResult, session_starts: list[int] | None = Non
         if vacate:
             mapping = result.config.mapping
             vacated = vacated_cells(left[0], grid.logodds)
-            moved = points_in_vacated_cells(out.points, grid, vacated, mapping.grid_min_height, mapping.grid_max_height)
-            if moved.any():
-                gone = out.points[moved]
-                out.dynamic_points = gone if out.dynamic_points is None else np.vstack([out.dynamic_points, gone])
-                out.points = out.points[~moved]
-            out.vacated_points = int(moved.sum())
+            left_map = points_in_vacated_cells(out.points, grid, vacated, mapping.grid_min_height,
+                                               mapping.grid_max_height)
+            if left_map.any():
+                gone = out.points[left_map]
+                out.points, map_keys = out.points[~left_map], map_keys[~left_map]
+            out.vacated_points = int(left_map.sum())
         out.occupancy, out.origin, out.resolution = grid.probabilities(), grid.origin, grid.params.resolution
+    if moved is not None:
+        held = in_voxels(moved_keys, np.sort(map_keys))
+        out.moved_points_in_map = int(held.sum())
+        moved = moved[~held]
+    parts = [c for c in (moved, gone) if c is not None]
+    out.dynamic_points = np.vstack(parts) if parts else None
     out.seconds = time.perf_counter() - t0
     return out
