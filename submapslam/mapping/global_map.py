@@ -232,6 +232,66 @@ def in_voxels(keys: np.ndarray, sorted_keys: np.ndarray) -> np.ndarray:
     return sorted_keys[pos] == keys
 
 
+def last_holders(clouds: Iterable[tuple[int, np.ndarray, np.ndarray]], voxel: float,
+                 chunk_keys: int = 300_000) -> tuple[np.ndarray, np.ndarray]:
+    """``(keys, last)``: the sorted int64 keys ``(V,)`` of the ``voxel`` [m] cells that the clouds
+    ``(index, T_world_cloud (4, 4), points (N, 3))`` have a point in, and per cell the largest
+    index of a cloud with a point there ``(V,)`` int64. Streaming: about ``chunk_keys`` cell keys
+    are held besides the result."""
+    keys = np.zeros(0, dtype=np.int64)
+    last = np.zeros(0, dtype=np.int64)
+    pending: list[tuple[np.ndarray, int]] = []
+    size = 0
+
+    def merge() -> None:
+        nonlocal keys, last
+        new_keys = np.concatenate([keys, *(k for k, _ in pending)])
+        new_last = np.concatenate([last, *(np.full(len(k), i, dtype=np.int64) for k, i in pending)])
+        keys, inverse = np.unique(new_keys, return_inverse=True)
+        last = np.full(len(keys), -1, dtype=np.int64)
+        np.maximum.at(last, inverse.reshape(-1), new_last)
+
+    for index, T, points in clouds:
+        if len(points):
+            world = np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
+            pending.append((np.unique(_voxel_keys(world, voxel)), int(index)))
+            size += len(pending[-1][0])
+            if size >= chunk_keys:
+                merge()
+                pending, size = [], 0
+    if pending:
+        merge()
+    return keys, last
+
+
+def near_own_path(T_anchor_scans: np.ndarray, points: np.ndarray, reach: float) -> np.ndarray:
+    """``(N,)`` bool: anchor-frame ``points`` ``(N, 3)`` within ``reach`` [m] of a scan position of
+    their submap (``T_anchor_scans`` ``(K, 4, 4)``)."""
+    points = np.asarray(points, dtype=np.float64)
+    nearest = np.full(len(points), np.inf)
+    for position in np.asarray(T_anchor_scans)[:, :3, 3]:
+        nearest = np.minimum(nearest, np.einsum("ij,ij->i", points - position, points - position))
+    return nearest <= reach * reach
+
+
+def voxels_left(result: SlamResult, voxel: float, reach: float) -> np.ndarray:
+    """Sorted int64 keys of the ``voxel`` [m] cells whose latest verdict is *moved*: a submap's
+    split took points out of them within ``reach`` [m] of that submap's own path, and no later
+    submap kept a point there (submaps in index order, i.e. in time and session order)."""
+    moved_clouds = ((i, T, p[near_own_path(result.submap_scan_poses[i], p, reach)])
+                    for i, (T, p) in enumerate(zip(result.submap_poses, result.submap_dynamic_points))
+                    if p is not None and len(p))
+    moved, moved_last = last_holders(moved_clouds, voxel)
+    kept_last = np.full(len(moved), -1, dtype=np.int64)  # per moved cell, the last submap that kept a point there
+    if len(moved):
+        for i, (T, points) in enumerate(zip(result.submap_poses, result.submap_points)):
+            if len(points):
+                keys = _voxel_keys(np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3], voxel)
+                hit = in_voxels(keys, moved)
+                kept_last[np.searchsorted(moved, keys[hit])] = i
+    return moved[moved_last > kept_last]
+
+
 def fused_map(result: SlamResult, voxel: float | None = None) -> np.ndarray:
     """All submap clouds in the world frame, fused at ``voxel`` (default: the run's map voxel)."""
     return fuse_clouds(zip(result.submap_poses, result.submap_points), voxel or result.map_voxel_size)
@@ -258,6 +318,7 @@ class MapOutputs:
     dynamic_points: np.ndarray | None = None
     vacated_points: int = 0  # of ``points``, moved to ``dynamic_points`` where the grid saw something leave
     moved_points_in_map: int = 0  # split off a submap where another submap's point keeps the voxel in ``points``
+    left_points: int = 0  # of the fused map, voxels whose latest verdict (a submap's split, later) is moved
 
 
 def build_map_outputs(result: SlamResult, session_starts: list[int] | None = None,
@@ -270,9 +331,11 @@ def build_map_outputs(result: SlamResult, session_starts: list[int] | None = Non
     gone in a later one. ``local_grids``: the submaps' local grids made elsewhere
     (:func:`build_global_grid`).
 
-    The two clouds share no voxel: what one submap's split took out (``submap_dynamic_points``)
-    where another submap kept a point in the same map voxel is still in the map (the map holds
-    the place), so it is not reported as moved (counted in ``moved_points_in_map``)."""
+    Each map voxel shows what the last submap to judge it saw (``mapping.latest_verdict_range``,
+    :func:`voxels_left`): where that submap's split took it out as moved, the voxel leaves the map
+    (``left_points``). The two clouds share no voxel: what a split took out where the map still
+    holds the place (another submap kept a point in that voxel, later or within nothing's reach)
+    is not reported as moved (``moved_points_in_map``)."""
     t0 = time.perf_counter()
     voxel = result.map_voxel_size
     out = MapOutputs(points=np.zeros((0, 3), dtype=np.float32))
@@ -281,6 +344,11 @@ def build_map_outputs(result: SlamResult, session_starts: list[int] | None = Non
     if result.submap_dynamic_points is not None:
         moved, moved_keys = fuse_clouds(((T, p) for T, p in zip(result.submap_poses, result.submap_dynamic_points)
                                          if p is not None), voxel, with_keys=True)
+        reach = result.config.mapping.latest_verdict_range
+        if reach > 0:
+            stays = ~in_voxels(map_keys, voxels_left(result, voxel, reach))
+            out.left_points = int((~stays).sum())
+            out.points, map_keys = out.points[stays], map_keys[stays]
     gone = None
     if result.config.mapping.write_grid and any(len(p) for scans in result.submap_scan_points for p in scans):
         vacate = bool(session_starts) and len(session_starts) > 1 and not result.planar
