@@ -308,8 +308,8 @@ class MappingConfig(_Strict):
     latest_verdict_range: float = Field(
         20.0, ge=0, description="[m] 3D mover split: a map voxel leaves map.ply (for map_dynamic.ply) when the "
         "last submap to judge it took it out as moved, within this distance of that submap's own path, later "
-        "than any submap kept a point in it (a car parked when the drive first passed and gone when it came "
-        "back, or gone before the next submap); 0: a voxel any submap kept stays. Nearer than the split's "
+        "than any submap kept a point in it (a car that stood while one submap was built and drove off while a "
+        "later one watched); 0: a voxel any submap kept stays. Nearer than the split's "
         "50 m so that a submap's far, grazing evidence does not overrule what nearer submaps saw")
 
     @model_validator(mode="after")
