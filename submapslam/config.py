@@ -305,12 +305,12 @@ class MappingConfig(_Strict):
         "within 0.4 m of the submap's own floor (the lowest of its points in this column and those beside "
         "it) casts no free vote; on 600 scans of a terrain town the dynamic share fell 6.0 -> 0.74 %, but "
         "on the labelled mover drive DA fell 0.955 -> 0.931 (BENCHMARKS, 'The submap's own floor')")
-    latest_verdict_range: float = Field(
-        20.0, ge=0, description="[m] 3D mover split: a map voxel leaves map.ply (for map_dynamic.ply) when the "
-        "last submap to judge it took it out as moved, within this distance of that submap's own path, later "
-        "than any submap kept a point in it (a car that stood while one submap was built and drove off while a "
-        "later one watched); 0: a voxel any submap kept stays. Nearer than the split's "
-        "50 m so that a submap's far, grazing evidence does not overrule what nearer submaps saw")
+    moved_verdict_range: float = Field(
+        20.0, ge=0, description="[m] 3D mover split: a map voxel leaves map.ply (for map_dynamic.ply) when at "
+        "least as many submaps took it out as moved, each within this distance of its own path, as kept a point "
+        "in it: a submap keeps what it has no evidence against, a split's verdict is evidence (a car one submap "
+        "saw standing and the next saw drive off). Nearer than the split's 50 m so that far, grazing evidence "
+        "does not overrule what nearer submaps saw; 0: a voxel any submap kept stays")
 
     @model_validator(mode="after")
     def _band_order(self) -> MappingConfig:

@@ -215,59 +215,63 @@ def test_a_forward_looking_sensor_counts_beams_on_either_side():
     assert _later_test_of_a_car(15.0, NARROW_SPLIT_PARAMS, step=0.5) > 0.9
 
 
-def _two_submap_result(kept: list, moved: list, shift: float = 1.0, reach: float = 20.0):
-    """A 3D result of two submaps: ``kept[k]`` / ``moved[k]`` the anchor-frame points submap k kept
-    / split off; submap 1's anchor (and its one scan) ``shift`` m along x from submap 0's."""
+def _submaps_result(kept: list, moved: list, reach: float = 20.0):
+    """A 3D result of submaps k = 0, 1, ..., each anchor (and its one scan) k m along x:
+    ``kept[k]`` / ``moved[k]`` the anchor-frame points submap k kept / split off."""
     from submapslam.config import PipelineConfig
     from submapslam.result import SlamResult
 
     cfg = PipelineConfig()
     cfg.mapping.write_grid = False
-    cfg.mapping.latest_verdict_range = reach
-    shifted = np.eye(4)
-    shifted[0, 3] = shift
+    cfg.mapping.moved_verdict_range = reach
+    n = len(kept)
+    anchors = np.tile(np.eye(4), (n, 1, 1))
+    anchors[:, 0, 3] = np.arange(n)
 
     def cloud(p: list) -> np.ndarray:
         return np.asarray(p, dtype=np.float64).reshape(-1, 3)
 
     return SlamResult(
-        timestamps=np.zeros(2), poses=np.tile(np.eye(4), (2, 1, 1)), odometry_poses=np.tile(np.eye(4), (2, 1, 1)),
-        submap_poses=np.stack([np.eye(4), shifted]), submap_covariances=np.tile(np.eye(6), (2, 1, 1)),
-        submap_points=[cloud(p) for p in kept], submap_scan_indices=[[0], [1]],
-        submap_scan_poses=[np.eye(4)[None], np.eye(4)[None]], submap_scan_points=[[], []], edges=[], loops=[],
-        planar=False, config=cfg, map_voxel_size=0.4, submap_dynamic_points=[cloud(p) for p in moved])
+        timestamps=np.zeros(n), poses=anchors.copy(), odometry_poses=anchors.copy(), submap_poses=anchors,
+        submap_covariances=np.tile(np.eye(6), (n, 1, 1)), submap_points=[cloud(p) for p in kept],
+        submap_scan_indices=[[k] for k in range(n)], submap_scan_poses=[np.eye(4)[None] for _ in range(n)],
+        submap_scan_points=[[] for _ in range(n)], edges=[], loops=[], planar=False, config=cfg,
+        map_voxel_size=0.4, submap_dynamic_points=[cloud(p) for p in moved])
 
 
 def test_map_and_dynamic_cloud_share_no_voxel():
-    """A voxel a later submap's split took out far from its own path while an earlier submap kept
-    it stays in map.ply and is not reported in map_dynamic.ply; a voxel no submap kept is reported
+    """A voxel one submap's split took out far from its own path while another submap kept it
+    stays in map.ply and is not reported in map_dynamic.ply; a voxel no submap kept is reported
     (fails when the dynamic cloud is every submap's split-off points, as before)."""
     from submapslam.mapping.global_map import build_map_outputs
 
     wall = [[30.05, 0.05, 1.05], [30.05, 0.45, 1.05]]  # world = submap 0's frame; 30 m from its scan
     held = [29.1, 0.1, 1.1]  # submap 1 (1 m on): world (30.1, 0.1, 1.1), 29 m from its path
     gone = [39.1, 0.1, 1.1]  # world (40.1, 0.1, 1.1): nobody kept it
-    maps = build_map_outputs(_two_submap_result([wall, []], [[], [held, gone]]))
+    maps = build_map_outputs(_submaps_result([wall, []], [[], [held, gone]]))
     assert len(maps.points) == 2 and maps.left_points == 0
     np.testing.assert_allclose(maps.dynamic_points, [[40.1, 0.1, 1.1]], atol=1e-5)
     assert maps.moved_points_in_map == 1
 
 
-def test_a_voxel_shows_the_latest_verdict_of_a_submap_near_it():
-    """A parked car submap 0 kept and submap 1 (later, 5 m from it) took out as moved leaves the
-    map for the dynamic cloud; the other way round (kept later) it stays; with the rule off
-    (range 0), or the car beyond the range, any submap's keeping wins (each fails when the map
-    is the plain union of what the submaps kept)."""
+def test_a_voxel_leaves_the_map_when_near_verdicts_of_moved_match_those_that_kept_it():
+    """A car one submap kept and another, 5 m from it, took out as moved leaves the map for the
+    dynamic cloud, in either order; kept by two submaps and moved by one it stays; with the rule
+    off (range 0), or the car beyond the range, any submap's keeping wins (each fails when the
+    map is the plain union of what the submaps kept, or when the counts are not compared)."""
     from submapslam.mapping.global_map import build_map_outputs
 
-    car = [[5.05, 0.05, 1.05], [5.05, 0.45, 1.05]]  # submap 0's frame = world
-    car_from_1 = [[4.1, 0.1, 1.1]]  # the first car voxel, in submap 1's frame
-    left = build_map_outputs(_two_submap_result([car, []], [[], car_from_1]))
+    car = [[5.05, 0.05, 1.05], [5.05, 0.45, 1.05]]  # world = submap 0's frame
+    car_from_1 = [[4.1, 0.1, 1.1]]  # the first car voxel, in submap 1's frame (1 m on)
+    left = build_map_outputs(_submaps_result([car, []], [[], car_from_1]))
     np.testing.assert_allclose(left.points, [car[1]], atol=1e-5)
     np.testing.assert_allclose(left.dynamic_points, [[5.1, 0.1, 1.1]], atol=1e-5)
     assert left.left_points == 1 and left.moved_points_in_map == 0
-    back = build_map_outputs(_two_submap_result([[], car_from_1], [car, []]))  # moved first, kept later
-    assert len(back.points) == 1 and len(back.dynamic_points) == 1 and back.left_points == 0
+    first_moved = build_map_outputs(_submaps_result([[], car_from_1], [car, []]))  # kept later: the same count
+    assert len(first_moved.points) == 0 and len(first_moved.dynamic_points) == 2
+    car_from_2 = [[3.1, 0.1, 1.1]]  # the same voxel from submap 2 (2 m on), which keeps it too
+    outvoted = build_map_outputs(_submaps_result([car, [], car_from_2], [[], car_from_1, []]))
+    assert len(outvoted.points) == 2 and len(outvoted.dynamic_points) == 0 and outvoted.left_points == 0
     for reach in (0.0, 3.0):
-        kept = build_map_outputs(_two_submap_result([car, []], [[], car_from_1], reach=reach))
+        kept = build_map_outputs(_submaps_result([car, []], [[], car_from_1], reach=reach))
         assert len(kept.points) == 2 and len(kept.dynamic_points) == 0 and kept.moved_points_in_map == 1

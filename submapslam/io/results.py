@@ -75,7 +75,7 @@ def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs,
         summary["map_dynamic_points"] = len(maps.dynamic_points)
         # split off a submap, but another submap keeps that voxel in map.ply: not in map_dynamic.ply
         summary["moved_points_in_map"] = maps.moved_points_in_map
-        # taken out of map.ply: the last submap to judge the voxel saw it moved (mapping.latest_verdict_range)
+        # taken out of map.ply: as many submaps near it saw it move as kept it (mapping.moved_verdict_range)
         summary["map_left_points"] = maps.left_points
     if maps.vacated_points:
         summary["map_vacated_points"] = maps.vacated_points  # of them, where a later session saw the space empty

@@ -232,36 +232,34 @@ def in_voxels(keys: np.ndarray, sorted_keys: np.ndarray) -> np.ndarray:
     return sorted_keys[pos] == keys
 
 
-def last_holders(clouds: Iterable[tuple[int, np.ndarray, np.ndarray]], voxel: float,
+def cloud_counts(clouds: Iterable[tuple[np.ndarray, np.ndarray]], voxel: float,
                  chunk_keys: int = 300_000) -> tuple[np.ndarray, np.ndarray]:
-    """``(keys, last)``: the sorted int64 keys ``(V,)`` of the ``voxel`` [m] cells that the clouds
-    ``(index, T_world_cloud (4, 4), points (N, 3))`` have a point in, and per cell the largest
-    index of a cloud with a point there ``(V,)`` int64. Streaming: about ``chunk_keys`` cell keys
-    are held besides the result."""
+    """``(keys, counts)``: the sorted int64 keys ``(V,)`` of the ``voxel`` [m] cells that the clouds
+    ``(T_world_cloud (4, 4), points (N, 3))`` have a point in, and per cell how many of the clouds
+    have one ``(V,)`` int64. Streaming: about ``chunk_keys`` cell keys are held besides the result."""
     keys = np.zeros(0, dtype=np.int64)
-    last = np.zeros(0, dtype=np.int64)
-    pending: list[tuple[np.ndarray, int]] = []
+    counts = np.zeros(0, dtype=np.int64)
+    pending: list[np.ndarray] = []
     size = 0
 
     def merge() -> None:
-        nonlocal keys, last
-        new_keys = np.concatenate([keys, *(k for k, _ in pending)])
-        new_last = np.concatenate([last, *(np.full(len(k), i, dtype=np.int64) for k, i in pending)])
-        keys, inverse = np.unique(new_keys, return_inverse=True)
-        last = np.full(len(keys), -1, dtype=np.int64)
-        np.maximum.at(last, inverse.reshape(-1), new_last)
+        nonlocal keys, counts
+        keys, inverse = np.unique(np.concatenate([keys, *pending]), return_inverse=True)
+        weights = np.concatenate([counts, np.ones(size, dtype=np.int64)])
+        counts = np.zeros(len(keys), dtype=np.int64)
+        np.add.at(counts, inverse.reshape(-1), weights)
 
-    for index, T, points in clouds:
+    for T, points in clouds:
         if len(points):
             world = np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
-            pending.append((np.unique(_voxel_keys(world, voxel)), int(index)))
-            size += len(pending[-1][0])
+            pending.append(np.unique(_voxel_keys(world, voxel)))
+            size += len(pending[-1])
             if size >= chunk_keys:
                 merge()
                 pending, size = [], 0
     if pending:
         merge()
-    return keys, last
+    return keys, counts
 
 
 def near_own_path(T_anchor_scans: np.ndarray, points: np.ndarray, reach: float) -> np.ndarray:
@@ -275,21 +273,21 @@ def near_own_path(T_anchor_scans: np.ndarray, points: np.ndarray, reach: float) 
 
 
 def voxels_left(result: SlamResult, voxel: float, reach: float) -> np.ndarray:
-    """Sorted int64 keys of the ``voxel`` [m] cells whose latest verdict is *moved*: a submap's
-    split took points out of them within ``reach`` [m] of that submap's own path, and no later
-    submap kept a point there (submaps in index order, i.e. in time and session order)."""
-    moved_clouds = ((i, T, p[near_own_path(result.submap_scan_poses[i], p, reach)])
+    """Sorted int64 keys of the ``voxel`` [m] cells whose verdict is *moved*: at least as many
+    submaps took points out of them as moved, each within ``reach`` [m] of its own path, as kept
+    a point there. A submap keeps whatever it has no evidence against, while a split's verdict
+    is evidence (beams through the place): a near verdict outweighs one submap's keeping."""
+    moved_clouds = ((T, p[near_own_path(result.submap_scan_poses[i], p, reach)])
                     for i, (T, p) in enumerate(zip(result.submap_poses, result.submap_dynamic_points))
                     if p is not None and len(p))
-    moved, moved_last = last_holders(moved_clouds, voxel)
-    kept_last = np.full(len(moved), -1, dtype=np.int64)  # per moved cell, the last submap that kept a point there
+    moved, moved_by = cloud_counts(moved_clouds, voxel)
+    kept_by = np.zeros(len(moved), dtype=np.int64)  # per moved cell, the submaps that kept a point there
     if len(moved):
-        for i, (T, points) in enumerate(zip(result.submap_poses, result.submap_points)):
+        for T, points in zip(result.submap_poses, result.submap_points):
             if len(points):
-                keys = _voxel_keys(np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3], voxel)
-                hit = in_voxels(keys, moved)
-                kept_last[np.searchsorted(moved, keys[hit])] = i
-    return moved[moved_last > kept_last]
+                keys = np.unique(_voxel_keys(np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3], voxel))
+                kept_by[np.searchsorted(moved, keys[in_voxels(keys, moved)])] += 1
+    return moved[moved_by >= kept_by]
 
 
 def fused_map(result: SlamResult, voxel: float | None = None) -> np.ndarray:
@@ -318,7 +316,7 @@ class MapOutputs:
     dynamic_points: np.ndarray | None = None
     vacated_points: int = 0  # of ``points``, moved to ``dynamic_points`` where the grid saw something leave
     moved_points_in_map: int = 0  # split off a submap where another submap's point keeps the voxel in ``points``
-    left_points: int = 0  # of the fused map, voxels whose latest verdict (a submap's split, later) is moved
+    left_points: int = 0  # of the fused map, voxels more submaps (near their paths) saw move than kept
 
 
 def build_map_outputs(result: SlamResult, session_starts: list[int] | None = None,
@@ -331,11 +329,11 @@ def build_map_outputs(result: SlamResult, session_starts: list[int] | None = Non
     gone in a later one. ``local_grids``: the submaps' local grids made elsewhere
     (:func:`build_global_grid`).
 
-    Each map voxel shows what the last submap to judge it saw (``mapping.latest_verdict_range``,
-    :func:`voxels_left`): where that submap's split took it out as moved, the voxel leaves the map
-    (``left_points``). The two clouds share no voxel: what a split took out where the map still
-    holds the place (another submap kept a point in that voxel, later or within nothing's reach)
-    is not reported as moved (``moved_points_in_map``)."""
+    A map voxel leaves the map (``left_points``) when at least as many submaps took it out as
+    moved, near their own paths, as kept it (``mapping.moved_verdict_range``, :func:`voxels_left`).
+    The two clouds share no voxel: what a split took out where the map still holds the place
+    (more submaps kept a point in that voxel, or the split's verdict came from farther out) is not
+    reported as moved (``moved_points_in_map``)."""
     t0 = time.perf_counter()
     voxel = result.map_voxel_size
     out = MapOutputs(points=np.zeros((0, 3), dtype=np.float32))
@@ -344,7 +342,7 @@ def build_map_outputs(result: SlamResult, session_starts: list[int] | None = Non
     if result.submap_dynamic_points is not None:
         moved, moved_keys = fuse_clouds(((T, p) for T, p in zip(result.submap_poses, result.submap_dynamic_points)
                                          if p is not None), voxel, with_keys=True)
-        reach = result.config.mapping.latest_verdict_range
+        reach = result.config.mapping.moved_verdict_range
         if reach > 0:
             stays = ~in_voxels(map_keys, voxels_left(result, voxel, reach))
             out.left_points = int((~stays).sum())
