@@ -251,8 +251,7 @@ def cloud_counts(clouds: Iterable[tuple[np.ndarray, np.ndarray]], voxel: float,
 
     for T, points in clouds:
         if len(points):
-            world = np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
-            pending.append(np.unique(_voxel_keys(world, voxel)))
+            pending.append(np.unique(_voxel_keys(transform_points(T, points), voxel)))
             size += len(pending[-1])
             if size >= chunk_keys:
                 merge()
@@ -285,7 +284,7 @@ def voxels_left(result: SlamResult, voxel: float, reach: float) -> np.ndarray:
     if len(moved):
         for T, points in zip(result.submap_poses, result.submap_points):
             if len(points):
-                keys = np.unique(_voxel_keys(np.asarray(points, dtype=np.float64) @ T[:3, :3].T + T[:3, 3], voxel))
+                keys = np.unique(_voxel_keys(transform_points(T, points), voxel))
                 kept_by[np.searchsorted(moved, keys[in_voxels(keys, moved)])] += 1
     return moved[moved_by >= kept_by]
 
@@ -336,8 +335,8 @@ def build_map_outputs(result: SlamResult, session_starts: list[int] | None = Non
     reported as moved (``moved_points_in_map``)."""
     t0 = time.perf_counter()
     voxel = result.map_voxel_size
-    out = MapOutputs(points=np.zeros((0, 3), dtype=np.float32))
-    out.points, map_keys = fuse_clouds(zip(result.submap_poses, result.submap_points), voxel, with_keys=True)
+    points, map_keys = fuse_clouds(zip(result.submap_poses, result.submap_points), voxel, with_keys=True)
+    out = MapOutputs(points=points)
     moved, moved_keys = None, None
     if result.submap_dynamic_points is not None:
         moved, moved_keys = fuse_clouds(((T, p) for T, p in zip(result.submap_poses, result.submap_dynamic_points)
@@ -357,12 +356,12 @@ def build_map_outputs(result: SlamResult, session_starts: list[int] | None = Non
         if vacate:
             mapping = result.config.mapping
             vacated = vacated_cells(left[0], grid.logodds)
-            left_map = points_in_vacated_cells(out.points, grid, vacated, mapping.grid_min_height,
-                                               mapping.grid_max_height)
-            if left_map.any():
-                gone = out.points[left_map]
-                out.points, map_keys = out.points[~left_map], map_keys[~left_map]
-            out.vacated_points = int(left_map.sum())
+            in_vacated = points_in_vacated_cells(out.points, grid, vacated, mapping.grid_min_height,
+                                                 mapping.grid_max_height)
+            if in_vacated.any():
+                gone = out.points[in_vacated]
+                out.points, map_keys = out.points[~in_vacated], map_keys[~in_vacated]
+            out.vacated_points = int(in_vacated.sum())
         out.occupancy, out.origin, out.resolution = grid.probabilities(), grid.origin, grid.params.resolution
     if moved is not None:
         held = in_voxels(moved_keys, np.sort(map_keys))
