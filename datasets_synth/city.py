@@ -132,8 +132,6 @@ def generate_kitti_drive(path_file: str | Path, out_dir: str | Path, *, rings: i
     """
     if rings not in LIDAR_PRESETS and rings not in SENSORS:
         raise SubmapSlamError(f"rings must be {', '.join(map(str, LIDAR_PRESETS))} or livox, not {rings}")
-    if terrain and movers:
-        raise SubmapSlamError("movers are not placed on terrain yet: use terrain or movers, not both")
     if max_scans is not None and max_scans < 2:
         raise SubmapSlamError(f"max_scans must be at least 2, not {max_scans}")
     if odometry_noise < 0:
@@ -168,6 +166,7 @@ def generate_kitti_drive(path_file: str | Path, out_dir: str | Path, *, rings: i
         parked = np.flatnonzero(world.box_labels == "car")
         tracks, left = city_movers(path_xyt, KITTI_RATE_HZ, movers, np.random.default_rng([seed, 2525]),
                                    world.oriented_boxes[parked])
+        tracks.ground_height = None if ground is None else ground.height  # movers stand on the terrain
         stay = np.ones(len(world.oriented_boxes), dtype=bool)
         stay[parked[left]] = False
         world.oriented_boxes, world.box_labels = world.oriented_boxes[stay], world.box_labels[stay]

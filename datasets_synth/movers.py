@@ -22,6 +22,7 @@ its wall pocket): no leaf in the doorway, nothing to hit.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +53,8 @@ class MoverTracks:
         sizes: ``(M, 4)`` ``(length, width, zmin, zmax)`` [m]; ``length`` along the yaw.
         classes: ``(M,)`` SemanticKITTI class of each mover (252-259).
         kinds: ``(M,)`` ``"car"``, ``"parked_car"``, ``"person"``, ``"box"``.
+        ground_height: on terrain, the ground height [m] ``(B,)`` at world points ``(B, 2)``: each
+            box stands on the ground at its centre (``zmin`` and ``zmax`` above it); None: flat.
     """
 
     poses: np.ndarray
@@ -59,6 +62,7 @@ class MoverTracks:
     sizes: np.ndarray
     classes: np.ndarray
     kinds: np.ndarray
+    ground_height: Callable[[np.ndarray], np.ndarray] | None = None
 
     @classmethod
     def empty(cls, n_scans: int) -> MoverTracks:
@@ -71,8 +75,10 @@ class MoverTracks:
     def boxes_at(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Oriented boxes ``(B, 7)`` ``(cx, cy, yaw, length, width, zmin, zmax)`` present at scan k, and their classes."""
         on = self.present[:, k]
-        p, s = self.poses[on, k], self.sizes[on]
-        return np.column_stack([p, s]), self.classes[on]
+        boxes = np.column_stack([self.poses[on, k], self.sizes[on]])
+        if self.ground_height is not None and len(boxes):
+            boxes[:, 5:7] += self.ground_height(boxes[:, :2])[:, None]
+        return boxes, self.classes[on]
 
     def counts(self) -> dict[str, int]:
         kinds, n = np.unique(self.kinds, return_counts=True)
