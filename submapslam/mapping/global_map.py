@@ -284,8 +284,9 @@ def voxels_left(result: SlamResult, voxel: float, reach: float) -> np.ndarray:
     if len(moved):
         for T, points in zip(result.submap_poses, result.submap_points):
             if len(points):
-                keys = np.unique(_voxel_keys(transform_points(T, points), voxel))
-                kept_by[np.searchsorted(moved, keys[in_voxels(keys, moved)])] += 1
+                keys = np.unique(_voxel_keys(transform_points(T, points), voxel))  # each cell once a submap
+                pos = np.minimum(np.searchsorted(moved, keys), len(moved) - 1)
+                kept_by[pos[moved[pos] == keys]] += 1
     return moved[moved_by >= kept_by]
 
 
