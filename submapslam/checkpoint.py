@@ -33,6 +33,8 @@ class Checkpoint:
         odometry_tilt: per submap id (3D, where measured), the ``(2,)`` roll and pitch [rad] by
             which the registration between the two submaps corrected that edge (the run's
             estimate of its own tilt drift is made of these).
+        odometry_correction: per submap id (3D, where measured), the whole ``(6,)`` correction
+            (GTSAM order, [rad, m]; the run's measured odometry noise is made of these).
         loop_records: per submap id, the hypotheses tested when it closed, in test order.
         source: the log the scans came from.
     """
@@ -42,6 +44,7 @@ class Checkpoint:
     planar_poses: np.ndarray | None
     odometry_information: dict[int, np.ndarray] = field(default_factory=dict)
     odometry_tilt: dict[int, np.ndarray] = field(default_factory=dict)
+    odometry_correction: dict[int, np.ndarray] = field(default_factory=dict)
     loop_records: dict[int, list[LoopRecord]] = field(default_factory=dict)
     source: str = ""
 

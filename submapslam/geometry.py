@@ -109,6 +109,13 @@ def so3_log(R: ArrayLike) -> Array:
     return th / (2.0 * np.sin(th)) * v
 
 
+def pose_difference(T: ArrayLike) -> Array:
+    """``(4, 4)`` small relative pose -> ``(6,)`` its rotation vector and translation, GTSAM order
+    ``(rx, ry, rz, tx, ty, tz)`` [rad, m]: the error of a pose against another, ``T = T_a^-1 T_b``."""
+    T = np.asarray(T, dtype=np.float64)
+    return np.concatenate([so3_log(T[:3, :3]), T[:3, 3]])
+
+
 def rotation_between(a: ArrayLike, b: ArrayLike) -> Array:
     """``(3, 3)`` smallest rotation taking unit vector ``a`` ``(3,)`` onto unit vector ``b`` ``(3,)``."""
     a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)

@@ -19,10 +19,16 @@ import numpy as np
 
 from .backend.pose_graph import PoseGraph, cap_covariance, floor_information
 from .config import BackendConfig, OdometryConfig, narrow_field
-from .geometry import inverse
+from .geometry import inverse, pose_difference
 from .result import LoopRecord
 from .submaps import Submap
-from .uncertainty import LevelGroundTest, TiltChangeSpread, TiltDrift, odometry_information
+from .uncertainty import (
+    LevelGroundTest,
+    OdometryNoise,
+    TiltChangeSpread,
+    TiltDrift,
+    odometry_information,
+)
 
 PRIOR_INFORMATION = np.diag([1e8] * 6)  # the first anchor is the world frame
 WALL_VERTICAL_PRIOR = "wall vertical prior"  # the kind of a level prior whose up comes from the walls
@@ -63,6 +69,9 @@ class GraphBuilder:
         self.graph = PoseGraph(config)
         self.odometry_information: dict[int, np.ndarray] = {}  # submap id -> its odometry edge's (6, 6)
         self.odometry_tilt: dict[int, np.ndarray] = {}  # 3D: submap id -> (2,) its edge's TiltDrift.correction
+        self.odometry_correction: dict[int, np.ndarray] = {}  # 3D: submap id -> (6,) its edge's registration correction
+        self.edge_distance: dict[int, float] = {}  # submap id -> [m] length of its odometry edge
+        self.covariance_model: OdometryNoise | None = None  # set by finish() when the reported covariances use it
         self._timer = timer
         self._world_up: np.ndarray | None = None  # 3D: the world's up direction (first ground seen)
         self._ground_up: dict[int, np.ndarray] = {}  # 3D: submap id -> (3,) ground normal in its anchor frame
@@ -96,22 +105,27 @@ class GraphBuilder:
 
     # ------------------------------------------------------------------ nodes and odometry
     def add_submap(self, submap: Submap, previous: Submap | None, wheel_odometry: bool,
-                   information: np.ndarray | None = None, tilt: np.ndarray | None = None) -> None:
+                   information: np.ndarray | None = None, tilt: np.ndarray | None = None,
+                   correction: np.ndarray | None = None) -> None:
         """Add ``submap``'s anchor, its odometry edge from ``previous`` and its ground prior; update.
 
         ``wheel_odometry``: the log has wheel odometry (planar refinement then follows it where
         scan matching is blind, which caps the odometry edge's registration covariance).
         ``information``: the edge's ``(6, 6)`` information as computed before (a resumed run),
-        instead of computing it, and ``tilt`` its registration's tilt correction (3D; None: none was
-        measured). :attr:`odometry_information` and :attr:`odometry_tilt` keep each edge's, by submap id.
+        instead of computing it, ``tilt`` its registration's tilt correction and ``correction`` its
+        whole ``(6,)`` correction (3D; None: none was measured). :attr:`odometry_information`,
+        :attr:`odometry_tilt` and :attr:`odometry_correction` keep each edge's, by submap id.
         """
         info = T_prev_k = None
         if previous is not None:
             T_prev_k = inverse(previous.T_odom_anchor) @ submap.T_odom_anchor
+            self.edge_distance[submap.id] = float(previous.distance)
             if information is not None:
                 info = information
                 if tilt is not None:
                     self._add_tilt(submap.id, tilt, previous.distance)
+                if correction is not None:
+                    self.odometry_correction[submap.id] = np.asarray(correction, dtype=np.float64)
             else:
                 tilt_sigma = self.tilt_drift.sigma(previous.distance) if self.tilt_drift is not None else None
                 info = odometry_information(T_prev_k, previous.distance, self.planar, self.config, tilt_sigma)
@@ -269,6 +283,8 @@ class GraphBuilder:
             return info
         if self.tilt_drift is not None:
             self._add_tilt(new.id, TiltDrift.correction(T_prev_new, res.T_target_source), prev.distance)
+        if not self.planar:
+            self.odometry_correction[new.id] = pose_difference(inverse(T_prev_new) @ res.T_target_source)
         cov_reg = np.linalg.inv(0.5 * (res.information + res.information.T))
         # Never more than a cap in any direction: 2 m / 20 deg, or, where the wheel odometry
         # holds the directions scan matching cannot see (planar refinement), the wheel's drift
@@ -305,10 +321,13 @@ class GraphBuilder:
 
     # ------------------------------------------------------------------ finishing
     def finish(self) -> tuple[dict[tuple[int, int], str], dict[int, np.ndarray]]:
-        """Batch pass, final check and marginals.
+        """Batch pass, final check and covariances.
 
-        Returns ``({(i, j): why} of loop edges the solution rejected, {node: (6, 6) marginal
-        covariance}``); the graph keeps only the loops it did not reject.
+        Returns ``({(i, j): why} of loop edges the solution rejected, {node: (6, 6) covariance}``);
+        the graph keeps only the loops it did not reject. The covariances are the graph's marginals,
+        or, for a 3D run that measured its odometry noise (:class:`OdometryNoise`, unless
+        ``backend.covariance_scale`` is set), its estimate's covariances under that noise
+        (:attr:`covariance_model` then holds it).
         """
         with self._time("optimisation"):
             if self._pending_tilt_changes:  # a run too short to measure the spread: the configured sigma
@@ -325,6 +344,10 @@ class GraphBuilder:
                 if self.config.final_check:
                     dropped = self.graph.final_check()
             covs = self.graph.all_marginal_covariances()
+            noise = OdometryNoise(self.odometry_correction, self.edge_distance)
+            if not self.planar and self.config.covariance_scale is None and noise.variance_per_metre() is not None:
+                covs = self.graph.estimator_covariances(noise.factor_covariance)
+                self.covariance_model = noise
         reasons = {key: f"rejected by the optimiser (GNC weight {w:.2f})" for key, w in weights.items() if w < 0.5}
         reasons.update({(i, j): why for i, j, why in dropped})
         return reasons, covs

@@ -285,7 +285,8 @@ class SubmapSLAM:
         replay = self._replay if self._replay is not None and submap.id < self._replay.n_submaps else None
         self._graph_builder.add_submap(submap, previous, wheel_odometry=wheel_odometry,
                                        information=replay.odometry_information.get(submap.id) if replay else None,
-                                       tilt=replay.odometry_tilt.get(submap.id) if replay else None)
+                                       tilt=replay.odometry_tilt.get(submap.id) if replay else None,
+                                       correction=replay.odometry_correction.get(submap.id) if replay else None)
         records: list[LoopRecord] = []
         if self._loop_closer is not None:
             if replay is not None:
@@ -343,6 +344,7 @@ class SubmapSLAM:
             odometry_poses=np.array(self._odom_poses).reshape(-1, 4, 4),
             planar_poses=planar,
             odometry_information=dict(self._graph_builder.odometry_information) if self._graph_builder else {},
+            odometry_correction=dict(self._graph_builder.odometry_correction) if self._graph_builder else {},
             odometry_tilt=dict(self._graph_builder.odometry_tilt) if self._graph_builder else {},
             loop_records={k: [copy.copy(r) for r in recs] for k, recs in self._records_by_submap.items()},
             source=source,
@@ -477,6 +479,7 @@ class SubmapSLAM:
             log.warning("the final optimisation failed: %s", exc)
             failure = failure or f"the final optimisation failed: {exc}"
             reasons, covs = {}, {k: np.full((6, 6), np.nan) for k in range(len(self.submaps))}
+        noise = self._graph_builder.covariance_model  # the reported covariances' noise (3D), else None
         gave_way = list(self._graph_builder.graph.gave_way)
         for rec in self.loops:
             if rec.accepted and (rec.i, rec.j) in reasons:
@@ -512,8 +515,14 @@ class SubmapSLAM:
             poses=poses,
             odometry_poses=np.array(self._odom_poses),
             submap_poses=np.array([graph.pose(k) for k in range(n)]).reshape(-1, 4, 4),
-            submap_covariances=calibrate(np.array([covs[k] for k in range(n)]).reshape(-1, 6, 6),
-                                         covariance_scale(backend, self.planar)),
+            submap_covariances=(np.array([covs[k] for k in range(n)]).reshape(-1, 6, 6) if noise is not None else
+                                calibrate(np.array([covs[k] for k in range(n)]).reshape(-1, 6, 6),
+                                          covariance_scale(backend, self.planar))),
+            covariance_model=({"kind": "measured odometry noise", **noise.summary(),
+                               "variance_per_m": [float(v) for v in noise.variance_per_metre()]}
+                              if noise is not None else
+                              {"kind": "graph marginals scaled per axis",
+                               "scale": [float(v) for v in covariance_scale(backend, self.planar)]}),
             submap_points=[s.points for s in self.submaps],
             submap_scan_indices=[s.scan_indices for s in self.submaps],
             submap_scan_poses=scan_poses,

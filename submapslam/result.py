@@ -138,6 +138,7 @@ class SlamResult:
     scan_refinement: dict = field(default_factory=dict)
     odometry_checks: dict = field(default_factory=dict)
     odometry_tilt_drift: dict = field(default_factory=dict)
+    covariance_model: dict = field(default_factory=dict)  # how submap_covariances were made (summary.json)
     ground_tilt_change: dict = field(default_factory=dict)  # uncertainty.TiltChangeSpread.summary()
     ground_priors: dict = field(default_factory=dict)  # GraphBuilder.ground_prior_test: level test, kept or not
 
@@ -235,6 +236,7 @@ class SlamResult:
             **({"odometry_checks": self.odometry_checks} if self.odometry_checks else {}),
             **({"scan_refinement": self.scan_refinement} if self.scan_refinement else {}),
             **({"odometry_tilt_drift": self.odometry_tilt_drift} if self.odometry_tilt_drift else {}),
+            **({"covariance_model": self.covariance_model} if self.covariance_model else {}),
             **({"ground_tilt_change": self.ground_tilt_change} if self.ground_tilt_change else {}),
             **({"ground_priors": self.ground_priors} if self.ground_priors else {}),
             "consistency": self.odometry_consistency(),

@@ -240,6 +240,93 @@ class LevelGroundTest:
         return float(np.sqrt(np.mean(np.square(turns))) / max(float(np.median(allowances)), 1e-9))
 
 
+#: 3D: the odometry's error over an edge, per axis, as a multiple of the registration's correction
+#: of it (:class:`OdometryNoise`). The registration between two submaps shares the odometry's
+#: scans and biases and sees a third to a half of its error: on the terrain Monte Carlo worlds
+#: (KITTI 05 and 00 paths, 200 and 1,700 scans) the true edge errors' robust sigma was 2-4x the
+#: corrections' on roll, pitch, x, y and z (TiltDrift takes 3 for roll and pitch). BENCHMARKS.md,
+#: "Calibrated covariances: the run's own odometry noise".
+ODOMETRY_NOISE_FACTOR = 2.5
+#: 3D: a loop edge's error variance over one odometry edge's of the median length. A loop is a
+#: registration between two submaps like the correction of an odometry edge; against the truth its
+#: error was that of one odometry edge or less (KITTI 05 terrain, 1,700 scans, 62 loops: RMS 0.005 /
+#: 0.004 / 0.0002 rad, 0.029 / 0.020 / 0.043 m against the odometry edges' 0.005 / 0.004 / 0.0003,
+#: 0.033 / 0.022 / 0.056)
+LOOP_NOISE_SHARE = 0.25
+#: 3D: a ground or wall level prior's error variance over its stated one. Each prior alone is about
+#: right (wall verticals on the terrain worlds: 0.2-0.6 deg against 0.5), but neighbouring anchors see
+#: the same walls and the same grade, so their errors are shared, which independent factors cannot
+#: say; without the inflation pitch and z came out 2-3x overconfident on the 1,700-scan terrain drive
+PRIOR_NOISE_INFLATION = 4.0
+
+
+class OdometryNoise:
+    """The run's own odometry noise per axis, from the registrations between consecutive submaps,
+    and the noise of every factor of the graph that follows from it (3D runs).
+
+    Each odometry edge is registered submap to submap (:meth:`GraphBuilder._registration_shaped`);
+    the ``(6,)`` correction that registration makes to the odometry's relative pose (GTSAM order,
+    [rad, m]) samples the odometry's error over the edge. Per axis the robust variance per metre is
+    the median of ``c^2 / distance`` over chi-square(1)'s median (0.455), times
+    :data:`ODOMETRY_NOISE_FACTOR` squared (the part of the error the registration shares). The graph
+    weighs its edges with a drift model sized for any 16-ring town (one rotation sigma of 0.2 deg and
+    more for all three axes), ten to a hundred times looser in yaw than what a run achieves; the
+    covariances a run reports are those of its estimate under this measured noise
+    (:meth:`~submapslam.backend.pose_graph.PoseGraph.estimator_covariances`), so the graph, its
+    decisions and its estimate stay as they are. None (:meth:`variance_per_metre`) until
+    ``min_edges`` edges were measured.
+    """
+
+    def __init__(self, corrections: dict[int, np.ndarray], distances: dict[int, float],
+                 factor: float = ODOMETRY_NOISE_FACTOR, min_edges: int = 8) -> None:
+        """``corrections``: per submap id, the ``(6,)`` correction of its odometry edge from the
+        previous submap; ``distances``: per submap id, that edge's length [m]."""
+        self.corrections = {k: np.asarray(c, dtype=np.float64) for k, c in corrections.items() if k in distances}
+        self.distances = {k: max(float(distances[k]), 1.0) for k in self.corrections}
+        self.factor = factor
+        self.min_edges = min_edges
+
+    def variance_per_metre(self) -> np.ndarray | None:
+        """``(6,)`` variance per metre [rad^2/m, m^2/m] of the odometry, GTSAM order, or None."""
+        if len(self.corrections) < self.min_edges:
+            return None
+        c = np.array([self.corrections[k] for k in sorted(self.corrections)])
+        d = np.array([self.distances[k] for k in sorted(self.corrections)])
+        return self.factor**2 * np.median(c**2 / d[:, None], axis=0) / 0.455
+
+    def edge_covariance(self, distance: float) -> np.ndarray:
+        """``(6, 6)`` covariance of the odometry over ``distance`` [m] (at least 1 m)."""
+        return np.diag(self.variance_per_metre() * max(float(distance), 1.0))
+
+    def factor_covariance(self, kind: str, i: int, j: int, stated: np.ndarray) -> np.ndarray:
+        """The covariance of one factor's measurement as this run's noise says it is: an odometry
+        edge into node ``j`` over its measured length (or the median edge's), a loop edge
+        :data:`LOOP_NOISE_SHARE` of the median edge, a level prior its ``stated`` covariance times
+        :data:`PRIOR_NOISE_INFLATION`, anything else (the start prior, an edge that gave way) as
+        ``stated``."""
+        median = float(np.median(list(self.distances.values())))
+        if kind == "odometry" and stated.shape == (6, 6):
+            return self.edge_covariance(self.distances.get(j, median))
+        if kind == "loop" and stated.shape == (6, 6):
+            return LOOP_NOISE_SHARE * self.edge_covariance(median)
+        if "prior" in kind and kind != "prior":
+            return PRIOR_NOISE_INFLATION * stated
+        return stated
+
+    def summary(self) -> dict:
+        """What ``summary.json`` says of it: edges measured and the sigma per axis over 10 m."""
+        var = self.variance_per_metre()
+        out: dict = {"edges_measured": len(self.corrections)}
+        if var is not None:
+            sig = np.sqrt(var * 10.0)
+            out["sigma_over_10_m"] = {"roll_deg": round(float(np.rad2deg(sig[0])), 4),
+                                      "pitch_deg": round(float(np.rad2deg(sig[1])), 4),
+                                      "yaw_deg": round(float(np.rad2deg(sig[2])), 4),
+                                      "x_m": round(float(sig[3]), 4), "y_m": round(float(sig[4]), 4),
+                                      "z_m": round(float(sig[5]), 4)}
+        return out
+
+
 def within_submap_covariance(T_anchor_scan: np.ndarray, distance: float, planar: bool,
                              config: BackendConfig) -> np.ndarray:
     """``(6, 6)`` covariance (GTSAM order, scan frame) of a scan's pose relative to its anchor:
@@ -255,7 +342,9 @@ def scan_covariances(result) -> np.ndarray | None:
     (GTSAM order, each in its scan's frame, right perturbation of ``result.poses[k]``).
 
     Its anchor's reported marginal (already calibrated by the pipeline) carried to the scan, ``Ad(T_anchor_scan^-1) Sigma
-    Ad(.)^T``, plus (except for the anchor's own scan) the drift model from the anchor to the scan,
+    Ad(.)^T``, plus (except for the anchor's own scan) the odometry's noise from the anchor to the
+    scan: the run's measured noise when its anchors' covariances were made with it
+    (``result.covariance_model["variance_per_m"]``, :class:`OdometryNoise`), else the drift model
     scaled by the same per-axis factors as the anchors (:func:`covariance_scale`). A scan shared
     by two submaps (the last of one is the anchor of the next) takes the later submap's, i.e. its
     anchor's. None when the run has no covariances (an empty run, a failed final optimisation).
@@ -267,6 +356,7 @@ def scan_covariances(result) -> np.ndarray | None:
         return None
     backend = result.config.backend
     scale = covariance_scale(backend, result.planar)
+    measured = (getattr(result, "covariance_model", None) or {}).get("variance_per_m")
     out = np.full((len(result.poses), 6, 6), np.nan)
     for k, (idx, T_scans) in enumerate(zip(result.submap_scan_indices, result.submap_scan_poses)):
         steps = np.linalg.norm(np.diff(np.asarray(T_scans)[:, :3, 3], axis=0), axis=1)
@@ -276,7 +366,10 @@ def scan_covariances(result) -> np.ndarray | None:
             if m == 0:  # the anchor's own scan (a refined 2D scan may sit a few mm off it): the anchor's
                 out[s] = A @ covs[k] @ A.T
                 continue
-            rel = calibrate(within_submap_covariance(T, float(dist), result.planar, backend), scale)
+            if measured is not None:
+                rel = np.diag(np.asarray(measured, dtype=np.float64) * max(float(dist), 1.0))
+            else:
+                rel = calibrate(within_submap_covariance(T, float(dist), result.planar, backend), scale)
             out[s] = A @ covs[k] @ A.T + rel
     return out
 

@@ -7,6 +7,7 @@ import pytest
 
 from submapslam.config import BackendConfig, PipelineConfig
 from submapslam.errors import ConfigError
+from submapslam.geometry import adjoint, inverse
 from submapslam.uncertainty import (
     COVARIANCE_SCALE_3D,
     COVARIANCE_SCALE_PLANAR,
@@ -59,6 +60,11 @@ def test_scan_covariance_carries_the_anchor_and_grows_along_the_submap():
     # the anchors' marginals come calibrated (the pipeline scales them): only the drift share is scaled here
     np.testing.assert_allclose(scaled[0], anchor_cov, atol=1e-15)
     np.testing.assert_allclose(scaled[-1, 3, 3] - 0.01, 4 * (covs[-1, 3, 3] - 0.01))
+    per_m = np.array([1e-6, 2e-6, 3e-8, 1e-4, 5e-5, 2e-5])
+    measured = scan_covariances(SimpleNamespace(**{**vars(result), "covariance_model": {"variance_per_m": per_m}}))
+    # a run that measured its odometry noise: that noise over the distance from the anchor, whatever the scale
+    A = adjoint(inverse(T_scans[-1]))  # the anchor's covariance carried 10 m ahead
+    np.testing.assert_allclose(measured[-1], A @ anchor_cov @ A.T + np.diag(per_m * 10.0), rtol=1e-9, atol=1e-15)
     result.submap_covariances = np.full((1, 6, 6), np.nan)  # a failed final optimisation: no covariances
     assert scan_covariances(result) is None
 

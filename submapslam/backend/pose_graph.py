@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import re
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -510,6 +510,79 @@ class PoseGraph:
         except RuntimeError as exc:  # indeterminant system; fall back to iSAM2's
             log.warning("batch marginals failed (%s); using iSAM2 marginals", exc)
             return {k: self.marginal_covariance(k) for k in wanted}
+
+
+    def factor_kind(self, idx: int) -> tuple[str, int, int]:
+        """``(kind, i, j)`` of the factor at index ``idx``: an edge's kind ("odometry", "loop", with
+        " (gave way)" when it did), a ground prior's, or "prior" (the start, a node held after a
+        GTSAM failure) with ``i = j`` its node."""
+        if idx in self._factor_edges:
+            e = self.edges[self._factor_edges[idx]]
+            return (e.kind + (" (gave way)" if idx in self._relaxed else ""), e.i, e.j)
+        if idx in self._priors:
+            kind, i, j, _ = self._priors[idx]
+            return kind, i, j
+        key = int(self._graph.at(idx).keys()[0])
+        return "prior", key, key
+
+    def estimator_covariances(self, true_covariance: Callable[[str, int, int, np.ndarray], np.ndarray],
+                              keys: Iterable[int] | None = None, batch: int = 128) -> dict[int, np.ndarray]:
+        """``(6, 6)`` covariances (GTSAM order, node frame) of the current estimate of nodes ``keys``
+        (default: all) when each factor's measurement error has the covariance
+        ``true_covariance(kind, i, j, stated)`` (:meth:`factor_kind`; ``stated``: the covariance
+        the factor is weighed with, ``(d, d)`` in its own error space) instead of the stated one.
+
+        The estimate minimises the factors' weighted errors, so its linearised error is ``H^-1 J^T W
+        e`` (``H = J^T W J``, ``W`` the stated informations, robust kernels' weights at the estimate
+        included); its covariance is the sandwich ``H^-1 J^T W S W J H^-1`` with ``S`` the true
+        covariances. With ``S`` the stated ones and no kernel this is the graph's marginal covariance.
+        Sparse: ``H`` is factorised once and solved for ``batch`` nodes at a time.
+        """
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.linalg import splu
+
+        gtsam = self._gtsam
+        nodes = sorted(self._initial)
+        col = {k: 6 * n for n, k in enumerate(nodes)}
+        rows_h, cols_h, vals_h, rows_m, cols_m, vals_m = [], [], [], [], [], []
+        for idx in self._active_factors():
+            factor = self._relaxed.get(idx, self._graph.at(idx))
+            kind, i, j = self.factor_kind(idx)
+            noise = factor.noiseModel()
+            weight = 1.0
+            if isinstance(noise, gtsam.noiseModel.Robust):
+                base = noise.noise()
+                whitened = base.whiten(np.asarray(factor.unwhitenedError(self._estimate), dtype=np.float64))
+                weight = float(noise.robust().weight(float(np.linalg.norm(whitened))))
+                noise = base
+            L = np.asarray(noise.R(), dtype=np.float64)  # L^T L = stated information
+            stated = np.linalg.inv(L.T @ L)
+            R = weight * L @ true_covariance(kind, i, j, stated) @ L.T  # the true covariance, whitened
+            linear = factor.linearize(self._estimate)
+            A = np.asarray(linear.jacobian()[0], dtype=np.float64)  # whitened (and weighted) Jacobian
+            idx_cols = np.concatenate([np.arange(col[int(k)], col[int(k)] + 6) for k in linear.keys()])
+            for target_rows, target_cols, target_vals, block in ((rows_h, cols_h, vals_h, A.T @ A),
+                                                                 (rows_m, cols_m, vals_m, A.T @ R @ A)):
+                target_rows.append(np.repeat(idx_cols, len(idx_cols)))
+                target_cols.append(np.tile(idx_cols, len(idx_cols)))
+                target_vals.append(block.ravel())
+        n = 6 * len(nodes)
+        H = coo_matrix((np.concatenate(vals_h), (np.concatenate(rows_h), np.concatenate(cols_h))), shape=(n, n)).tocsc()
+        M = coo_matrix((np.concatenate(vals_m), (np.concatenate(rows_m), np.concatenate(cols_m))), shape=(n, n)).tocsr()
+        lu = splu(H)
+        wanted = list(nodes if keys is None else keys)
+        out: dict[int, np.ndarray] = {}
+        for start in range(0, len(wanted), batch):
+            chunk = wanted[start:start + batch]
+            E = np.zeros((n, 6 * len(chunk)))
+            for m, k in enumerate(chunk):
+                E[col[k]:col[k] + 6, 6 * m:6 * m + 6] = np.eye(6)
+            X = lu.solve(E)  # columns of H^-1
+            MX = M @ X
+            for m, k in enumerate(chunk):
+                block = X[:, 6 * m:6 * m + 6].T @ MX[:, 6 * m:6 * m + 6]
+                out[k] = 0.5 * (block + block.T)
+        return out
 
 
 def _one_line(exc: BaseException) -> str:

@@ -74,7 +74,10 @@ def write_checkpoint(out_dir: str | Path, checkpoint: Checkpoint, config: Pipeli
              information_ids=np.asarray(ids, dtype=np.int64),
              information=np.asarray([checkpoint.odometry_information[k] for k in ids]).reshape(-1, 6, 6),
              tilt_ids=np.asarray(sorted(checkpoint.odometry_tilt), dtype=np.int64),
-             tilt=np.asarray([checkpoint.odometry_tilt[k] for k in sorted(checkpoint.odometry_tilt)]).reshape(-1, 2))
+             tilt=np.asarray([checkpoint.odometry_tilt[k] for k in sorted(checkpoint.odometry_tilt)]).reshape(-1, 2),
+             correction_ids=np.asarray(sorted(checkpoint.odometry_correction), dtype=np.int64),
+             correction=np.asarray([checkpoint.odometry_correction[k]
+                                    for k in sorted(checkpoint.odometry_correction)]).reshape(-1, 6))
     loops = {str(k): [_record_to_json(r) for r in recs] for k, recs in sorted(checkpoint.loop_records.items())}
     (tmp / "loops.json").write_text(json.dumps(loops) + "\n")
     (tmp / "config.yaml").write_text(dump_config(config))
@@ -115,6 +118,7 @@ def read_checkpoint(out_dir: str | Path) -> tuple[Checkpoint, PipelineConfig, di
         timestamps=arrays["timestamps"], odometry_poses=arrays["odometry_poses"], planar_poses=planar,
         odometry_information={int(k): info for k, info in zip(arrays["information_ids"], arrays["information"])},
         odometry_tilt={int(k): t for k, t in zip(arrays["tilt_ids"], arrays["tilt"])},
+        odometry_correction={int(k): c for k, c in zip(arrays.get("correction_ids", ()), arrays.get("correction", ()))},
         loop_records={int(k): [_record_from_json(d) for d in recs] for k, recs in loops.items()},
         source=run.get("source", ""))
     return checkpoint, config, run
