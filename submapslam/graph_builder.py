@@ -33,6 +33,7 @@ from .uncertainty import (
 PRIOR_INFORMATION = np.diag([1e8] * 6)  # the first anchor is the world frame
 WALL_VERTICAL_PRIOR = "wall vertical prior"  # the kind of a level prior whose up comes from the walls
 LEVEL_SOURCE_WAIT = 5  # submaps without walls after which the level priors come from the ground
+WORLD_UP_VOTES = 3  # submaps with walls whose verticals agree the world's up
 
 
 #: GTSAM-order indices of what a planar log cannot observe: roll, pitch, z
@@ -49,6 +50,20 @@ def pin_planar(information: np.ndarray, sigma: float = 1e-4) -> np.ndarray:
     out[:, idx] = 0.0
     out[idx, idx] = 1.0 / sigma**2
     return out
+
+
+def consensus_up(votes: list[np.ndarray], agree_deg: float = 1.0) -> np.ndarray:
+    """The world's up ``(3,)`` from a few submaps' wall verticals ``votes`` (each ``(3,)``, unit,
+    in the odometry frame): the mean of those within ``agree_deg`` of the medoid (the vote nearest
+    to all others). One submap's walls can be off by degrees (a street canyon fixes the tilt about
+    its own axis with a few cross walls; the first submap carries the odometry's start), and every
+    level prior of the run is measured against this up."""
+    v = np.asarray(votes, dtype=np.float64).reshape(-1, 3)
+    angles = np.arccos(np.clip(v @ v.T, -1.0, 1.0))
+    medoid = v[int(np.argmin(angles.sum(axis=1)))]
+    keep = v[np.arccos(np.clip(v @ medoid, -1.0, 1.0)) <= np.deg2rad(agree_deg)]
+    up = keep.mean(axis=0)
+    return up / np.linalg.norm(up)
 
 
 class GraphBuilder:
@@ -88,6 +103,8 @@ class GraphBuilder:
         self.ground_prior_test: dict = {}  # summary.json's ground_priors: the level test and what it decided
         self._level_from: str | None = None  # 3D: where the level priors' up comes from: "walls" or "ground"
         self._pending_level: list[tuple[int, np.ndarray, np.ndarray]] = []  # (id, ground up, R_odom_anchor) waiting
+        self._up_votes: list[np.ndarray] = []  # the first submaps' wall verticals in the odometry frame
+        self._pending_walls: list[tuple[int, np.ndarray, float, str]] = []  # (id, up in anchor, sigma, kind) waiting
         self._submaps_without_walls = 0  # 3D: submaps seen before the level priors' source was chosen
         # the walls' vertical: spinning LiDARs only. A narrow-field sensor's odometry holds its tilt to
         # 0.01 deg a submap, and on two of four Livox-like drives the wall priors cost lateral accuracy
@@ -169,21 +186,30 @@ class GraphBuilder:
         (``up``, ``ground_attitude_sigma_deg``: the world's up is the first anchor's ground normal).
         Until the source is chosen (walls seen, or :data:`LEVEL_SOURCE_WAIT` submaps without),
         ground priors wait. Once it is the walls, a submap without walls gets its ground plane's
-        prior against the walls' up (the bet on level ground, where nothing better is seen)."""
+        prior against the walls' up (the bet on level ground, where nothing better is seen). The
+        walls' up is the consensus of the first :data:`WORLD_UP_VOTES` submaps with walls
+        (:func:`consensus_up`); the priors wait for it."""
         R = submap.T_odom_anchor[:3, :3]  # the odometry frame is the world frame
         if vertical is not None:
             if self._level_from is None:
-                self._level_from, self._world_up = "walls", R @ vertical
+                self._level_from = "walls"
                 self._pending_level.clear()
                 self._pending_tilt_changes.clear()
             self.wall_verticals += 1
-            self.graph.add_attitude(submap.id, vertical, self._world_up,
-                                    np.deg2rad(self.config.wall_vertical_sigma_deg), kind=WALL_VERTICAL_PRIOR)
+            if self._world_up is None and len(self._up_votes) < WORLD_UP_VOTES:
+                self._up_votes.append(R @ vertical)
+            self._pending_walls.append((submap.id, vertical, np.deg2rad(self.config.wall_vertical_sigma_deg),
+                                        WALL_VERTICAL_PRIOR))
+            if self._world_up is not None or len(self._up_votes) == WORLD_UP_VOTES:
+                self._add_pending_walls()
             return
         if up is None:
             return
         if self._level_from == "walls":  # no walls here (a field, a highway): the ground plane, against the walls' up
-            self.graph.add_attitude(submap.id, up, self._world_up, np.deg2rad(self.config.ground_attitude_sigma_deg))
+            self._pending_walls.append((submap.id, up, np.deg2rad(self.config.ground_attitude_sigma_deg),
+                                        "ground attitude prior"))
+            if self._world_up is not None:
+                self._add_pending_walls()
             return
         self._pending_level.append((submap.id, up, R))
         if self._level_from is None:
@@ -192,6 +218,14 @@ class GraphBuilder:
                 return
             self._level_from = "ground"
         self._add_pending_ground_levels()
+
+    def _add_pending_walls(self) -> None:
+        """The level priors held back until the walls' up was agreed (:attr:`_up_votes`)."""
+        if self._world_up is None:
+            self._world_up = consensus_up(self._up_votes)
+        for key, direction, sigma, kind in self._pending_walls:
+            self.graph.add_attitude(key, direction, self._world_up, sigma, kind=kind)
+        self._pending_walls.clear()
 
     def _add_pending_ground_levels(self) -> None:
         """The ground-plane level priors held back while the walls might still have been the source."""
@@ -332,6 +366,9 @@ class GraphBuilder:
         with self._time("optimisation"):
             if self._pending_tilt_changes:  # a run too short to measure the spread: the configured sigma
                 self._add_pending_tilt_changes(self.tilt_change.floor_rad)
+                self.graph.update()
+            if self._pending_walls:  # a short run with fewer walled submaps than votes: those it has
+                self._add_pending_walls()
                 self.graph.update()
             if self._pending_level:  # a short run without walls: its ground planes
                 self._level_from = "ground"
