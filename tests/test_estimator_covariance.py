@@ -2,7 +2,6 @@
 measured itself (uncertainty.OdometryNoise, PoseGraph.estimator_covariances)."""
 
 import numpy as np
-import pytest
 
 from submapslam.backend.pose_graph import PoseGraph, chain_covariance
 from submapslam.config import BackendConfig
