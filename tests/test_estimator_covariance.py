@@ -126,14 +126,18 @@ def test_a_3d_run_reports_its_estimates_covariance_and_it_fits_the_truth(tmp_pat
     from submapslam.api import run_log
     from submapslam.config import PipelineConfig
     from submapslam.geometry import inverse
+    from submapslam.io.map_store import load_map
     from submapslam.io.trajectory import read_tum
 
     from .conftest import shared_data
 
     log = generate_kitti_drive(shared_data("trajectories", "kitti_gt", "08.txt.xz"), tmp_path / "t", rings=16,
                                seed=310, max_scans=200, terrain=True)
-    res, _ = run_log(log, None)
+    res, _ = run_log(log, tmp_path / "out")
     assert res.covariance_model["kind"] == "measured odometry noise"
+    saved = load_map(tmp_path / "out" / "map").result  # the saved map keeps how its covariances were made
+    assert saved.covariance_model == res.covariance_model
+    np.testing.assert_allclose(saved.pose_covariances(), res.pose_covariances())
     raw, _ = run_log(log, None, config=PipelineConfig(backend=BackendConfig(covariance_scale=[1] * 6)))
     np.testing.assert_allclose(raw.submap_poses, res.submap_poses, atol=1e-9)  # the estimate is the same
     assert [r.accepted for r in raw.loops] == [r.accepted for r in res.loops]

@@ -131,6 +131,7 @@ def save_map(session_map: SessionMap, folder: str | Path) -> dict[str, Path]:
     manifest = {
         "format": FORMAT, "version": VERSION, "planar": r.planar, "scans": r.n_scans, "submaps": r.n_submaps,
         "map_voxel_size": r.map_voxel_size, "path_length_m": r.path_length_m, "source": r.source,
+        "covariance_model": r.covariance_model,  # how the anchors' covariances were made (scan covariances follow it)
         "sessions": [s.to_dict() for s in session_map.sessions],
     }
     paths["manifest.json"].write_text(json.dumps(manifest, indent=2) + "\n")
@@ -223,6 +224,6 @@ def load_map(folder: str | Path) -> SessionMap:
         submap_scan_indices=scan_indices, submap_scan_poses=scan_poses, submap_scan_points=grid_points,
         edges=edges, loops=loops, planar=bool(manifest["planar"]), config=config,
         map_voxel_size=float(manifest["map_voxel_size"]), path_length_m=float(manifest["path_length_m"]),
-        source=manifest.get("source", ""))
+        source=manifest.get("source", ""), covariance_model=manifest.get("covariance_model") or {})
     sessions = [SessionInfo(**s) for s in manifest["sessions"]]
     return SessionMap(result, sessions, sub["descriptors"])
