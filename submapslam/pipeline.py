@@ -27,7 +27,7 @@ from .process_stats import combined_peak_mb, current_memory_mb, peak_memory_mb, 
 from .result import LoopRecord, SlamResult
 from .scan import LoopHint, Scan
 from .submaps import Submap, SubmapBuilder
-from .uncertainty import calibrate, covariance_scale
+from .uncertainty import calibrate, covariance_scale, scan_jitter_variance
 
 log = logging.getLogger(__name__)
 
@@ -519,7 +519,9 @@ class SubmapSLAM:
                                 calibrate(np.array([covs[k] for k in range(n)]).reshape(-1, 6, 6),
                                           covariance_scale(backend, self.planar))),
             covariance_model=({"kind": "measured odometry noise", **noise.summary(),
-                               "variance_per_m": [float(v) for v in noise.variance_per_metre()]}
+                               "variance_per_m": [float(v) for v in noise.variance_per_metre()],
+                               "scan_jitter_variance": [float(v) for v in
+                                                        scan_jitter_variance(np.array(self._odom_poses))]}
                               if noise is not None else
                               {"kind": "graph marginals scaled per axis",
                                "scale": [float(v) for v in covariance_scale(backend, self.planar)]}),

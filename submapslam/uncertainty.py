@@ -331,6 +331,25 @@ class OdometryNoise:
         return out
 
 
+def scan_jitter_variance(odometry_poses: np.ndarray) -> np.ndarray:
+    """``(6,)`` variance (GTSAM order, [rad^2, m^2]) of each scan's own registration error, which
+    does not add up along the drive: scan-to-map odometry places consecutive scans a few
+    centimetres back and forth along the track (16 rings on a town drive: 1.7-2.7 cm), more than
+    its drift per metre says over one scan. From the odometry ``(N, 4, 4)`` itself: the change
+    between consecutive steps, ``(T_{k-1,k})^-1 T_{k,k+1}``, is two steps' jitter (variance 6 J
+    for independent errors) plus the vehicle's own change of motion (a few millimetres at 10 Hz);
+    per axis its robust variance (median over chi-square(1)'s, 0.455) over 6. Zero with fewer
+    than 10 scans."""
+    from .geometry import pose_difference
+
+    poses = np.asarray(odometry_poses, dtype=np.float64).reshape(-1, 4, 4)
+    if len(poses) < 10:
+        return np.zeros(6)
+    steps = [np.linalg.solve(poses[k], poses[k + 1]) for k in range(len(poses) - 1)]
+    changes = np.array([pose_difference(np.linalg.solve(a, b)) for a, b in zip(steps[:-1], steps[1:])])
+    return np.median(changes**2, axis=0) / 0.455 / 6.0
+
+
 def within_submap_covariance(T_anchor_scan: np.ndarray, distance: float, planar: bool,
                              config: BackendConfig) -> np.ndarray:
     """``(6, 6)`` covariance (GTSAM order, scan frame) of a scan's pose relative to its anchor:
@@ -348,7 +367,9 @@ def scan_covariances(result) -> np.ndarray | None:
     Its anchor's reported marginal (already calibrated by the pipeline) carried to the scan, ``Ad(T_anchor_scan^-1) Sigma
     Ad(.)^T``, plus (except for the anchor's own scan) the odometry's noise from the anchor to the
     scan: the run's measured noise when its anchors' covariances were made with it
-    (``result.covariance_model["variance_per_m"]``, :class:`OdometryNoise`), else the drift model
+    (``result.covariance_model["variance_per_m"]``, :class:`OdometryNoise`) and twice the scans'
+    own jitter (``["scan_jitter_variance"]``, :func:`scan_jitter_variance`: the scan's and its
+    anchor's), else the drift model
     scaled by the same per-axis factors as the anchors (:func:`covariance_scale`). A scan shared
     by two submaps (the last of one is the anchor of the next) takes the later submap's, i.e. its
     anchor's. None when the run has no covariances (an empty run, a failed final optimisation).
@@ -360,7 +381,9 @@ def scan_covariances(result) -> np.ndarray | None:
         return None
     backend = result.config.backend
     scale = covariance_scale(backend, result.planar)
-    measured = (getattr(result, "covariance_model", None) or {}).get("variance_per_m")
+    model = getattr(result, "covariance_model", None) or {}
+    measured = model.get("variance_per_m")
+    jitter = 2.0 * np.asarray(model.get("scan_jitter_variance") or np.zeros(6), dtype=np.float64)
     out = np.full((len(result.poses), 6, 6), np.nan)
     for k, (idx, T_scans) in enumerate(zip(result.submap_scan_indices, result.submap_scan_poses)):
         steps = np.linalg.norm(np.diff(np.asarray(T_scans)[:, :3, 3], axis=0), axis=1)
@@ -371,7 +394,7 @@ def scan_covariances(result) -> np.ndarray | None:
                 out[s] = A @ covs[k] @ A.T
                 continue
             if measured is not None:
-                rel = np.diag(np.asarray(measured, dtype=np.float64) * max(float(dist), 1.0))
+                rel = np.diag(np.asarray(measured, dtype=np.float64) * max(float(dist), 1.0) + jitter)
             else:
                 rel = calibrate(within_submap_covariance(T, float(dist), result.planar, backend), scale)
             out[s] = A @ covs[k] @ A.T + rel

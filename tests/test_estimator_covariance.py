@@ -154,3 +154,26 @@ def test_a_3d_run_reports_its_estimates_covariance_and_it_fits_the_truth(tmp_pat
     assert np.all(ours[2:5] > 0.25) and np.all(ours[2:5] < 4.0), ours
     assert np.all(ours < 6.0), ours
     assert graphs[2] < 0.1 and graphs[4] < 0.1, graphs  # what the graph's own marginals say of yaw and y
+
+
+def test_scan_jitter_is_measured_from_the_odometrys_own_steps():
+    """A drive at constant speed whose scans are each placed with independent errors (2 cm along
+    the track, 1 cm across, 0.05 deg in yaw): the jitter variance comes back within 30 %; a
+    smooth drive has none."""
+    from submapslam.geometry import so3_exp
+    from submapslam.uncertainty import scan_jitter_variance
+
+    rng = np.random.default_rng(1)
+    truth = [_step(1.0 * k, 0.0) for k in range(400)]
+    sigma = np.array([0.0, 0.0, np.deg2rad(0.05), 0.02, 0.01, 0.0])
+    noisy = []
+    for T in truth:
+        xi = rng.normal(0.0, sigma)
+        E = np.eye(4)
+        E[:3, :3] = so3_exp(xi[:3])
+        E[:3, 3] = xi[3:]
+        noisy.append(T @ E)
+    var = scan_jitter_variance(np.array(noisy))
+    np.testing.assert_allclose(var[[2, 3, 4]], sigma[[2, 3, 4]] ** 2, rtol=0.3)
+    assert np.all(scan_jitter_variance(np.array(truth)) < 1e-20)
+    assert np.all(scan_jitter_variance(np.array(truth[:5])) == 0.0)
