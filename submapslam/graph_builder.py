@@ -104,7 +104,7 @@ class GraphBuilder:
         self._level_from: str | None = None  # 3D: where the level priors' up comes from: "walls" or "ground"
         self._pending_level: list[tuple[int, np.ndarray, np.ndarray]] = []  # (id, ground up, R_odom_anchor) waiting
         self._up_votes: list[np.ndarray] = []  # the first submaps' wall verticals in the odometry frame
-        self._pending_walls: list[tuple[int, np.ndarray, float, str]] = []  # (id, up in anchor, sigma, kind) waiting
+        self._waiting_for_up: list[tuple[int, np.ndarray, float, str]] = []  # (id, up in anchor, sigma, kind) waiting
         self._submaps_without_walls = 0  # 3D: submaps seen before the level priors' source was chosen
         # the walls' vertical: spinning LiDARs only. A narrow-field sensor's odometry holds its tilt to
         # 0.01 deg a submap, and on two of four Livox-like drives the wall priors cost lateral accuracy
@@ -198,18 +198,18 @@ class GraphBuilder:
             self.wall_verticals += 1
             if self._world_up is None and len(self._up_votes) < WORLD_UP_VOTES:
                 self._up_votes.append(R @ vertical)
-            self._pending_walls.append((submap.id, vertical, np.deg2rad(self.config.wall_vertical_sigma_deg),
+            self._waiting_for_up.append((submap.id, vertical, np.deg2rad(self.config.wall_vertical_sigma_deg),
                                         WALL_VERTICAL_PRIOR))
             if self._world_up is not None or len(self._up_votes) == WORLD_UP_VOTES:
-                self._add_pending_walls()
+                self._add_priors_waiting_for_up()
             return
         if up is None:
             return
         if self._level_from == "walls":  # no walls here (a field, a highway): the ground plane, against the walls' up
-            self._pending_walls.append((submap.id, up, np.deg2rad(self.config.ground_attitude_sigma_deg),
+            self._waiting_for_up.append((submap.id, up, np.deg2rad(self.config.ground_attitude_sigma_deg),
                                         "ground attitude prior"))
             if self._world_up is not None:
-                self._add_pending_walls()
+                self._add_priors_waiting_for_up()
             return
         self._pending_level.append((submap.id, up, R))
         if self._level_from is None:
@@ -219,13 +219,13 @@ class GraphBuilder:
             self._level_from = "ground"
         self._add_pending_ground_levels()
 
-    def _add_pending_walls(self) -> None:
+    def _add_priors_waiting_for_up(self) -> None:
         """The level priors held back until the walls' up was agreed (:attr:`_up_votes`)."""
         if self._world_up is None:
             self._world_up = consensus_up(self._up_votes)
-        for key, direction, sigma, kind in self._pending_walls:
+        for key, direction, sigma, kind in self._waiting_for_up:
             self.graph.add_attitude(key, direction, self._world_up, sigma, kind=kind)
-        self._pending_walls.clear()
+        self._waiting_for_up.clear()
 
     def _add_pending_ground_levels(self) -> None:
         """The ground-plane level priors held back while the walls might still have been the source."""
@@ -367,8 +367,8 @@ class GraphBuilder:
             if self._pending_tilt_changes:  # a run too short to measure the spread: the configured sigma
                 self._add_pending_tilt_changes(self.tilt_change.floor_rad)
                 self.graph.update()
-            if self._pending_walls:  # a short run with fewer walled submaps than votes: those it has
-                self._add_pending_walls()
+            if self._waiting_for_up:  # a short run with fewer walled submaps than votes: those it has
+                self._add_priors_waiting_for_up()
                 self.graph.update()
             if self._pending_level:  # a short run without walls: its ground planes
                 self._level_from = "ground"
