@@ -13,6 +13,7 @@ else writes the graph; the loop closer reads it through :meth:`estimate`.
 
 from __future__ import annotations
 
+import logging
 from contextlib import nullcontext
 
 import numpy as np
@@ -29,6 +30,8 @@ from .uncertainty import (
     TiltDrift,
     odometry_information,
 )
+
+log = logging.getLogger(__name__)
 
 PRIOR_INFORMATION = np.diag([1e8] * 6)  # the first anchor is the world frame
 WALL_VERTICAL_PRIOR = "wall vertical prior"  # the kind of a level prior whose up comes from the walls
@@ -383,8 +386,12 @@ class GraphBuilder:
             covs = self.graph.all_marginal_covariances()
             noise = OdometryNoise(self.odometry_correction, self.edge_distance)
             if not self.planar and self.config.covariance_scale is None and noise.variance_per_metre() is not None:
-                covs = self.graph.estimator_covariances(noise.factor_covariance)
-                self.covariance_model = noise
+                try:
+                    covs = self.graph.estimator_covariances(noise.factor_covariance)
+                    self.covariance_model = noise
+                except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:  # a singular system: the marginals
+                    log.warning("the estimate's covariances could not be computed (%s); reporting the graph's "
+                                "scaled marginals", str(exc).strip().splitlines()[0] if str(exc).strip() else exc)
         reasons = {key: f"rejected by the optimiser (GNC weight {w:.2f})" for key, w in weights.items() if w < 0.5}
         reasons.update({(i, j): why for i, j, why in dropped})
         return reasons, covs
