@@ -246,8 +246,8 @@ class LevelGroundTest:
 #: of it (:class:`OdometryNoise`). The registration between two submaps shares the odometry's
 #: scans and biases and sees a third to a half of its error: on the terrain Monte Carlo worlds
 #: (KITTI 05 and 00 paths, 200 and 1,700 scans) the true edge errors' robust sigma was 2-4x the
-#: corrections' on roll, pitch, x, y and z (TiltDrift takes 3 for roll and pitch). BENCHMARKS.md,
-#: "Calibrated covariances: the run's own odometry noise".
+#: corrections' on roll, pitch, x, y and z (TiltDrift takes 3 for roll and pitch). BENCHMARKS.md, "3D runs:
+#: the estimate's covariance under the run's own odometry noise".
 ODOMETRY_NOISE_FACTOR = 2.5
 #: 3D: a loop edge's error variance over one odometry edge's of the median length. A loop is a
 #: registration between two submaps like the correction of an odometry edge; against the truth its
