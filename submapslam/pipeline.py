@@ -521,7 +521,7 @@ class SubmapSLAM:
             covariance_model=({"kind": "measured odometry noise", **noise.summary(),
                                "variance_per_m": [float(v) for v in noise.variance_per_metre()],
                                "scan_jitter_variance": [float(v) for v in
-                                                        scan_jitter_variance(np.array(self._odom_poses))]}
+                                                        scan_jitter_variance(np.array(self._odom_poses), timestamps)]}
                               if noise is not None else
                               {"kind": "graph marginals scaled per axis",
                                "scale": [float(v) for v in covariance_scale(backend, self.planar)]}),

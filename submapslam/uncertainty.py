@@ -331,7 +331,7 @@ class OdometryNoise:
         return out
 
 
-def scan_jitter_variance(odometry_poses: np.ndarray) -> np.ndarray:
+def scan_jitter_variance(odometry_poses: np.ndarray, timestamps: np.ndarray | None = None) -> np.ndarray:
     """``(6,)`` variance (GTSAM order, [rad^2, m^2]) of each scan's own registration error, which
     does not add up along the drive: scan-to-map odometry places consecutive scans a few
     centimetres back and forth along the track (16 rings on a town drive: 1.2-2.2 cm), more than
@@ -340,15 +340,25 @@ def scan_jitter_variance(odometry_poses: np.ndarray) -> np.ndarray:
     ``1 + 9 + 9 + 1 = 20`` for independent errors of variance ``J``, while a motion of constant
     acceleration cancels (a second difference kept the vehicle's turning in yaw: 0.03 deg per
     scan on the terrain towns, against 0.017 deg from the third); per axis its robust variance
-    (median over chi-square(1)'s, 0.455) over 20. Zero with fewer than 10 scans."""
+    (median over chi-square(1)'s, 0.455) over 20. Only windows of three steps equally long in time
+    (within 5 %, by ``timestamps`` ``(N,)`` [s] when given) count: a keyframe log's irregular steps
+    change the motion between them (a Livox-like drive: 0.74 m along the track otherwise). Zero
+    with fewer than 10 such windows."""
     from .geometry import pose_difference
 
     poses = np.asarray(odometry_poses, dtype=np.float64).reshape(-1, 4, 4)
-    if len(poses) < 10:
+    if len(poses) < 4:
+        return np.zeros(6)
+    valid = np.ones(len(poses) - 3, dtype=bool)
+    if timestamps is not None:
+        dt = np.diff(np.asarray(timestamps, dtype=np.float64)[:len(poses)])
+        windows = np.stack([dt[:-2], dt[1:-1], dt[2:]], axis=1)
+        valid = (windows.min(axis=1) > 0) & (windows.max(axis=1) <= 1.05 * windows.min(axis=1))
+    if valid.sum() < 10:
         return np.zeros(6)
     steps = [np.linalg.solve(poses[k], poses[k + 1]) for k in range(len(poses) - 1)]
     changes = [np.linalg.solve(a, b) for a, b in zip(steps[:-1], steps[1:])]
-    third = np.array([pose_difference(np.linalg.solve(a, b)) for a, b in zip(changes[:-1], changes[1:])])
+    third = np.array([pose_difference(np.linalg.solve(changes[k], changes[k + 1])) for k in np.flatnonzero(valid)])
     return np.median(third**2, axis=0) / 0.455 / 20.0
 
 

@@ -177,6 +177,12 @@ def test_scan_jitter_is_measured_from_the_odometrys_own_steps():
     np.testing.assert_allclose(var[[2, 3, 4]], sigma[[2, 3, 4]] ** 2, rtol=0.3)
     assert np.all(scan_jitter_variance(np.array(truth)) < 1e-20)
     assert np.all(scan_jitter_variance(np.array(truth[:5])) == 0.0)
+    # keyframes at irregular times: a true stop-and-go (steps of 1, 3 and 5 m at 0.1, 0.3 and 0.5 s)
+    # is no jitter; only the windows of equal steps count
+    times = np.cumsum(rng.choice([0.1, 0.3, 0.5], size=400))
+    keyframes = np.array([_step(10.0 * t, 0.0) for t in times])  # 10 m/s, each pose exact
+    assert np.all(scan_jitter_variance(keyframes, times) < 1e-20)
+    assert scan_jitter_variance(np.array([_step(x, 0.0) for x in np.cumsum(rng.choice([1.0, 3.0, 5.0], 400))]))[3] > 0.1
 
 
 def test_a_singular_system_falls_back_to_the_scaled_marginals(monkeypatch, caplog, tmp_path):
