@@ -18,7 +18,7 @@ from contextlib import nullcontext
 
 import numpy as np
 
-from .backend.pose_graph import PoseGraph, cap_covariance, floor_information
+from .backend.pose_graph import GROUND_ATTITUDE_PRIOR, PoseGraph, cap_covariance, floor_information
 from .config import BackendConfig, OdometryConfig, narrow_field
 from .geometry import inverse, pose_difference
 from .result import LoopRecord
@@ -210,7 +210,7 @@ class GraphBuilder:
             return
         if self._level_from == "walls":  # no walls here (a field, a highway): the ground plane, against the walls' up
             self._waiting_for_up.append((submap.id, up, np.deg2rad(self.config.ground_attitude_sigma_deg),
-                                        "ground attitude prior"))
+                                        GROUND_ATTITUDE_PRIOR))
             if self._world_up is not None:
                 self._add_priors_waiting_for_up()
             return

@@ -285,22 +285,23 @@ class OdometryNoise:
                  factor: float = ODOMETRY_NOISE_FACTOR, min_edges: int = 8) -> None:
         """``corrections``: per submap id, the ``(6,)`` correction of its odometry edge from the
         previous submap; ``distances``: per submap id, that edge's length [m]."""
-        self.corrections = {k: np.asarray(c, dtype=np.float64) for k, c in corrections.items() if k in distances}
-        self.distances = {k: max(float(distances[k]), 1.0) for k in self.corrections}
-        self.factor = factor
-        self.min_edges = min_edges
+        ids = sorted(k for k in corrections if k in distances)
+        self.distances = {k: max(float(distances[k]), 1.0) for k in ids}
+        self.edges = len(ids)
+        self.median_distance = float(np.median(list(self.distances.values()))) if ids else 1.0
+        self._variance: np.ndarray | None = None  # (6,) per metre, once min_edges edges were measured
+        if len(ids) >= min_edges:
+            c = np.array([np.asarray(corrections[k], dtype=np.float64) for k in ids])
+            d = np.array([self.distances[k] for k in ids])
+            self._variance = factor**2 * np.median(c**2 / d[:, None], axis=0) / 0.455
 
     def variance_per_metre(self) -> np.ndarray | None:
         """``(6,)`` variance per metre [rad^2/m, m^2/m] of the odometry, GTSAM order, or None."""
-        if len(self.corrections) < self.min_edges:
-            return None
-        c = np.array([self.corrections[k] for k in sorted(self.corrections)])
-        d = np.array([self.distances[k] for k in sorted(self.corrections)])
-        return self.factor**2 * np.median(c**2 / d[:, None], axis=0) / 0.455
+        return self._variance
 
     def edge_covariance(self, distance: float) -> np.ndarray:
         """``(6, 6)`` covariance of the odometry over ``distance`` [m] (at least 1 m)."""
-        return np.diag(self.variance_per_metre() * max(float(distance), 1.0))
+        return np.diag(self._variance * max(float(distance), 1.0))
 
     def factor_covariance(self, kind: str, i: int, j: int, stated: np.ndarray) -> np.ndarray:
         """The covariance of one factor's measurement as this run's noise says it is: an odometry
@@ -308,26 +309,26 @@ class OdometryNoise:
         :data:`LOOP_NOISE_SHARE` of the median edge, a level prior its ``stated`` covariance times
         :data:`PRIOR_NOISE_INFLATION`, anything else (the start prior, an edge that gave way) as
         ``stated``."""
-        median = float(np.median(list(self.distances.values())))
         if kind == "odometry" and stated.shape == (6, 6):
-            return self.edge_covariance(self.distances.get(j, median))
+            return self.edge_covariance(self.distances.get(j, self.median_distance))
         if kind == "loop" and stated.shape == (6, 6):
-            return LOOP_NOISE_SHARE * self.edge_covariance(median)
+            return LOOP_NOISE_SHARE * self.edge_covariance(self.median_distance)
         if "prior" in kind and kind != "prior":
             return PRIOR_NOISE_INFLATION * stated
         return stated
 
     def summary(self) -> dict:
-        """What ``summary.json`` says of it: edges measured and the sigma per axis over 10 m."""
-        var = self.variance_per_metre()
-        out: dict = {"edges_measured": len(self.corrections)}
-        if var is not None:
-            sig = np.sqrt(var * 10.0)
+        """What ``summary.json`` says of it: edges measured, and once measured the sigma per axis
+        over 10 m and the variance per metre (GTSAM order, what the scans' covariances use)."""
+        out: dict = {"edges_measured": self.edges}
+        if self._variance is not None:
+            sig = np.sqrt(self._variance * 10.0)
             out["sigma_over_10_m"] = {"roll_deg": round(float(np.rad2deg(sig[0])), 4),
                                       "pitch_deg": round(float(np.rad2deg(sig[1])), 4),
                                       "yaw_deg": round(float(np.rad2deg(sig[2])), 4),
                                       "x_m": round(float(sig[3]), 4), "y_m": round(float(sig[4]), 4),
                                       "z_m": round(float(sig[5]), 4)}
+            out["variance_per_m"] = [float(v) for v in self._variance]
         return out
 
 
@@ -356,9 +357,10 @@ def scan_jitter_variance(odometry_poses: np.ndarray, timestamps: np.ndarray | No
         valid = (windows.min(axis=1) > 0) & (windows.max(axis=1) <= 1.05 * windows.min(axis=1))
     if valid.sum() < 10:
         return np.zeros(6)
-    steps = [np.linalg.solve(poses[k], poses[k + 1]) for k in range(len(poses) - 1)]
-    changes = [np.linalg.solve(a, b) for a, b in zip(steps[:-1], steps[1:])]
-    third = np.array([pose_difference(np.linalg.solve(changes[k], changes[k + 1])) for k in np.flatnonzero(valid)])
+    steps = np.linalg.solve(poses[:-1], poses[1:])  # (N-1, 4, 4) T_k^-1 T_k+1
+    changes = np.linalg.solve(steps[:-1], steps[1:])
+    thirds = np.linalg.solve(changes[:-1], changes[1:])
+    third = np.array([pose_difference(T) for T in thirds[valid]])
     return np.median(third**2, axis=0) / 0.455 / 20.0
 
 

@@ -21,6 +21,9 @@ from ..geometry import adjoint, rotation_between
 log = logging.getLogger(__name__)
 
 
+GROUND_ATTITUDE_PRIOR = "ground attitude prior"  # the kind of a level prior from a ground plane
+
+
 @dataclass
 class GraphEdge:
     """One between-factor ``T_i_j`` with its information (GTSAM order) and kind."""
@@ -141,7 +144,7 @@ class PoseGraph:
             self._graph.add(f)
 
     def add_attitude(self, key: int, up_in_node: np.ndarray, up_in_world: np.ndarray, sigma_rad: float,
-                     kind: str = "ground attitude prior") -> None:
+                     kind: str = GROUND_ATTITUDE_PRIOR) -> None:
         """Soft prior that the node's ``up_in_node`` ``(3,)`` direction points along the world's
         ``up_in_world`` ``(3,)``: constrains roll and pitch, never yaw or position (2 DOF). ``kind``
         names it in the final check's and the ground-prior test's accounts."""

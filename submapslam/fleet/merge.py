@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..backend.pose_graph import GROUND_ATTITUDE_PRIOR
 from ..config import PipelineConfig, narrow_field
 from ..geometry import blend_poses_many, inverse
 from ..graph_builder import PRIOR_INFORMATION, WALL_VERTICAL_PRIOR
@@ -213,7 +214,7 @@ def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo]
             else:
                 own_up = world if own_up is None else own_up
                 target = own_up
-            graph.add_attitude(k, level, target, level_sigma, kind=WALL_VERTICAL_PRIOR if walls else "ground attitude prior")
+            graph.add_attitude(k, level, target, level_sigma, kind=WALL_VERTICAL_PRIOR if walls else GROUND_ATTITUDE_PRIOR)
 
 
 def _optimise(result: SlamResult, sessions: list[SessionInfo], config: PipelineConfig,

@@ -224,12 +224,18 @@ def fuse_clouds(clouds: Iterable[tuple[np.ndarray, np.ndarray]], voxel: float,
     return cloud
 
 
+def find_voxels(keys: np.ndarray, sorted_keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(pos, found)``, each ``(N,)``: where each of ``keys`` ``(N,)`` sits in ``sorted_keys``
+    (ascending int64) and whether it is there (``pos`` is meaningful only where ``found``)."""
+    if not len(sorted_keys):
+        return np.zeros(len(keys), dtype=np.int64), np.zeros(len(keys), dtype=bool)
+    pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
+    return pos, sorted_keys[pos] == keys
+
+
 def in_voxels(keys: np.ndarray, sorted_keys: np.ndarray) -> np.ndarray:
     """``(N,)`` bool: each of ``keys`` ``(N,)`` is among ``sorted_keys`` (ascending int64)."""
-    if not len(sorted_keys):
-        return np.zeros(len(keys), dtype=bool)
-    pos = np.minimum(np.searchsorted(sorted_keys, keys), len(sorted_keys) - 1)
-    return sorted_keys[pos] == keys
+    return find_voxels(keys, sorted_keys)[1]
 
 
 def cloud_counts(clouds: Iterable[tuple[np.ndarray, np.ndarray]], voxel: float,
@@ -285,8 +291,8 @@ def voxels_left(result: SlamResult, voxel: float, reach: float) -> np.ndarray:
         for T, points in zip(result.submap_poses, result.submap_points):
             if len(points):
                 keys = np.unique(_voxel_keys(transform_points(T, points), voxel))  # each cell once a submap
-                pos = np.minimum(np.searchsorted(moved, keys), len(moved) - 1)
-                kept_by[pos[moved[pos] == keys]] += 1
+                pos, found = find_voxels(keys, moved)
+                kept_by[pos[found]] += 1
     return moved[moved_by >= kept_by]
 
 
