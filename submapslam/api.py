@@ -341,13 +341,18 @@ def _reference(ref: str | Path, raw_log: str | Path | None):
 
 
 def evaluate_files(est: str | Path, ref: str | Path, *, align: str = "se3", relations: str | Path | None = None,
-                   max_diff: float = 0.02, raw_log: str | Path | None = None, derive_relations: bool = False) -> dict:
+                   max_diff: float = 0.02, raw_log: str | Path | None = None, derive_relations: bool = False,
+                   scans: str | Path | None = None) -> dict:
     """ATE of the trajectory file ``est`` against ``ref`` (TUM, KITTI or CARMEN; ``raw_log``: the raw
     CARMEN log when ``ref`` is a corrected one), RPE over consecutive frames, and with
     ``relations`` the relations error (Kümmerle et al. 2009); with ``derive_relations`` (instead of
     a relations file) the relations error on relations derived from ``ref``
     (:func:`~submapslam.evaluation.derived_relations.derive_relations`: pairs close in time and
-    pairs across loops).
+    pairs across loops). With ``scans`` (the log both trajectories place, e.g. the raw CARMEN log)
+    also ``"loop_pair_misfit"``: how far that log's scans part under each trajectory where the
+    reference comes back to a place
+    (:func:`~submapslam.evaluation.scan_consistency.loop_pair_comparison`); a reference no more
+    consistent than the estimate bounds what the ATE can say.
 
     Returns ``{"ate": ate(...), "rpe": rpe(...), "relations": ... or None, "warnings": [...]}``
     (how the poses were paired, when it is doubtful: KITTI files of different lengths). An unknown
@@ -364,10 +369,15 @@ def evaluate_files(est: str | Path, ref: str | Path, *, align: str = "se3", rela
     r = _reference(ref, raw_log)
     warnings = _pairing_warnings(Path(est), Path(ref), e, r, raw_log, max_diff)
     rel = read_relations(relations) if relations else derive(r) if derive_relations else None
-    return {"ate": ate(e, r, align=align, max_diff=max_diff),
-            "rpe": rpe(e, r, delta=1, unit="frames", max_diff=max_diff),
-            "relations": relations_error(e, rel, max_diff=max_diff) if rel is not None else None,
-            "warnings": warnings}
+    figures = {"ate": ate(e, r, align=align, max_diff=max_diff),
+               "rpe": rpe(e, r, delta=1, unit="frames", max_diff=max_diff),
+               "relations": relations_error(e, rel, max_diff=max_diff) if rel is not None else None,
+               "warnings": warnings}
+    if scans is not None:
+        from .evaluation.scan_consistency import loop_pair_comparison
+
+        figures["loop_pair_misfit"] = loop_pair_comparison(e, r, scans)
+    return figures
 
 
 def _raw_log_hint(ref: Path, raw_log) -> str | None:

@@ -11,7 +11,10 @@ log: ATE (RMSE after SE(3) alignment) of the run and of its odometry before loop
 against the corrected log (scans matched by logger time, CSAIL's by identical ranges), loop
 hypotheses tested / accepted, and the relations error on relations *derived* from the corrected
 log (:func:`submapslam.evaluation.derived_relations.derive_relations`: pairs close in time plus
-pairs across loops; not the benchmark's own relation files). Prints one markdown table.
+pairs across loops; not the benchmark's own relation files), and the loop-pair misfit of the run
+and of the corrected log on the same scan pairs (:mod:`submapslam.evaluation.scan_consistency`:
+how far the log's own scans part where the robot came back; computed after the child exits, so
+outside its wall time). Prints one markdown table.
 
 ``--numeric`` runs every log once per *numeric variant*: the same code and wheels with numpy's
 SIMD kernels and OpenBLAS's core type held to what another CPU would pick (environment variables
@@ -95,14 +98,25 @@ def run_child(name: str, data: Path, out: Path, config: Path | None, numeric: st
     if proc.returncode != 0:
         raise SystemExit(f"{name}: child exited with {proc.returncode}")
     doc = json.loads(result_json.read_text())
-    doc.update(name=name, numeric=numeric, wall_s=wall, peak_rss_mib=usage.ru_maxrss / 1024.0)
+    doc.update(name=name, numeric=numeric, wall_s=wall, peak_rss_mib=usage.ru_maxrss / 1024.0,
+               loop_pair_misfit=loop_pair_consistency(data / raw, data / ref, out / tag / "poses_tum.txt"))
     return doc
+
+
+def loop_pair_consistency(log: Path, ref: Path, poses: Path) -> dict:
+    """The run's and the corrected log's loop-pair misfit on the same pairs (after the child exits, outside
+    its wall time): :func:`~submapslam.evaluation.scan_consistency.loop_pair_comparison`."""
+    from submapslam.evaluation.scan_consistency import loop_pair_comparison
+    from submapslam.io.trajectory import carmen_reference_trajectory, read_trajectory
+
+    return loop_pair_comparison(read_trajectory(poses), carmen_reference_trajectory(ref, log), log)
 
 
 def table(rows: list[dict]) -> str:
     """The markdown table of :func:`run_child` results."""
     head = ("| log | numeric | scans | wall [s] | peak RSS [MiB] | loops accepted / tested | ATE [m] | odometry-only ATE [m] "
-            "| derived relations: trans [m] | rot [deg] | (count, across loops) | Cartographer (published) |")
+            "| derived relations: trans [m] | rot [deg] | (count, across loops) "
+            "| loop-pair misfit [m]: run / corrected log (pairs; 3 cm worse: run / corrected) | Cartographer (published) |")
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for d in rows:
         rel = d["relations_error"]
@@ -110,8 +124,16 @@ def table(rows: list[dict]) -> str:
             f"| {d['name']} | {d.get('numeric', 'native')} | {d['scans']} | {d['wall_s']:.1f} | {d['peak_rss_mib']:.0f} "
             f"| {d['loops_accepted']} / {d['loops_tested']} | **{d['ate']:.3f}** | {d['ate_odometry']:.3f} "
             f"| {rel['trans_mean']:.4f} ± {rel['trans_std']:.4f} | {rel['rot_mean_deg']:.3f} ± {rel['rot_std_deg']:.3f} "
-            f"| {d['relations']}, {d['loop_relations']} | {CARTOGRAPHER.get(d['name'], '–')} |")
+            f"| {d['relations']}, {d['loop_relations']} | {_misfit_cell(d.get('loop_pair_misfit'))} "
+            f"| {CARTOGRAPHER.get(d['name'], '–')} |")
     return "\n".join(lines)
+
+
+def _misfit_cell(m: dict | None) -> str:
+    if not m:
+        return "–"
+    return (f"{m['estimate_median_m']:.4f} / {m['reference_median_m']:.4f} ({m['pairs']}; "
+            f"{m['estimate_worse']} / {m['reference_worse']})")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -29,16 +29,20 @@ def register(app: typer.Typer) -> None:
         derive_relations: Annotated[bool, typer.Option(
             "--derive-relations", help="Relations error on relations derived from REF (pairs close in time and "
             "across loops), for references without a relations file.")] = False,
+        scans: Annotated[Path | None, typer.Option(
+            help="The log whose scans EST and REF place (e.g. the raw CARMEN log): also the loop-pair misfit of "
+            "each, how far those scans part where REF comes back to a place (needs no ground truth).")] = None,
     ) -> None:
-        """ATE (RMSE) and RPE of EST against REF; with --relations (or --derive-relations) the relations error."""
+        """ATE (RMSE) and RPE of EST against REF; with --relations (or --derive-relations) the relations error;
+        with --scans the loop-pair misfit of both."""
         from ..api import evaluate_files
         from ..io.output_folder import check_out_file, write_file_atomically
 
         try:
             if json_out is not None:
-                check_out_file(json_out, inputs=[est, ref, relations, raw_log], what="--json")
+                check_out_file(json_out, inputs=[est, ref, relations, raw_log, scans], what="--json")
             figures = evaluate_files(est, ref, align=align, relations=relations, max_diff=max_diff, raw_log=raw_log,
-                                     derive_relations=derive_relations)
+                                     derive_relations=derive_relations, scans=scans)
         except SubmapSlamError as exc:
             raise fail(exc) from None
         for warning in figures.get("warnings", []):
@@ -58,6 +62,13 @@ def register(app: typer.Typer) -> None:
             console.print(f"relations ({rel['n']}): translation {rel['trans_mean']:.4f} ± {rel['trans_std']:.4f} m, "
                           f"rotation {rel['rot_mean_deg']:.4f} ± {rel['rot_std_deg']:.4f} deg")
             out["relations"] = rel
+        misfit = figures.get("loop_pair_misfit")
+        if misfit is not None:
+            console.print(f"loop-pair misfit ({misfit['pairs']} pairs of {scans.name}'s scans): median "
+                          f"{misfit['estimate_median_m']:.4f} m under {est.name}, {misfit['reference_median_m']:.4f} m "
+                          f"under {ref.name}; {misfit['estimate_worse']} / {misfit['reference_worse']} pairs "
+                          f"{100 * misfit['margin_m']:.0f} cm worse under each", highlight=False)
+            out["loop_pair_misfit"] = misfit
         if json_out:
             try:
                 write_file_atomically(json_out, json.dumps(out, indent=2) + "\n")

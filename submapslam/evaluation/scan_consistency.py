@@ -1,0 +1,131 @@
+"""How well a trajectory makes a log's own scans agree where the robot came back (no reference needed).
+
+Two scans taken at the same place on two passes see the same walls. Under a good trajectory
+their points fall on each other; under a bent or shifted one they part by the error. The
+*loop-pair misfit* of a scan pair is the median distance from each point of the first scan,
+placed by the trajectory, to the nearest point of the second: a few centimetres where the map
+is consistent (range noise and the two viewpoints' sampling set that floor), tens of
+centimetres where a loop was missed or closed wrong.
+
+It scores any trajectory of the log against the log's own data, so a run and a reference (a
+corrected log) can be compared on the *same* pairs: where the reference is no more consistent
+than the run, the ATE against it measures the two maps' disagreement, not the run's error.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import SubmapSlamError
+from ..trajectory import Trajectory
+
+
+def loop_pairs(trajectory: Trajectory, *, radius_m: float = 2.0, max_turn_deg: float = 60.0,
+               min_dt: float = 30.0) -> NDArray[np.float64]:
+    """Pairs of poses of ``trajectory`` near each other on different passes: ``(K, 2)`` timestamps [s].
+
+    A pair is two poses at most ``radius_m`` [m] apart with headings (yaw) within ``max_turn_deg``
+    [deg], the second at least ``min_dt`` [s] after the first. Every such pair is kept, earlier
+    time first, sorted by the first timestamp.
+    """
+    order = np.argsort(trajectory.timestamps, kind="stable")
+    t, P = trajectory.timestamps[order], trajectory.poses[order]
+    xy = P[:, :2, 3]
+    yaw = np.arctan2(P[:, 1, 0], P[:, 0, 0])
+    max_turn = np.deg2rad(max_turn_deg)
+    pairs: list[tuple[float, float]] = []
+    for a in range(len(t)):
+        later = np.flatnonzero(t - t[a] >= min_dt)
+        if later.size == 0:
+            break
+        near = later[np.linalg.norm(xy[later] - xy[a], axis=1) <= radius_m]
+        turn = np.abs((yaw[near] - yaw[a] + np.pi) % (2 * np.pi) - np.pi)
+        pairs.extend((float(t[a]), float(t[b])) for b in near[turn <= max_turn])
+    return np.array(pairs, dtype=np.float64).reshape(-1, 2)
+
+
+def pair_misfit(trajectory: Trajectory, scans: Mapping[float, NDArray[np.float64]], pairs: NDArray[np.float64],
+                *, max_time_diff: float = 1e-3) -> NDArray[np.float64]:
+    """Each pair's misfit [m] under ``trajectory``: ``(K,)``, NaN where a pose or scan is missing.
+
+    ``scans`` maps a timestamp [s] to that scan's ``(N, 2 or 3)`` points in the trajectory's body
+    frame; ``pairs`` is ``(K, 2)`` timestamps (e.g. from :func:`loop_pairs` on a reference). A pose
+    is the trajectory's pose within ``max_time_diff`` [s] of the scan's time. The misfit is the
+    median distance in x-y from the first scan's points to the nearest of the second's, both placed
+    by the trajectory.
+    """
+    from ..registration.kdtree2d import KdTree2D
+
+    stamps = np.array(sorted(scans), dtype=np.float64)
+    order = np.argsort(trajectory.timestamps, kind="stable")
+    tt, P = trajectory.timestamps[order], trajectory.poses[order]
+    out = np.full(len(pairs), np.nan)
+    for k, (ta, tb) in enumerate(np.asarray(pairs, dtype=np.float64).reshape(-1, 2)):
+        placed = []
+        for t in (ta, tb):
+            pose = _nearest(tt, t, max_time_diff)
+            stamp = _nearest(stamps, t, max_time_diff)
+            if pose is None or stamp is None:
+                break
+            pts = np.asarray(scans[float(stamps[stamp])], dtype=np.float64)[:, :2]
+            T = P[pose]
+            placed.append(pts @ T[:2, :2].T + T[:2, 3])
+        if len(placed) == 2 and len(placed[0]) and len(placed[1]):
+            dist, _ = KdTree2D(placed[1]).query(placed[0])
+            out[k] = float(np.median(dist))
+    return out
+
+
+def scans_at(log: str | Path, timestamps: Iterable[float], *, max_time_diff: float = 1e-3) -> dict[float, NDArray[np.float64]]:
+    """The scans of ``log`` taken within ``max_time_diff`` [s] of ``timestamps``: timestamp -> ``(N, 3)`` points.
+
+    Points are in the robot's base frame, as :func:`~submapslam.io.registry.open_log` gives
+    them. Raises :class:`SubmapSlamError` when none of the timestamps is in the log.
+    """
+    from ..io.registry import open_log
+
+    wanted = np.unique(np.asarray(list(timestamps), dtype=np.float64))
+    found: dict[float, NDArray[np.float64]] = {}
+    for scan in open_log(log):
+        if wanted.size and _nearest(wanted, scan.timestamp, max_time_diff) is not None:
+            found[float(scan.timestamp)] = scan.points
+    if not found:
+        raise SubmapSlamError(f"no scan of {log} is within {max_time_diff} s of the {wanted.size} times asked for")
+    return found
+
+
+def loop_pair_comparison(estimate: Trajectory, reference: Trajectory, log: str | Path, *,
+                         margin_m: float = 0.03) -> dict:
+    """``estimate`` and ``reference`` scored on the same loop pairs (:func:`loop_pairs` of the reference)
+    with the scans of ``log``.
+
+    Returns ``{"pairs", "estimate_median_m", "reference_median_m", "estimate_worse", "reference_worse",
+    "margin_m"}``: the pairs both trajectories place, each one's median misfit over them [m], and how
+    many pairs each places more than ``margin_m`` [m] worse than the other. Raises
+    :class:`SubmapSlamError` when the reference has no loop pairs or neither places any pair.
+    """
+    pairs = loop_pairs(reference)
+    if not len(pairs):
+        raise SubmapSlamError("the reference never comes back near a place it passed 30 s before: no loop pairs")
+    scans = scans_at(log, pairs.ravel())
+    est, ref = pair_misfit(estimate, scans, pairs), pair_misfit(reference, scans, pairs)
+    ok = np.isfinite(est) & np.isfinite(ref)
+    if not ok.any():
+        raise SubmapSlamError(f"none of the {len(pairs)} loop pairs has poses in both trajectories and scans in {log}")
+    est, ref = est[ok], ref[ok]
+    return {"pairs": int(ok.sum()), "estimate_median_m": float(np.median(est)),
+            "reference_median_m": float(np.median(ref)),
+            "estimate_worse": int(np.count_nonzero(est > ref + margin_m)),
+            "reference_worse": int(np.count_nonzero(ref > est + margin_m)), "margin_m": margin_m}
+
+
+def _nearest(sorted_times: NDArray[np.float64], t: float, tolerance: float) -> int | None:
+    """Index of the entry of ``sorted_times`` nearest ``t`` if within ``tolerance``, else None."""
+    k = int(np.searchsorted(sorted_times, t))
+    best = min((j for j in (k - 1, k) if 0 <= j < len(sorted_times)), key=lambda j: abs(sorted_times[j] - t),
+               default=None)
+    return best if best is not None and abs(sorted_times[best] - t) <= tolerance else None

@@ -1,0 +1,129 @@
+"""Loop-pair misfit: a log's own scans judge a trajectory where the robot came back."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from submapslam.evaluation.scan_consistency import loop_pairs, pair_misfit, scans_at
+from submapslam.geometry import se2_to_matrix
+from submapslam.io.trajectory import carmen_reference_trajectory
+from submapslam.trajectory import Trajectory
+
+from .conftest import shared_data
+
+
+def _room_points() -> np.ndarray:
+    """Walls of a 10 x 6 m room with a pillar, every 2 cm: ``(N, 2)`` [m], world frame."""
+    s = np.arange(0.0, 1.0, 0.002)
+    walls = [np.c_[10 * s - 5, np.full_like(s, -3)], np.c_[10 * s - 5, np.full_like(s, 3)],
+             np.c_[np.full_like(s, -5), 6 * s - 3], np.c_[np.full_like(s, 5), 6 * s - 3],
+             np.c_[0.5 * s + 1, np.full_like(s, 0.5)], np.c_[np.full_like(s, 1), 0.5 * s]]
+    return np.vstack(walls)
+
+
+def _two_passes(shift_second: float = 0.0) -> tuple[Trajectory, Trajectory, dict[float, np.ndarray]]:
+    """The true path (two laps of a small square, 40 s each) and an estimate whose second lap is
+    shifted by ``shift_second`` m in x; scans: the room seen from each true pose (robot frame)."""
+    corners = [(-2, -1.5, 0.0), (2, -1.5, np.pi / 2), (2, 1.5, np.pi), (-2, 1.5, -np.pi / 2)]
+    world = _room_points()
+    stamps, true, est, scans = [], [], [], {}
+    for lap in range(2):
+        for k, (x, y, yaw) in enumerate(corners):
+            t = 40.0 * lap + 10.0 * k
+            T = se2_to_matrix(x, y, yaw)
+            local = (world - T[:2, 3]) @ T[:2, :2]  # world -> robot frame
+            scans[t] = np.c_[local, np.zeros(len(local))]
+            stamps.append(t)
+            true.append(T)
+            est.append(se2_to_matrix(x + (shift_second if lap else 0.0), y, yaw))
+    ts = np.array(stamps)
+    return Trajectory(ts, np.array(true)), Trajectory(ts, np.array(est)), scans
+
+
+def test_loop_pairs_are_near_on_different_passes() -> None:
+    truth, _, _ = _two_passes()
+    pairs = loop_pairs(truth, radius_m=0.5, max_turn_deg=30.0, min_dt=30.0)
+    # each corner with itself one lap later, nothing within one lap (10 s apart) or across corners
+    assert pairs.shape == (4, 2)
+    np.testing.assert_allclose(pairs[:, 1] - pairs[:, 0], 40.0)
+    assert len(loop_pairs(truth, radius_m=0.5, max_turn_deg=30.0, min_dt=50.0)) == 0
+
+
+def test_misfit_measures_the_offset_between_passes() -> None:
+    truth, _, scans = _two_passes()
+    pairs = loop_pairs(truth, radius_m=0.5, min_dt=30.0)
+    np.testing.assert_array_less(pair_misfit(truth, scans, pairs), 0.005)  # the 2 cm sampling floor
+    for shift in (0.1, 0.3):
+        _, shifted, _ = _two_passes(shift)
+        misfit = pair_misfit(shifted, scans, pairs)
+        # the walls across x part by the shift, those along x slide on themselves: the median lies between
+        assert np.all((misfit > 0.3 * shift) & (misfit <= shift + 0.005)), misfit
+
+
+def test_missing_pose_or_scan_gives_nan() -> None:
+    truth, _, scans = _two_passes()
+    pairs = np.array([[0.0, 40.0], [0.0, 41.5], [7.0, 40.0]])
+    misfit = pair_misfit(truth, scans, pairs)
+    assert np.isfinite(misfit[0]) and np.isnan(misfit[1]) and np.isnan(misfit[2])
+
+
+def test_real_corrected_log_against_a_bent_copy() -> None:
+    """MIT CSAIL's corrected log: its loop pairs fit within a few cm; the same log with its second half
+    turned by 2 deg about its middle pose (a bent map) parts them where the halves meet."""
+    raw = shared_data("carmen", "mit-csail.clf.bz2")
+    ref = carmen_reference_trajectory(shared_data("carmen", "corrected", "mit-csail-corrected.log.gz"), raw)
+    pairs = loop_pairs(ref)
+    assert len(pairs) > 40
+    scans = scans_at(raw, pairs.ravel())
+    good = pair_misfit(ref, scans, pairs)
+    assert np.count_nonzero(np.isfinite(good)) == len(pairs)
+    half = len(ref) // 2
+    pivot = ref.poses[half]
+    bend = pivot @ se2_to_matrix(0.0, 0.0, np.deg2rad(2.0)) @ np.linalg.inv(pivot)
+    bent_poses = ref.poses.copy()
+    bent_poses[half:] = bend @ ref.poses[half:]
+    bent = pair_misfit(Trajectory(ref.timestamps, bent_poses), scans, pairs)
+    across = (pairs[:, 0] < ref.timestamps[half]) & (pairs[:, 1] >= ref.timestamps[half])
+    assert across.sum() > 10
+    assert np.median(good) < 0.06
+    assert np.median(bent[across] - good[across]) > 0.1
+    np.testing.assert_allclose(bent[~across], good[~across], atol=1e-9)  # pairs within one half: unchanged
+
+
+def test_no_scan_at_the_times_is_one_clear_error() -> None:
+    raw = shared_data("carmen", "mit-csail.clf.bz2")
+    with pytest.raises(Exception, match="no scan of .* within"):
+        scans_at(raw, [1.0, 2.0])
+
+
+def test_eval_cli_scores_both_trajectories_on_the_log_scans(tmp_path) -> None:
+    """``eval EST REF --scans LOG``: the corrected log against itself scores alike on every pair; a
+    reference that never comes back is one clear line."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from submapslam.cli import app
+
+    raw = shared_data("carmen", "mit-csail.clf.bz2")
+    corrected = shared_data("carmen", "corrected", "mit-csail-corrected.log.gz")
+    from submapslam.io.trajectory import write_tum
+
+    est = tmp_path / "corrected_tum.txt"
+    write_tum(est, carmen_reference_trajectory(corrected, raw))
+    runner = CliRunner()
+    r = runner.invoke(app, ["eval", str(est), str(corrected), "--raw-log", str(raw), "--scans", str(raw),
+                            "--json", str(tmp_path / "e.json")])
+    assert r.exit_code == 0, r.output
+    assert "loop-pair misfit" in r.output
+    m = json.loads((tmp_path / "e.json").read_text())["loop_pair_misfit"]
+    assert m["pairs"] > 40 and m["estimate_median_m"] == pytest.approx(m["reference_median_m"], abs=1e-6)
+    assert m["reference_median_m"] < 0.06
+    assert m["estimate_worse"] == m["reference_worse"] == 0
+    lap = tmp_path / "lap"
+    assert runner.invoke(app, ["synth", "rectangle", "--out", str(lap), "--laps", "1", "--max-scans", "60"]).exit_code == 0
+    gt = str(lap / "groundtruth_tum.txt")
+    r = runner.invoke(app, ["eval", gt, gt, "--scans", str(lap)])
+    assert r.exit_code == 1 and "Traceback" not in r.output
+    assert "no loop pairs" in r.output.strip().splitlines()[-1]
