@@ -118,7 +118,7 @@ def test_eval_cli_scores_both_trajectories_on_the_log_scans(tmp_path) -> None:
     assert r.exit_code == 0, r.output
     assert "loop-pair misfit" in r.output
     m = json.loads((tmp_path / "e.json").read_text())["loop_pair_misfit"]
-    assert m["pairs"] > 40 and m["estimate_median_m"] == pytest.approx(m["reference_median_m"], abs=1e-6)
+    assert m["compared"] > 40 and m["estimate_median_m"] == pytest.approx(m["reference_median_m"], abs=1e-6)
     assert m["reference_median_m"] < 0.06
     assert m["estimate_worse"] == m["reference_worse"] == 0
     lap = tmp_path / "lap"

@@ -64,7 +64,8 @@ def register(app: typer.Typer) -> None:
             out["relations"] = rel
         misfit = figures.get("loop_pair_misfit")
         if misfit is not None:
-            console.print(f"loop-pair misfit ({misfit['pairs']} pairs of {scans.name}'s scans): median "
+            console.print(f"loop-pair misfit ({misfit['compared']} of {misfit['pairs']} pairs of {scans.name}'s scans "
+                          f"compared): median "
                           f"{misfit['estimate_median_m']:.4f} m under {est.name}, {misfit['reference_median_m']:.4f} m "
                           f"under {ref.name}; {misfit['estimate_worse']} / {misfit['reference_worse']} pairs "
                           f"{100 * misfit['margin_m']:.0f} cm worse under each", highlight=False)

@@ -99,28 +99,35 @@ def scans_at(log: str | Path, timestamps: Iterable[float], *, max_time_diff: flo
 
 
 def loop_pair_comparison(estimate: Trajectory, reference: Trajectory, log: str | Path, *,
-                         margin_m: float = 0.03) -> dict:
+                         margin_m: float = 0.03, overlap_m: float = 0.1) -> dict:
     """``estimate`` and ``reference`` scored on the same loop pairs (:func:`loop_pairs` of the reference)
     with the scans of ``log``.
 
-    Returns ``{"pairs", "estimate_median_m", "reference_median_m", "estimate_worse", "reference_worse",
-    "margin_m"}``: the pairs both trajectories place, each one's median misfit over them [m], and how
-    many pairs each places more than ``margin_m`` [m] worse than the other. Raises
-    :class:`SubmapSlamError` when the reference has no loop pairs or neither places any pair.
+    Two scans of one place can still see different walls (a corner from both sides); their misfit
+    is large under any trajectory and says nothing. Pairs are *compared* only where at least one
+    trajectory makes them agree within ``overlap_m`` [m]. Returns ``{"pairs", "compared",
+    "estimate_median_m", "reference_median_m", "estimate_worse", "reference_worse", "margin_m",
+    "overlap_m"}``: the pairs both trajectories place, how many are compared, each trajectory's
+    median misfit over the compared pairs [m], and how many compared pairs each places more than
+    ``margin_m`` [m] worse than the other. Raises :class:`SubmapSlamError` when the reference has
+    no loop pairs or no pair can be compared.
     """
     pairs = loop_pairs(reference)
     if not len(pairs):
         raise SubmapSlamError("the reference never comes back near a place it passed 30 s before: no loop pairs")
     scans = scans_at(log, pairs.ravel())
     est, ref = pair_misfit(estimate, scans, pairs), pair_misfit(reference, scans, pairs)
-    ok = np.isfinite(est) & np.isfinite(ref)
-    if not ok.any():
-        raise SubmapSlamError(f"none of the {len(pairs)} loop pairs has poses in both trajectories and scans in {log}")
-    est, ref = est[ok], ref[ok]
-    return {"pairs": int(ok.sum()), "estimate_median_m": float(np.median(est)),
-            "reference_median_m": float(np.median(ref)),
+    placed = np.isfinite(est) & np.isfinite(ref)
+    compared = placed & (np.fmin(est, ref) <= overlap_m)
+    if not compared.any():
+        raise SubmapSlamError(f"none of the {len(pairs)} loop pairs is placed by both trajectories with its scans "
+                              f"within {overlap_m} m under either")
+    est, ref = est[compared], ref[compared]
+    return {"pairs": int(placed.sum()), "compared": int(compared.sum()),
+            "estimate_median_m": float(np.median(est)), "reference_median_m": float(np.median(ref)),
             "estimate_worse": int(np.count_nonzero(est > ref + margin_m)),
-            "reference_worse": int(np.count_nonzero(ref > est + margin_m)), "margin_m": margin_m}
+            "reference_worse": int(np.count_nonzero(ref > est + margin_m)), "margin_m": margin_m,
+            "overlap_m": overlap_m}
 
 
 def _nearest(sorted_times: NDArray[np.float64], t: float, tolerance: float) -> int | None:
