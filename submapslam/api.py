@@ -342,7 +342,7 @@ def _reference(ref: str | Path, raw_log: str | Path | None):
 
 def evaluate_files(est: str | Path, ref: str | Path, *, align: str = "se3", relations: str | Path | None = None,
                    max_diff: float = 0.02, raw_log: str | Path | None = None, derive_relations: bool = False,
-                   scans: str | Path | None = None) -> dict:
+                   scans: str | Path | None = None, match_relations: bool = False) -> dict:
     """ATE of the trajectory file ``est`` against ``ref`` (TUM, KITTI or CARMEN; ``raw_log``: the raw
     CARMEN log when ``ref`` is a corrected one), RPE over consecutive frames, and with
     ``relations`` the relations error (Kümmerle et al. 2009); with ``derive_relations`` (instead of
@@ -352,7 +352,11 @@ def evaluate_files(est: str | Path, ref: str | Path, *, align: str = "se3", rela
     also ``"loop_pair_misfit"``: how far that log's scans part under each trajectory where the
     reference comes back to a place
     (:func:`~submapslam.evaluation.scan_consistency.loop_pair_comparison`); a reference no more
-    consistent than the estimate bounds what the ATE can say.
+    consistent than the estimate bounds what the ATE can say. With ``match_relations`` (needs
+    ``scans`` and relations) each relation is measured by matching its two scans instead
+    (:func:`~submapslam.evaluation.scan_consistency.scan_matched_relations`, the benchmark's own
+    method); only those scan matching fixes are kept, and ``"relations_matching"`` gives the counts
+    and ``"reference_relations"`` the reference's own error on them.
 
     Returns ``{"ate": ate(...), "rpe": rpe(...), "relations": ... or None, "warnings": [...]}``
     (how the poses were paired, when it is doubtful: KITTI files of different lengths). An unknown
@@ -365,14 +369,23 @@ def evaluate_files(est: str | Path, ref: str | Path, *, align: str = "se3", rela
     Alignment(align)
     if relations and derive_relations:
         raise ConfigError("give a relations file or derive the relations from the reference, not both")
+    if match_relations and (scans is None or not (relations or derive_relations)):
+        raise ConfigError("matching relations needs the log's scans and relations (a file or derived from the "
+                          "reference)")
     e = read_trajectory(est)
     r = _reference(ref, raw_log)
     warnings = _pairing_warnings(Path(est), Path(ref), e, r, raw_log, max_diff)
     rel = read_relations(relations) if relations else derive(r) if derive_relations else None
+    extra = {}
+    if match_relations:
+        from .evaluation.scan_consistency import scan_matched_relations
+
+        rel, counts = scan_matched_relations(r, rel, scans)
+        extra = {"relations_matching": counts, "reference_relations": relations_error(r, rel, max_diff=max_diff)}
     figures = {"ate": ate(e, r, align=align, max_diff=max_diff),
                "rpe": rpe(e, r, delta=1, unit="frames", max_diff=max_diff),
                "relations": relations_error(e, rel, max_diff=max_diff) if rel is not None else None,
-               "warnings": warnings}
+               "warnings": warnings, **extra}
     if scans is not None:
         from .evaluation.scan_consistency import loop_pair_comparison
 

@@ -9,8 +9,11 @@ together on the 2-core CI machine. Skipped when ../shared/data is absent.
 import pytest
 
 from submapslam.api import report_run, run_log
-from submapslam.evaluation.metrics import ate
+from submapslam.evaluation.derived_relations import derive_relations
+from submapslam.evaluation.metrics import ate, relations_error
+from submapslam.evaluation.scan_consistency import scan_matched_relations
 from submapslam.io.trajectory import Trajectory, carmen_reference_trajectory
+from submapslam.trajectory import Relations
 
 from .conftest import shared_data
 from .report_pages import (
@@ -26,17 +29,25 @@ from .report_pages import (
 # Intel 0.057-0.063, FR079 0.067-0.083, CSAIL 0.117-0.270 m. Another CPU's SIMD kernels sum in
 # another order, and a 2D run's discrete choices then part. Issue 25's targets, not met on every
 # variant: Intel 0.06, FR079 0.07, CSAIL 0.10.
+# The last two columns: the relations bound [m, deg] on the derived relations measured by scan
+# matching (evaluation.scan_consistency.scan_matched_relations), issue 25's targets for Intel and
+# FR079 and Cartographer's published 0.0319 m for CSAIL (the runs reach 0.008-0.017 m, 0.16-0.30 deg);
+# and every how many derived relations are measured (FR079's 6,010 take 100 s in full).
 LOGS = [
-    ("intel.clf.bz2", "intel-corrected.log.gz", 0.073),
-    ("fr079.clf.bz2", "freiburg-079-corrected.log.gz", 0.095),
-    ("mit-csail.clf.bz2", "mit-csail-corrected.log.gz", 0.31),
+    ("intel.clf.bz2", "intel-corrected.log.gz", 0.073, (0.023, 0.45), 1),
+    ("fr079.clf.bz2", "freiburg-079-corrected.log.gz", 0.095, (0.045, 0.45), 4),
+    ("mit-csail.clf.bz2", "mit-csail-corrected.log.gz", 0.31, (0.0319, 0.45), 1),
 ]
 
 
-@pytest.mark.parametrize(("log", "corrected", "bound"), LOGS, ids=[row[0].split(".")[0] for row in LOGS])
-def test_real_log_reaches_its_accuracy_at_defaults(log, corrected, bound, tmp_path):
-    """MIT CSAIL's run (the shortest) also writes its files and its report against the corrected
-    log, which must carry the map and evo's plots, drawn by headless Chromium (when installed)."""
+@pytest.mark.parametrize(("log", "corrected", "bound", "relations_bound", "stride"), LOGS,
+                         ids=[row[0].split(".")[0] for row in LOGS])
+def test_real_log_reaches_its_accuracy_at_defaults(log, corrected, bound, relations_bound, stride, tmp_path):
+    """ATE against the corrected log, and the relations error on its derived relations measured by
+    matching their scans, where the run must also beat the corrected log itself (whose own error
+    there is 0.022-0.026 m, 0.39-0.50 deg). MIT CSAIL's run (the shortest) also writes its files and
+    its report against the corrected log, which must carry the map and evo's plots, drawn by
+    headless Chromium (when installed)."""
     raw = shared_data("carmen", log)
     ref = carmen_reference_trajectory(shared_data("carmen", "corrected", corrected), raw)
     with_report = log.startswith("mit-csail")
@@ -46,6 +57,14 @@ def test_real_log_reaches_its_accuracy_at_defaults(log, corrected, bound, tmp_pa
     assert slam["n"] >= 0.99 * len(ref)  # every reference pose found its scan
     assert slam["rmse"] <= bound, f"{log}: ATE {slam['rmse']:.3f} m > {bound} m (odometry {odo['rmse']:.3f} m)"
     assert slam["rmse"] <= odo["rmse"] / 2  # the loops help: 3-10x on these logs and variants
+    derived = derive_relations(ref)
+    derived = Relations(derived.t_a[::stride], derived.t_b[::stride], derived.T_a_b[::stride])
+    matched, counts = scan_matched_relations(ref, derived, raw)
+    assert counts["matched"] >= 0.4 * len(derived)
+    run_rel = relations_error(Trajectory(result.timestamps, result.poses), matched)
+    ref_rel = relations_error(ref, matched)
+    assert run_rel["trans_mean"] <= relations_bound[0] and run_rel["rot_mean_deg"] <= relations_bound[1], run_rel
+    assert run_rel["trans_mean"] < ref_rel["trans_mean"] and run_rel["rot_mean_deg"] < ref_rel["rot_mean_deg"]
     if with_report:
         page = report_run(tmp_path / "run", ref=shared_data("carmen", "corrected", corrected), raw_log=raw)
         html = page.read_text()

@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from submapslam.evaluation.scan_consistency import loop_pairs, pair_misfit, scans_at
+from submapslam.evaluation.derived_relations import derive_relations
+from submapslam.evaluation.metrics import relations_error
+from submapslam.evaluation.scan_consistency import loop_pairs, pair_misfit, scan_matched_relations, scans_at
 from submapslam.geometry import se2_to_matrix
 from submapslam.io.trajectory import carmen_reference_trajectory
 from submapslam.trajectory import Trajectory
@@ -68,6 +70,43 @@ def test_missing_pose_or_scan_gives_nan() -> None:
     assert np.isfinite(misfit[0]) and np.isnan(misfit[1]) and np.isnan(misfit[2])
 
 
+def _write_scans(folder, stamps, scans_xy) -> None:
+    """A folder log of planar scans (KITTI ``scans/NNNNNN.bin``, ``times.txt``, ``meta.yaml``)."""
+    (folder / "scans").mkdir(parents=True)
+    for k, xy in enumerate(scans_xy):
+        np.c_[xy, np.zeros((len(xy), 2))].astype(np.float32).tofile(folder / "scans" / f"{k:06d}.bin")
+    (folder / "times.txt").write_text("".join(f"{t:.6f}\n" for t in stamps))
+    (folder / "meta.yaml").write_text("planar: true\n")
+
+
+def test_scan_matched_relations_recover_the_truth_and_drop_corridors(tmp_path) -> None:
+    """A room seen from three poses: relations measured by matching the scans land on the true
+    relative poses although the reference is 3-4 cm / 0.5-0.8 deg off; in a featureless corridor
+    the scans cannot fix the pose along it, and its relation is dropped as ambiguous."""
+    room = _room_points()
+    corridor = np.vstack([np.c_[np.linspace(-20, 20, 2000), np.full(2000, y)] for y in (-1.0, 1.0)])
+    truth = [se2_to_matrix(-2.0, -1.5, 0.1), se2_to_matrix(-1.5, -1.4, 0.2), se2_to_matrix(-1.0, -1.2, 0.35)]
+    stamps = np.array([0.0, 1.0, 2.0])
+    for name, world, poses in (("room", room, truth),
+                               ("corridor", corridor, [se2_to_matrix(x, 0.0, 0.0) for x in (0.0, 0.4, 0.8)])):
+        scans = [(world - T[:2, 3]) @ T[:2, :2] for T in poses]
+        scans = [xy[np.linalg.norm(xy, axis=1) < 15.0] for xy in scans]
+        _write_scans(tmp_path / name, stamps, scans)
+        noisy = [T @ se2_to_matrix(0.03 * (k % 2), -0.04 * (k > 0), np.deg2rad(0.5 + 0.3 * k)) for k, T in enumerate(poses)]
+        reference = Trajectory(stamps, np.array(noisy))
+        derived = derive_relations(reference)
+        assert len(derived) == 2
+        if name == "room":
+            matched, counts = scan_matched_relations(reference, derived, tmp_path / name)
+            assert counts["matched"] == 2 and len(matched) == 2
+            exact = relations_error(Trajectory(stamps, np.array(poses)), matched)
+            assert exact["trans_mean"] < 1e-3 and exact["rot_mean_deg"] < 0.02
+            assert relations_error(reference, matched)["trans_mean"] > 0.02  # the reference is scored on them
+        else:
+            with pytest.raises(Exception, match="none of the 2 relations.*'ambiguous': 2"):
+                scan_matched_relations(reference, derived, tmp_path / name)
+
+
 def test_real_corrected_log_against_a_bent_copy() -> None:
     """MIT CSAIL's corrected log: its loop pairs fit within a few cm; the same log with its second half
     turned by 2 deg about its middle pose (a bent map) parts them where the halves meet."""
@@ -121,6 +160,14 @@ def test_eval_cli_scores_both_trajectories_on_the_log_scans(tmp_path) -> None:
     assert m["compared"] > 40 and m["estimate_median_m"] == pytest.approx(m["reference_median_m"], abs=1e-6)
     assert m["reference_median_m"] < 0.06
     assert m["estimate_worse"] == m["reference_worse"] == 0
+    r = runner.invoke(app, ["eval", str(est), str(corrected), "--raw-log", str(raw), "--scans", str(raw),
+                            "--derive-relations", "--match-relations", "--json", str(tmp_path / "m.json")])
+    assert r.exit_code == 0, r.output
+    doc = json.loads((tmp_path / "m.json").read_text())
+    assert doc["relations_matching"]["matched"] == doc["relations"]["n"] > 100
+    assert doc["relations"]["trans_mean"] == pytest.approx(doc["reference_relations"]["trans_mean"], abs=1e-5)
+    r = runner.invoke(app, ["eval", str(est), str(corrected), "--raw-log", str(raw), "--match-relations"])
+    assert r.exit_code == 1 and "needs the log's scans" in r.output.strip().splitlines()[-1]
     lap = tmp_path / "lap"
     assert runner.invoke(app, ["synth", "rectangle", "--out", str(lap), "--laps", "1", "--max-scans", "60"]).exit_code == 0
     gt = str(lap / "groundtruth_tum.txt")

@@ -32,6 +32,9 @@ def register(app: typer.Typer) -> None:
         scans: Annotated[Path | None, typer.Option(
             help="The log whose scans EST and REF place (e.g. the raw CARMEN log): also the loop-pair misfit of "
             "each, how far those scans part where REF comes back to a place (needs no ground truth).")] = None,
+        match_relations: Annotated[bool, typer.Option(
+            "--match-relations", help="Measure each relation by matching its two scans of --scans (the benchmark's "
+            "method), keep those scan matching fixes, and score REF on them too.")] = False,
     ) -> None:
         """ATE (RMSE) and RPE of EST against REF; with --relations (or --derive-relations) the relations error;
         with --scans the loop-pair misfit of both."""
@@ -42,7 +45,7 @@ def register(app: typer.Typer) -> None:
             if json_out is not None:
                 check_out_file(json_out, inputs=[est, ref, relations, raw_log, scans], what="--json")
             figures = evaluate_files(est, ref, align=align, relations=relations, max_diff=max_diff, raw_log=raw_log,
-                                     derive_relations=derive_relations, scans=scans)
+                                     derive_relations=derive_relations, scans=scans, match_relations=match_relations)
         except SubmapSlamError as exc:
             raise fail(exc) from None
         for warning in figures.get("warnings", []):
@@ -62,6 +65,13 @@ def register(app: typer.Typer) -> None:
             console.print(f"relations ({rel['n']}): translation {rel['trans_mean']:.4f} ± {rel['trans_std']:.4f} m, "
                           f"rotation {rel['rot_mean_deg']:.4f} ± {rel['rot_std_deg']:.4f} deg")
             out["relations"] = rel
+            if "relations_matching" in figures:
+                c, own = figures["relations_matching"], figures["reference_relations"]
+                console.print(f"  measured by scan matching: {c['matched']} of {c['relations']} kept ({c['ambiguous']} "
+                              f"ambiguous, {c['poor_fit']} poorly fitting); {ref.name} itself: "
+                              f"{own['trans_mean']:.4f} ± {own['trans_std']:.4f} m, "
+                              f"{own['rot_mean_deg']:.4f} ± {own['rot_std_deg']:.4f} deg", highlight=False)
+                out["relations_matching"], out["reference_relations"] = c, own
         misfit = figures.get("loop_pair_misfit")
         if misfit is not None:
             console.print(f"loop-pair misfit ({misfit['compared']} of {misfit['pairs']} pairs of {scans.name}'s scans "

@@ -1,4 +1,4 @@
-"""How well a trajectory makes a log's own scans agree where the robot came back (no reference needed).
+"""What a log's own scans say of a trajectory: loop-pair misfit and scan-matched relations.
 
 Two scans taken at the same place on two passes see the same walls. Under a good trajectory
 their points fall on each other; under a bent or shifted one they part by the error. The
@@ -10,10 +10,16 @@ centimetres where a loop was missed or closed wrong.
 It scores any trajectory of the log against the log's own data, so a run and a reference (a
 corrected log) can be compared on the *same* pairs: where the reference is no more consistent
 than the run, the ATE against it measures the two maps' disagreement, not the run's error.
+
+*Scan-matched relations* go one step further, as the benchmark's own relation files were made
+(Kümmerle et al. 2009): the relative pose of each pair of a reference's relations is measured by
+matching the two scans, kept only where scan matching fixes it, and any trajectory (the reference
+included) is then scored on them.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
@@ -21,7 +27,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import SubmapSlamError
-from ..trajectory import Trajectory
+from ..trajectory import Relations, Trajectory
+
+#: starts of a relation's scan matching, as offsets ``(dx [m], dy [m], dyaw [deg])`` from the
+#: reference's relative pose: wider than any reference's local error (a few cm, under a degree)
+MATCH_STARTS_OFFSETS = ((0.0, 0.0, 0.0), (0.1, 0.0, 2.0), (-0.1, 0.0, -2.0), (0.0, 0.1, -2.0), (0.0, -0.1, 2.0))
 
 
 def loop_pairs(trajectory: Trajectory, *, radius_m: float = 2.0, max_turn_deg: float = 60.0,
@@ -128,6 +138,84 @@ def loop_pair_comparison(estimate: Trajectory, reference: Trajectory, log: str |
             "estimate_worse": int(np.count_nonzero(est > ref + margin_m)),
             "reference_worse": int(np.count_nonzero(ref > est + margin_m)), "margin_m": margin_m,
             "overlap_m": overlap_m}
+
+
+def scan_matched_relations(reference: Trajectory, relations: Relations, log: str | Path, *,
+                           agree_m: float = 0.002, agree_deg: float = 0.05, min_fitness: float = 0.6
+                           ) -> tuple[Relations, dict]:
+    """The relations measured by matching their two scans, as the benchmark's own relation files were
+    made (Kümmerle et al. 2009: scan matching, then checked): ``(relations kept, counts)``.
+
+    ``relations`` gives the pairs (e.g. :func:`~submapslam.evaluation.derived_relations.derive_relations`
+    of ``reference``) and ``reference`` the starts. The later scan is registered to the earlier one
+    (point-to-point ICP, then point-to-line) from the reference's relative pose and from starts
+    10 cm / 2 deg off it (:data:`MATCH_STARTS_OFFSETS`). A relation is kept, at the matched pose,
+    only where every start ends within ``agree_m`` [m] and ``agree_deg`` [deg] of the others (one
+    basin: the scene fixes all three directions) and at least ``min_fitness`` of the later scan's
+    points lie within 5 cm of the earlier scan's lines. The result depends on the log and the
+    reference only, never on a trajectory being scored, so every trajectory is scored on the same
+    relations; ``counts`` says how many were matched and why the others were dropped.
+    """
+    from scipy.spatial import cKDTree
+
+    from ..geometry import inverse, matrix_to_se2, se2_to_matrix
+    from ..registration.planar import icp_2d
+    from ..registration.point_to_line import line_normals, point_to_line
+
+    scans = scans_at(log, np.concatenate([relations.t_a, relations.t_b]))
+    stamps = np.array(sorted(scans), dtype=np.float64)
+    order = np.argsort(reference.timestamps, kind="stable")
+    rt, rP = reference.timestamps[order], reference.poses[order]
+    kept: list[tuple[float, float, np.ndarray]] = []
+    counts = {"relations": len(relations), "matched": 0, "no_scan": 0, "ambiguous": 0, "poor_fit": 0}
+    for ta, tb in zip(relations.t_a.tolist(), relations.t_b.tolist()):
+        ia, ib = _nearest(rt, ta, 1e-3), _nearest(rt, tb, 1e-3)
+        sa, sb = _nearest(stamps, ta, 1e-3), _nearest(stamps, tb, 1e-3)
+        if None in (ia, ib, sa, sb):
+            counts["no_scan"] += 1
+            continue
+        target = np.ascontiguousarray(np.asarray(scans[float(stamps[sa])])[:, :2], dtype=np.float64)
+        source = np.ascontiguousarray(np.asarray(scans[float(stamps[sb])])[:, :2], dtype=np.float64)
+        if len(target) < 20 or len(source) < 20:
+            counts["no_scan"] += 1
+            continue
+        tree = cKDTree(target)
+        normals = line_normals(target, tree)
+        lined = np.isfinite(normals[:, 0])
+        lines, line_normal = target[lined], normals[lined]
+        if len(lines) < 10:
+            counts["poor_fit"] += 1
+            continue
+        line_tree = cKDTree(lines)
+        start = matrix_to_se2(inverse(rP[ia]) @ rP[ib])
+        ends: list[np.ndarray] = []
+        for dx, dy, dyaw in MATCH_STARTS_OFFSETS:
+            guess = start + (dx, dy, np.deg2rad(dyaw))
+            xyt, _, _ = icp_2d(source, target, guess, max_distance=0.5, min_distance=0.1, tree=tree)
+            xyt, _ = point_to_line(source, xyt, line_tree, lines, line_normal, max_correspondence=0.1,
+                                   kernel=0.02, iterations=20)
+            if ends and (math.hypot(xyt[0] - ends[0][0], xyt[1] - ends[0][1]) > agree_m
+                         or abs(math.remainder(xyt[2] - ends[0][2], 2 * math.pi)) > np.deg2rad(agree_deg)):
+                break  # a second basin: the scene leaves a direction open
+            ends.append(xyt)
+        if len(ends) < len(MATCH_STARTS_OFFSETS):
+            counts["ambiguous"] += 1
+            continue
+        T = se2_to_matrix(*ends[0])
+        placed = source @ T[:2, :2].T + T[:2, 3]
+        dist, idx = line_tree.query(placed, distance_upper_bound=0.05)
+        near = dist < np.inf
+        along_normal = np.abs(np.einsum("ij,ij->i", placed[near] - lines[idx[near]], line_normal[idx[near]]))
+        if np.count_nonzero(along_normal <= 0.05) < min_fitness * len(source):
+            counts["poor_fit"] += 1
+            continue
+        kept.append((ta, tb, T))
+        counts["matched"] += 1
+    if not kept:
+        raise SubmapSlamError(f"none of the {len(relations)} relations could be measured by matching their scans "
+                              f"in {log} ({counts})")
+    return (Relations(np.array([k[0] for k in kept]), np.array([k[1] for k in kept]),
+                      np.array([k[2] for k in kept])), counts)
 
 
 def _nearest(sorted_times: NDArray[np.float64], t: float, tolerance: float) -> int | None:
