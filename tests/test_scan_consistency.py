@@ -7,7 +7,12 @@ import pytest
 
 from submapslam.evaluation.derived_relations import derive_relations
 from submapslam.evaluation.metrics import relations_error
-from submapslam.evaluation.scan_consistency import loop_pairs, pair_misfit, scan_matched_relations, scans_at
+from submapslam.evaluation.scan_consistency import (
+    loop_pairs,
+    pair_misfit,
+    scan_matched_relations,
+    scans_at,
+)
 from submapslam.geometry import se2_to_matrix
 from submapslam.io.trajectory import carmen_reference_trajectory
 from submapslam.trajectory import Trajectory
