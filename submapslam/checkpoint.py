@@ -33,7 +33,7 @@ class Checkpoint:
         odometry_tilt: per submap id (3D, where measured), the ``(2,)`` roll and pitch [rad] by
             which the registration between the two submaps corrected that edge (the run's
             estimate of its own tilt drift is made of these).
-        odometry_correction: per submap id (3D, where measured), the whole ``(6,)`` correction
+        odometry_correction: per submap id (where measured), the whole ``(6,)`` correction
             (GTSAM order, [rad, m]; the run's measured odometry noise is made of these).
         loop_records: per submap id, the hypotheses tested when it closed, in test order.
         source: the log the scans came from.

@@ -259,7 +259,7 @@ class BackendConfig(_Strict):
         None, description="variance scale per axis, GTSAM order (roll, pitch, yaw, x, y, z), applied in each "
         "anchor's frame to the marginal covariances a run reports (submaps.csv, poses_cov.txt, the saved map); "
         "the graph, its estimate and the gates that read its covariances (spatial loop search, plausibility) "
-        "are not touched. null: a 3D run that measured its odometry noise reports its estimate's covariance under "
+        "are not touched. null: a run that measured its odometry noise reports its estimate's covariance under "
         "that noise (uncertainty.OdometryNoise), other runs the marginals scaled by COVARIANCE_SCALE_PLANAR / "
         "COVARIANCE_SCALE_3D in submapslam/uncertainty.py (fitted with tools/bench_calibration.py, bounded by real "
         "logs); set: every run the marginals scaled by it ([1, 1, 1, 1, 1, 1]: the graph's raw marginals)")

@@ -87,7 +87,7 @@ class GraphBuilder:
         self.graph = PoseGraph(config)
         self.odometry_information: dict[int, np.ndarray] = {}  # submap id -> its odometry edge's (6, 6)
         self.odometry_tilt: dict[int, np.ndarray] = {}  # 3D: submap id -> (2,) its edge's TiltDrift.correction
-        self.odometry_correction: dict[int, np.ndarray] = {}  # 3D: submap id -> (6,) its edge's registration correction
+        self.odometry_correction: dict[int, np.ndarray] = {}  # submap id -> (6,) its edge's registration correction
         self.edge_distance: dict[int, float] = {}  # submap id -> [m] length of its odometry edge
         self.covariance_model: OdometryNoise | None = None  # set by finish() when the reported covariances use it
         self._timer = timer
@@ -133,7 +133,7 @@ class GraphBuilder:
         scan matching is blind, which caps the odometry edge's registration covariance).
         ``information``: the edge's ``(6, 6)`` information as computed before (a resumed run),
         instead of computing it, ``tilt`` its registration's tilt correction and ``correction`` its
-        whole ``(6,)`` correction (3D; None: none was measured). :attr:`odometry_information`,
+        whole ``(6,)`` correction (None: none was measured). :attr:`odometry_information`,
         :attr:`odometry_tilt` and :attr:`odometry_correction` keep each edge's, by submap id.
         """
         info = T_prev_k = None
@@ -320,8 +320,7 @@ class GraphBuilder:
             return info
         if self.tilt_drift is not None:
             self._add_tilt(new.id, TiltDrift.correction(T_prev_new, res.T_target_source), prev.distance)
-        if not self.planar:
-            self.odometry_correction[new.id] = pose_difference(inverse(T_prev_new) @ res.T_target_source)
+        self.odometry_correction[new.id] = pose_difference(inverse(T_prev_new) @ res.T_target_source)
         cov_reg = np.linalg.inv(0.5 * (res.information + res.information.T))
         # Never more than a cap in any direction: 2 m / 20 deg, or, where the wheel odometry
         # holds the directions scan matching cannot see (planar refinement), the wheel's drift
@@ -362,7 +361,7 @@ class GraphBuilder:
 
         Returns ``({(i, j): why} of loop edges the solution rejected, {node: (6, 6) covariance}``);
         the graph keeps only the loops it did not reject. The covariances are the graph's marginals,
-        or, for a 3D run that measured its odometry noise (:class:`OdometryNoise`, unless
+        or, for a run that measured its odometry noise (:class:`OdometryNoise`, unless
         ``backend.covariance_scale`` is set), its estimate's covariances under that noise
         (:attr:`covariance_model` then holds it).
         """
@@ -385,7 +384,7 @@ class GraphBuilder:
                     dropped = self.graph.final_check()
             covs = self.graph.all_marginal_covariances()
             noise = OdometryNoise(self.odometry_correction, self.edge_distance)
-            if not self.planar and self.config.covariance_scale is None and noise.variance_per_metre() is not None:
+            if self.config.covariance_scale is None and noise.variance_per_metre() is not None:
                 try:
                     covs = self.graph.estimator_covariances(noise.factor_covariance)
                     self.covariance_model = noise

@@ -5,9 +5,9 @@ right perturbations in the pose's own frame: ``T_true = T_est Exp(xi)``, ``xi ~ 
 
 The graph's marginals are not calibrated: against the truth of the Monte Carlo worlds
 (``tools/bench_calibration.py``) their variances are off by factors that differ per axis, and the
-worlds disagree with the real logs. A 3D run that measured its own odometry noise
+worlds disagree with the real logs. A run (2D or 3D) that measured its own odometry noise
 (:class:`OdometryNoise`, from the registrations between consecutive submaps) reports its
-estimate's covariance under that noise instead. Other runs (2D, short, merged) report ``D Sigma D``, ``D = diag(sqrt(scale))``,
+estimate's covariance under that noise instead. Other runs (short, merged) report ``D Sigma D``, ``D = diag(sqrt(scale))``,
 ``scale`` per axis chosen by one rule, a conservative envelope: the larger of the mean
 ``(e/sigma)^2`` of the anchors on the Monte Carlo worlds it was fitted on (2D: rectangle, 2 laps,
 seeds 0-19; 3D: terrain city along KITTI 05, 200 scans, seeds 0-11) and the mean ``(e/sigma)^2``
@@ -127,6 +127,15 @@ class TiltDrift:
         """Roll/pitch sigma [rad] of an edge over ``distance`` [m], or None (too few edges yet)."""
         per = self.per_sqrt_metre()
         return None if per is None else max(self.floor_rad, per * float(np.sqrt(max(distance, 1.0))))
+
+    @staticmethod
+    def _planar_kept(measured: np.ndarray, stated: np.ndarray) -> np.ndarray:
+        """Axes the registration never moves (roll, pitch, z of a planar run: zero variance) keep ``stated``."""
+        out = measured.copy()
+        flat = np.flatnonzero(np.diag(measured) <= 0.0)
+        out[flat, :] = stated[flat, :]
+        out[:, flat] = stated[:, flat]
+        return out
 
     def summary(self) -> dict:
         """What ``summary.json`` says of it: edges measured and the sigma it gives 12 m of odometry."""
@@ -266,7 +275,8 @@ PRIOR_NOISE_INFLATION = 2.0
 
 class OdometryNoise:
     """The run's own odometry noise per axis, from the registrations between consecutive submaps,
-    and the noise of every factor of the graph that follows from it (3D runs).
+    and the noise of every factor of the graph that follows from it (2D and 3D runs; a planar run's
+    roll, pitch and z, which its registrations never move, keep the factors' stated noise).
 
     Each odometry edge is registered submap to submap (:meth:`GraphBuilder._registration_shaped`);
     the ``(6,)`` correction that registration makes to the odometry's relative pose (GTSAM order,
@@ -310,12 +320,21 @@ class OdometryNoise:
         :data:`PRIOR_NOISE_INFLATION`, anything else (the start prior, an edge that gave way) as
         ``stated``."""
         if kind == "odometry" and stated.shape == (6, 6):
-            return self.edge_covariance(self.distances.get(j, self.median_distance))
+            return self._planar_kept(self.edge_covariance(self.distances.get(j, self.median_distance)), stated)
         if kind == "loop" and stated.shape == (6, 6):
-            return LOOP_NOISE_SHARE * self.edge_covariance(self.median_distance)
+            return self._planar_kept(LOOP_NOISE_SHARE * self.edge_covariance(self.median_distance), stated)
         if "prior" in kind and kind != "prior":
             return PRIOR_NOISE_INFLATION * stated
         return stated
+
+    @staticmethod
+    def _planar_kept(measured: np.ndarray, stated: np.ndarray) -> np.ndarray:
+        """Axes the registration never moves (roll, pitch, z of a planar run: zero variance) keep ``stated``."""
+        out = measured.copy()
+        flat = np.flatnonzero(np.diag(measured) <= 0.0)
+        out[flat, :] = stated[flat, :]
+        out[:, flat] = stated[:, flat]
+        return out
 
     def summary(self) -> dict:
         """What ``summary.json`` says of it: edges measured, and once measured the sigma per axis

@@ -47,7 +47,7 @@ def _run_stopped(log, out, config, n_scans):
 
 
 @pytest.mark.parametrize("world, options, stop_at", [
-    ("rectangle", {"size": (16.0, 10.0), "laps": 2}, 0.55),
+    ("rectangle", {"size": (16.0, 10.0), "laps": 2}, 0.55),  # the measured odometry noise (2D)
     ("outdoor", {"laps": 1, "max_scans": 170}, 0.6),  # 11 submaps: the measured odometry noise (3D)
 ])
 def test_resume_gives_the_uninterrupted_result(tmp_path, world, options, stop_at):
@@ -70,7 +70,8 @@ def test_resume_gives_the_uninterrupted_result(tmp_path, world, options, stop_at
     assert [(lp.i, lp.j, lp.accepted, lp.reason) for lp in resumed.loops] == \
         [(lp.i, lp.j, lp.accepted, lp.reason) for lp in full.loops]
     assert (tmp_path / "part" / "loops.csv").read_bytes() == (tmp_path / "full" / "loops.csv").read_bytes()
-    # the reported covariances too (a 3D run's measured odometry noise comes back from the checkpoint)
+    # the reported covariances too (the measured odometry noise comes back from the checkpoint)
+    assert full.covariance_model["kind"] == "measured odometry noise"
     assert resumed.covariance_model.get("kind") == full.covariance_model.get("kind")
     np.testing.assert_allclose(resumed.submap_covariances, full.submap_covariances, rtol=1e-6, atol=1e-15)
     assert not checkpoint_folder(tmp_path / "part").exists()
