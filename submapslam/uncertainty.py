@@ -128,15 +128,6 @@ class TiltDrift:
         per = self.per_sqrt_metre()
         return None if per is None else max(self.floor_rad, per * float(np.sqrt(max(distance, 1.0))))
 
-    @staticmethod
-    def _planar_kept(measured: np.ndarray, stated: np.ndarray) -> np.ndarray:
-        """Axes the registration never moves (roll, pitch, z of a planar run: zero variance) keep ``stated``."""
-        out = measured.copy()
-        flat = np.flatnonzero(np.diag(measured) <= 0.0)
-        out[flat, :] = stated[flat, :]
-        out[:, flat] = stated[:, flat]
-        return out
-
     def summary(self) -> dict:
         """What ``summary.json`` says of it: edges measured and the sigma it gives 12 m of odometry."""
         per = self.per_sqrt_metre()
