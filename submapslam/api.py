@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
@@ -377,10 +378,15 @@ def evaluate_files(est: str | Path, ref: str | Path, *, align: str = "se3", rela
     warnings = _pairing_warnings(Path(est), Path(ref), e, r, raw_log, max_diff)
     rel = read_relations(relations) if relations else derive(r) if derive_relations else None
     extra = {}
+    scans_at = None
+    if scans is not None:
+        from .io.scan_lookup import scans_at as lookup
+
+        scans_at = functools.partial(lookup, scans)
     if match_relations:
         from .evaluation.scan_consistency import scan_matched_relations
 
-        rel, counts = scan_matched_relations(r, rel, scans)
+        rel, counts = scan_matched_relations(r, rel, scans_at)
         extra = {"relations_matching": counts, "reference_relations": relations_error(r, rel, max_diff=max_diff)}
     figures = {"ate": ate(e, r, align=align, max_diff=max_diff),
                "rpe": rpe(e, r, delta=1, unit="frames", max_diff=max_diff),
@@ -389,7 +395,7 @@ def evaluate_files(est: str | Path, ref: str | Path, *, align: str = "se3", rela
     if scans is not None:
         from .evaluation.scan_consistency import loop_pair_comparison
 
-        figures["loop_pair_misfit"] = loop_pair_comparison(e, r, scans)
+        figures["loop_pair_misfit"] = loop_pair_comparison(e, r, scans_at)
     return figures
 
 
@@ -514,7 +520,25 @@ def report_run(run_dir: str | Path, out_path: str | Path | None = None, *, ref: 
         except BaseException:
             reference.cancel()
             raise
-        return write_run_report(record, out, reference.result, align=mode, reference_name=Path(ref).name)
+        return write_run_report(record, out, reference.result, align=mode, reference_name=Path(ref).name,
+                                scan_check=lambda: _scan_check(record, reference.result(), raw_log))
+
+
+def _scan_check(record, reference, raw_log: str | Path | None) -> dict | None:
+    """The loop-pair misfit of a run and its reference on the run's log (``raw_log``, else the log
+    ``input.json`` names), or None when the log is not there or the reference never comes back."""
+    from .errors import SubmapSlamError
+    from .evaluation.scan_consistency import loop_pair_comparison
+    from .io.scan_lookup import scans_at
+
+    log_path = raw_log if raw_log is not None else (record.provenance or {}).get("path")
+    if log_path is None or not Path(log_path).exists() or record.poses is None:
+        return None
+    try:
+        return loop_pair_comparison(record.poses, reference, functools.partial(scans_at, log_path))
+    except SubmapSlamError as exc:
+        log.info("no loop-pair check in the report: %s", exc)
+        return None
 
 
 def map_picture(run_dir: str | Path, png: str | Path | None = None) -> Path:

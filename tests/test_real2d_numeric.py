@@ -14,7 +14,7 @@ import pytest
 from .conftest import load_tool, shared_data
 from .test_real2d_logs import LOGS
 
-BOUNDS = {log.split(".")[0]: bound for log, _, bound in LOGS}
+BOUNDS = {row[0].split(".")[0]: row[2] for row in LOGS}
 
 
 @pytest.mark.parametrize(("log", "numeric"), [("mit-csail", "avx2"), ("mit-csail", "sse"), ("intel", "sse")])

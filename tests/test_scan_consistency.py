@@ -2,18 +2,16 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
 from submapslam.evaluation.derived_relations import derive_relations
 from submapslam.evaluation.metrics import relations_error
-from submapslam.evaluation.scan_consistency import (
-    loop_pairs,
-    pair_misfit,
-    scan_matched_relations,
-    scans_at,
-)
+from submapslam.evaluation.scan_consistency import loop_pairs, pair_misfit, scan_matched_relations
 from submapslam.geometry import se2_to_matrix
+from submapslam.io.scan_lookup import scans_at
 from submapslam.io.trajectory import carmen_reference_trajectory
 from submapslam.trajectory import Trajectory
 
@@ -102,14 +100,14 @@ def test_scan_matched_relations_recover_the_truth_and_drop_corridors(tmp_path) -
         derived = derive_relations(reference)
         assert len(derived) == 2
         if name == "room":
-            matched, counts = scan_matched_relations(reference, derived, tmp_path / name)
+            matched, counts = scan_matched_relations(reference, derived, functools.partial(scans_at, tmp_path / name))
             assert counts["matched"] == 2 and len(matched) == 2
             exact = relations_error(Trajectory(stamps, np.array(poses)), matched)
             assert exact["trans_mean"] < 1e-3 and exact["rot_mean_deg"] < 0.02
             assert relations_error(reference, matched)["trans_mean"] > 0.02  # the reference is scored on them
         else:
             with pytest.raises(Exception, match="none of the 2 relations.*'ambiguous': 2"):
-                scan_matched_relations(reference, derived, tmp_path / name)
+                scan_matched_relations(reference, derived, functools.partial(scans_at, tmp_path / name))
 
 
 def test_real_corrected_log_against_a_bent_copy() -> None:

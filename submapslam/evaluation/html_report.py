@@ -181,7 +181,8 @@ def _provenance(rec: RunRecord) -> str:
 
 
 def build_run_report(rec: RunRecord, reference: Trajectory | Callable[[], Trajectory] | None = None, *,
-                     align: AlignMode = Alignment.SE3, reference_name: str = "reference") -> str:
+                     align: AlignMode = Alignment.SE3, reference_name: str = "reference",
+                     scan_check: dict | Callable[[], dict | None] | None = None) -> str:
     """The report page of ``rec`` as HTML text; with ``reference`` the error sections too.
 
     ``reference`` may be a callable that returns it (e.g. a future's ``result``): it is called
@@ -239,6 +240,11 @@ def build_run_report(rec: RunRecord, reference: Trajectory | Callable[[], Trajec
             warn += f'<p class="note" id="worse-than-odometry">warning: {hp.esc(worse)}</p>' if worse else ""
             sections.append((f"Error against {reference_name} ({mode} alignment)",
                              warn + table + f'<div class="figs">{figs}</div>'))
+        if callable(scan_check):
+            scan_check = scan_check()
+        if scan_check:
+            sections.append((f"The log's own scans: this run and {reference_name}",
+                             _scan_check(scan_check, reference_name)))
     if rec.kind != "ekf":
         n_ok = sum(r.get("accepted") == "1" for r in rec.loops)
         sections.append((f"Loop hypotheses ({len(rec.loops)} tested, {n_ok} accepted)", _loop_table(rec)))
@@ -251,12 +257,31 @@ def build_run_report(rec: RunRecord, reference: Trajectory | Callable[[], Trajec
     return hp.page(title, subtitle, sections)
 
 
+def _scan_check(m: dict, reference_name: str) -> str:
+    """The loop-pair misfit of the run and of the reference
+    (:func:`~submapslam.evaluation.scan_consistency.loop_pair_comparison`) as a short table and a note."""
+    table = hp.table(["trajectory", "median misfit [m]", f"pairs {100 * m['margin_m']:.0f} cm worse than the other"],
+                     [["this run", f"{m['estimate_median_m']:.4f}", m["estimate_worse"]],
+                      [reference_name, f"{m['reference_median_m']:.4f}", m["reference_worse"]]], ident="scan-check")
+    verdict = ("The reference is no more consistent with the log's scans than this run: the error above is the "
+               "distance between two maps, not this run's error alone."
+               if m["reference_median_m"] >= m["estimate_median_m"] else
+               "This run parts the log's scans more than the reference does where the robot came back.")
+    return (f'<p class="note">Scans of one place on passes at least 30 s apart ({m["compared"]} of {m["pairs"]} '
+            f"pairs compared, those one trajectory brings within {m['overlap_m']} m): the median distance from one "
+            "scan's points to the other's, each placed by its trajectory. A corrected log is another SLAM system's "
+            f"estimate, not the truth. {verdict} (<code>submapslam eval --scans LOG --derive-relations "
+            "--match-relations</code> scores both on relations measured by matching the scans.)</p>" + table)
+
+
 def write_run_report(rec: RunRecord, out_path: str | Path,
                      reference: Trajectory | Callable[[], Trajectory] | None = None, *,
-                     align: AlignMode = Alignment.SE3, reference_name: str = "reference") -> Path:
+                     align: AlignMode = Alignment.SE3, reference_name: str = "reference",
+                     scan_check: dict | Callable[[], dict | None] | None = None) -> Path:
     """Write :func:`build_run_report`'s page to ``out_path``; return the path."""
     out = Path(out_path)
-    out.write_text(build_run_report(rec, reference, align=align, reference_name=reference_name), encoding="utf-8")
+    out.write_text(build_run_report(rec, reference, align=align, reference_name=reference_name,
+                                    scan_check=scan_check), encoding="utf-8")
     return out
 
 

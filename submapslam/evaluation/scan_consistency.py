@@ -20,14 +20,17 @@ included) is then scored on them.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Mapping
-from pathlib import Path
+from collections.abc import Callable, Mapping
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import SubmapSlamError
 from ..trajectory import Relations, Trajectory
+
+#: the scans a log took at given times: ``timestamps (K,) [s] -> {timestamp: (N, 2 or 3) points}`` in the
+#: trajectories' body frame (e.g. ``functools.partial(submapslam.io.scan_lookup.scans_at, log)``)
+ScanSource = Callable[[NDArray[np.float64]], Mapping[float, NDArray[np.float64]]]
 
 #: starts of a relation's scan matching, as offsets ``(dx [m], dy [m], dyaw [deg])`` from the
 #: reference's relative pose: wider than any reference's local error (a few cm, under a degree)
@@ -90,28 +93,10 @@ def pair_misfit(trajectory: Trajectory, scans: Mapping[float, NDArray[np.float64
     return out
 
 
-def scans_at(log: str | Path, timestamps: Iterable[float], *, max_time_diff: float = 1e-3) -> dict[float, NDArray[np.float64]]:
-    """The scans of ``log`` taken within ``max_time_diff`` [s] of ``timestamps``: timestamp -> ``(N, 3)`` points.
-
-    Points are in the robot's base frame, as :func:`~submapslam.io.registry.open_log` gives
-    them. Raises :class:`SubmapSlamError` when none of the timestamps is in the log.
-    """
-    from ..io.registry import open_log
-
-    wanted = np.unique(np.asarray(list(timestamps), dtype=np.float64))
-    found: dict[float, NDArray[np.float64]] = {}
-    for scan in open_log(log):
-        if wanted.size and _nearest(wanted, scan.timestamp, max_time_diff) is not None:
-            found[float(scan.timestamp)] = scan.points
-    if not found:
-        raise SubmapSlamError(f"no scan of {log} is within {max_time_diff} s of the {wanted.size} times asked for")
-    return found
-
-
-def loop_pair_comparison(estimate: Trajectory, reference: Trajectory, log: str | Path, *,
+def loop_pair_comparison(estimate: Trajectory, reference: Trajectory, scans_at: ScanSource, *,
                          margin_m: float = 0.03, overlap_m: float = 0.1) -> dict:
     """``estimate`` and ``reference`` scored on the same loop pairs (:func:`loop_pairs` of the reference)
-    with the scans of ``log``.
+    with the log's scans (``scans_at``: :data:`ScanSource`).
 
     Two scans of one place can still see different walls (a corner from both sides); their misfit
     is large under any trajectory and says nothing. Pairs are *compared* only where at least one
@@ -125,7 +110,7 @@ def loop_pair_comparison(estimate: Trajectory, reference: Trajectory, log: str |
     pairs = loop_pairs(reference)
     if not len(pairs):
         raise SubmapSlamError("the reference never comes back near a place it passed 30 s before: no loop pairs")
-    scans = scans_at(log, pairs.ravel())
+    scans = scans_at(pairs.ravel())
     est, ref = pair_misfit(estimate, scans, pairs), pair_misfit(reference, scans, pairs)
     placed = np.isfinite(est) & np.isfinite(ref)
     compared = placed & (np.fmin(est, ref) <= overlap_m)
@@ -140,14 +125,15 @@ def loop_pair_comparison(estimate: Trajectory, reference: Trajectory, log: str |
             "overlap_m": overlap_m}
 
 
-def scan_matched_relations(reference: Trajectory, relations: Relations, log: str | Path, *,
+def scan_matched_relations(reference: Trajectory, relations: Relations, scans_at: ScanSource, *,
                            agree_m: float = 0.002, agree_deg: float = 0.05, min_fitness: float = 0.6
                            ) -> tuple[Relations, dict]:
     """The relations measured by matching their two scans, as the benchmark's own relation files were
     made (Kümmerle et al. 2009: scan matching, then checked): ``(relations kept, counts)``.
 
     ``relations`` gives the pairs (e.g. :func:`~submapslam.evaluation.derived_relations.derive_relations`
-    of ``reference``) and ``reference`` the starts. The later scan is registered to the earlier one
+    of ``reference``), ``reference`` the starts and ``scans_at`` the log's scans (:data:`ScanSource`).
+    The later scan is registered to the earlier one
     (point-to-point ICP, then point-to-line) from the reference's relative pose and from starts
     10 cm / 2 deg off it (:data:`MATCH_STARTS_OFFSETS`). A relation is kept, at the matched pose,
     only where every start ends within ``agree_m`` [m] and ``agree_deg`` [deg] of the others (one
@@ -162,7 +148,7 @@ def scan_matched_relations(reference: Trajectory, relations: Relations, log: str
     from ..registration.planar import icp_2d
     from ..registration.point_to_line import line_normals, point_to_line
 
-    scans = scans_at(log, np.concatenate([relations.t_a, relations.t_b]))
+    scans = scans_at(np.concatenate([relations.t_a, relations.t_b]))
     stamps = np.array(sorted(scans), dtype=np.float64)
     order = np.argsort(reference.timestamps, kind="stable")
     rt, rP = reference.timestamps[order], reference.poses[order]
@@ -213,7 +199,7 @@ def scan_matched_relations(reference: Trajectory, relations: Relations, log: str
         counts["matched"] += 1
     if not kept:
         raise SubmapSlamError(f"none of the {len(relations)} relations could be measured by matching their scans "
-                              f"in {log} ({counts})")
+                              f"({counts})")
     return (Relations(np.array([k[0] for k in kept]), np.array([k[1] for k in kept]),
                       np.array([k[2] for k in kept])), counts)
 

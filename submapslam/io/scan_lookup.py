@@ -1,0 +1,35 @@
+"""The scans of a log taken at given times (for judging trajectories by the log's own scans:
+:mod:`submapslam.evaluation.scan_consistency`)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import SubmapSlamError
+from .registry import open_log
+
+
+def scans_at(log: str | Path, timestamps: Iterable[float], *, max_time_diff: float = 1e-3) -> dict[float, NDArray[np.float64]]:
+    """The scans of ``log`` taken within ``max_time_diff`` [s] of ``timestamps``: timestamp -> ``(N, 3)`` points.
+
+    Points are in the robot's base frame, as :func:`~submapslam.io.registry.open_log` gives
+    them. Raises :class:`SubmapSlamError` when none of the timestamps is in the log.
+    """
+    wanted = np.unique(np.asarray(list(timestamps), dtype=np.float64))
+    found: dict[float, NDArray[np.float64]] = {}
+    for scan in open_log(log):
+        if wanted.size and _near(wanted, scan.timestamp, max_time_diff):
+            found[float(scan.timestamp)] = scan.points
+    if not found:
+        raise SubmapSlamError(f"no scan of {log} is within {max_time_diff} s of the {wanted.size} times asked for")
+    return found
+
+
+def _near(sorted_times: NDArray[np.float64], t: float, tolerance: float) -> bool:
+    """Whether an entry of ``sorted_times`` lies within ``tolerance`` of ``t``."""
+    k = int(np.searchsorted(sorted_times, t))
+    return any(abs(sorted_times[j] - t) <= tolerance for j in (k - 1, k) if 0 <= j < len(sorted_times))
