@@ -525,14 +525,15 @@ def report_run(run_dir: str | Path, out_path: str | Path | None = None, *, ref: 
 
 
 def _scan_check(record, reference, raw_log: str | Path | None) -> dict | None:
-    """The loop-pair misfit of a run and its reference on the run's log (``raw_log``, else the log
-    ``input.json`` names), or None when the log is not there or the reference never comes back."""
+    """The loop-pair misfit of a planar run and its reference on the run's log (``raw_log``, else the
+    log ``input.json`` names), or None for a 3D run (a scan is a cloud, not a line of beams), when the
+    log is not there, or when the reference never comes back."""
     from .errors import SubmapSlamError
     from .evaluation.scan_consistency import loop_pair_comparison
     from .io.scan_lookup import scans_at
 
     log_path = raw_log if raw_log is not None else (record.provenance or {}).get("path")
-    if log_path is None or not Path(log_path).exists() or record.poses is None:
+    if not record.summary.get("planar") or log_path is None or not Path(log_path).exists() or record.poses is None:
         return None
     try:
         return loop_pair_comparison(record.poses, reference, functools.partial(scans_at, log_path))

@@ -177,3 +177,19 @@ def test_eval_cli_scores_both_trajectories_on_the_log_scans(tmp_path) -> None:
     r = runner.invoke(app, ["eval", gt, gt, "--scans", str(lap)])
     assert r.exit_code == 1 and "Traceback" not in r.output
     assert "no loop pairs" in r.output.strip().splitlines()[-1]
+
+
+def test_the_report_checks_a_planar_run_against_its_reference_on_the_log_scans() -> None:
+    """``report --ref`` gets the loop-pair misfit of a 2D run and its reference; a 3D run (whose
+    scans are clouds) and a run whose log is not at hand get none."""
+    from types import SimpleNamespace
+
+    from submapslam.api import _scan_check
+
+    raw = shared_data("carmen", "mit-csail.clf.bz2")
+    ref = carmen_reference_trajectory(shared_data("carmen", "corrected", "mit-csail-corrected.log.gz"), raw)
+    record = SimpleNamespace(summary={"planar": True}, poses=ref, provenance={"path": str(raw)})
+    check = _scan_check(record, ref, None)  # the log input.json names
+    assert check is not None and check["compared"] > 40 and check["estimate_worse"] == check["reference_worse"] == 0
+    assert _scan_check(SimpleNamespace(**{**vars(record), "summary": {"planar": False}}), ref, raw) is None
+    assert _scan_check(SimpleNamespace(**{**vars(record), "provenance": {"path": "/nowhere/log.clf"}}), ref, None) is None
