@@ -219,20 +219,21 @@ def test_a_planar_run_reports_its_estimates_covariance_and_stays_planar(tmp_path
         log = generate("rectangle", tmp_path / f"r{seed}", seed=seed, laps=2)
         res, _ = run_log(log, None)
         assert res.covariance_model["kind"] == "measured odometry noise"
-        old, _ = run_log(log, None, config=PipelineConfig(
-            backend=BackendConfig(covariance_scale=list(COVARIANCE_SCALE_PLANAR))))
-        np.testing.assert_allclose(old.submap_poses, res.submap_poses, atol=1e-9)
-        assert [r.accepted for r in old.loops] == [r.accepted for r in res.loops]
         gt = read_tum(log / "groundtruth_tum.txt").poses
         first = [idx[0] for idx in res.submap_scan_indices]
         errs += [pose_difference(inverse(inverse(gt[first[0]]) @ gt[s]) @ inverse(res.submap_poses[0])
                                  @ res.submap_poses[k]) for k, s in enumerate(first)][1:]
         ours += list(np.asarray(res.submap_covariances)[1:])
-        scaled += list(np.asarray(old.submap_covariances)[1:])
+        if seed == 0:  # the scaled marginals (before): the same estimate and decisions, far looser covariances
+            old, _ = run_log(log, None, config=PipelineConfig(
+                backend=BackendConfig(covariance_scale=list(COVARIANCE_SCALE_PLANAR))))
+            np.testing.assert_allclose(old.submap_poses, res.submap_poses, atol=1e-9)
+            assert [r.accepted for r in old.loops] == [r.accepted for r in res.loops]
+            scaled = list(np.asarray(old.submap_covariances)[1:])
         sigmas = np.sqrt(np.einsum("kii->ki", np.asarray(res.submap_covariances)))
         assert sigmas[:, [0, 1, 5]].max() < 0.01  # roll, pitch [rad] and z [m] stay pinned (a few mm)
     err = np.array(errs)
     z2 = (err**2 / np.einsum("kii->ki", np.array(ours))).mean(axis=0)[[2, 3, 4]]
-    z2_scaled = (err**2 / np.einsum("kii->ki", np.array(scaled))).mean(axis=0)[[2, 3, 4]]
+    z2_scaled = (err[:len(scaled)] ** 2 / np.einsum("kii->ki", np.array(scaled))).mean(axis=0)[[2, 3, 4]]
     assert np.all(z2 > 1 / 3) and np.all(z2 < 3.0), z2
     assert np.all(z2_scaled < 0.1), z2_scaled
