@@ -133,10 +133,15 @@ def test_real_corrected_log_against_a_bent_copy() -> None:
     np.testing.assert_allclose(bent[~across], good[~across], atol=1e-9)  # pairs within one half: unchanged
 
 
-def test_no_scan_at_the_times_is_one_clear_error() -> None:
+def test_no_scan_at_the_times_or_a_3d_log_is_one_clear_error(tmp_path) -> None:
     raw = shared_data("carmen", "mit-csail.clf.bz2")
     with pytest.raises(Exception, match="no scan of .* within"):
         scans_at(raw, [1.0, 2.0])
+    from datasets_synth import generate
+
+    cloud = generate("outdoor", tmp_path / "3d", seed=0, laps=1, max_scans=3)
+    with pytest.raises(Exception, match="holds 3D scans.*2D laser log"):
+        scans_at(cloud, [0.0])
 
 
 def test_eval_cli_scores_both_trajectories_on_the_log_scans(tmp_path) -> None:

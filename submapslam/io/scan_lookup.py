@@ -17,11 +17,14 @@ def scans_at(log: str | Path, timestamps: Iterable[float], *, max_time_diff: flo
     """The scans of ``log`` taken within ``max_time_diff`` [s] of ``timestamps``: timestamp -> ``(N, 3)`` points.
 
     Points are in the robot's base frame, as :func:`~submapslam.io.registry.open_log` gives
-    them. Raises :class:`SubmapSlamError` when none of the timestamps is in the log.
+    them. Planar (2D laser) logs only: the measures that use them compare scans as lines of beams
+    in x-y. Raises :class:`SubmapSlamError` for a 3D log or when none of the timestamps is in it.
     """
     wanted = np.unique(np.asarray(list(timestamps), dtype=np.float64))
     found: dict[float, NDArray[np.float64]] = {}
     for scan in open_log(log):
+        if not scan.planar:
+            raise SubmapSlamError(f"{log} holds 3D scans: judging a trajectory by its scans needs a 2D laser log")
         if wanted.size and _near(wanted, scan.timestamp, max_time_diff):
             found[float(scan.timestamp)] = scan.points
     if not found:
