@@ -49,3 +49,22 @@ class Relations:
 
     def __len__(self) -> int:
         return len(self.t_a)
+
+
+def nearest_stamps(times: np.ndarray, queries: np.ndarray, max_diff: float) -> np.ndarray:
+    """``(M,)`` index into ``times`` ``(N,)`` [s] (any order) of the stamp nearest each of ``queries``
+    ``(M,)`` [s], -1 where none lies within ``max_diff`` [s]; on a tie the earlier stamp."""
+    times = np.asarray(times, dtype=np.float64).reshape(-1)
+    queries = np.asarray(queries, dtype=np.float64).reshape(-1)
+    if not len(times):
+        return np.full(len(queries), -1, dtype=np.int64)
+    order = np.argsort(times, kind="stable")
+    sorted_ts = times[order]
+    k = np.clip(np.searchsorted(sorted_ts, queries), 1, max(len(sorted_ts) - 1, 1))
+    if len(sorted_ts) == 1:
+        best = np.zeros(len(queries), dtype=np.int64)
+    else:
+        best = np.where(np.abs(sorted_ts[k - 1] - queries) <= np.abs(sorted_ts[k] - queries), k - 1, k)
+    idx = order[best]
+    idx[np.abs(times[idx] - queries) > max_diff] = -1
+    return idx

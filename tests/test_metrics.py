@@ -158,3 +158,13 @@ def test_cli_unknown_alignment_is_one_line(tmp_path, command):
     r = CliRunner().invoke(app, args)
     assert_one_error_line(r, "unknown alignment 'foo': use one of se3, sim3, se2, none")
     assert not (tmp_path / "rep").exists()
+
+
+def test_nearest_stamps_picks_the_nearest_within_the_tolerance():
+    from submapslam.trajectory import nearest_stamps
+
+    times = np.array([3.0, 1.0, 2.0])  # any order
+    np.testing.assert_array_equal(nearest_stamps(times, [1.01, 2.6, 1.5, 9.0], 0.5), [1, 0, 1, -1])  # tie: earlier
+    np.testing.assert_array_equal(nearest_stamps(times, [1.01, 2.6], 0.05), [1, -1])
+    np.testing.assert_array_equal(nearest_stamps([5.0], [5.0, 6.0], 0.1), [0, -1])
+    np.testing.assert_array_equal(nearest_stamps([], [1.0], 0.1), [-1])

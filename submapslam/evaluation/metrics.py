@@ -12,7 +12,7 @@ import numpy as np
 
 from ..errors import ConfigError, SubmapSlamError
 from ..geometry import inverse, rotation_angle
-from ..trajectory import Trajectory
+from ..trajectory import Trajectory, nearest_stamps
 
 
 def _unknown(what: str, value: object, choices: type[StrEnum]) -> ConfigError:
@@ -190,18 +190,8 @@ def relations_error(est: Trajectory, relations, max_diff: float = 0.02) -> dict:
     ``T_a_b^-1 (T_w_a^-1 T_w_b)``; returns mean and std of the translational error [m] and of
     the absolute rotational error [deg], their squared variants, and the count used.
     """
-    ts = est.timestamps
-    order = np.argsort(ts)
-    sorted_ts = ts[order]
-
-    def lookup(t: np.ndarray) -> np.ndarray:
-        k = np.clip(np.searchsorted(sorted_ts, t), 1, len(sorted_ts) - 1)
-        best = np.where(np.abs(sorted_ts[k - 1] - t) <= np.abs(sorted_ts[k] - t), k - 1, k)
-        idx = order[best]
-        idx[np.abs(ts[idx] - t) > max_diff] = -1
-        return idx
-
-    ia, ib = lookup(relations.t_a), lookup(relations.t_b)
+    ia = nearest_stamps(est.timestamps, relations.t_a, max_diff)
+    ib = nearest_stamps(est.timestamps, relations.t_b, max_diff)
     ok = (ia >= 0) & (ib >= 0)
     if not ok.any():
         raise SubmapSlamError(f"no relation matches the estimate's timestamps within {max_diff} s")

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import SubmapSlamError
-from ..trajectory import Relations, Trajectory
+from ..trajectory import Relations, Trajectory, nearest_stamps
 
 #: the scans a log took at given times: ``timestamps (K,) [s] -> {timestamp: (N, 2 or 3) points}`` in the
 #: trajectories' body frame (e.g. ``functools.partial(submapslam.io.scan_lookup.scans_at, log)``)
@@ -73,21 +73,18 @@ def pair_misfit(trajectory: Trajectory, scans: Mapping[float, NDArray[np.float64
     """
     from ..registration.kdtree2d import KdTree2D
 
-    stamps = np.array(sorted(scans), dtype=np.float64)
-    order = np.argsort(trajectory.timestamps, kind="stable")
-    tt, P = trajectory.timestamps[order], trajectory.poses[order]
+    pairs = np.asarray(pairs, dtype=np.float64).reshape(-1, 2)
+    stamps = np.array(list(scans), dtype=np.float64)
+    pose_of = nearest_stamps(trajectory.timestamps, pairs, max_time_diff).reshape(-1, 2)
+    scan_of = nearest_stamps(stamps, pairs, max_time_diff).reshape(-1, 2)
     out = np.full(len(pairs), np.nan)
-    for k, (ta, tb) in enumerate(np.asarray(pairs, dtype=np.float64).reshape(-1, 2)):
+    for k in np.flatnonzero(((pose_of >= 0) & (scan_of >= 0)).all(axis=1)):
         placed = []
-        for t in (ta, tb):
-            pose = _nearest(tt, t, max_time_diff)
-            stamp = _nearest(stamps, t, max_time_diff)
-            if pose is None or stamp is None:
-                break
+        for pose, stamp in zip(pose_of[k], scan_of[k]):
             pts = np.asarray(scans[float(stamps[stamp])], dtype=np.float64)[:, :2]
-            T = P[pose]
+            T = trajectory.poses[pose]
             placed.append(pts @ T[:2, :2].T + T[:2, 3])
-        if len(placed) == 2 and len(placed[0]) and len(placed[1]):
+        if len(placed[0]) and len(placed[1]):
             dist, _ = KdTree2D(placed[1]).query(placed[0])
             out[k] = float(np.median(dist))
     return out
@@ -149,15 +146,14 @@ def scan_matched_relations(reference: Trajectory, relations: Relations, scans_at
     from ..registration.point_to_line import line_normals, point_to_line
 
     scans = scans_at(np.concatenate([relations.t_a, relations.t_b]))
-    stamps = np.array(sorted(scans), dtype=np.float64)
-    order = np.argsort(reference.timestamps, kind="stable")
-    rt, rP = reference.timestamps[order], reference.poses[order]
+    stamps = np.array(list(scans), dtype=np.float64)
+    stamp_pairs = np.stack([relations.t_a, relations.t_b], axis=1)
+    pose_of = nearest_stamps(reference.timestamps, stamp_pairs, 1e-3).reshape(-1, 2)
+    scan_of = nearest_stamps(stamps, stamp_pairs, 1e-3).reshape(-1, 2)
     kept: list[tuple[float, float, np.ndarray]] = []
     counts = {"relations": len(relations), "matched": 0, "no_scan": 0, "ambiguous": 0, "poor_fit": 0}
-    for ta, tb in zip(relations.t_a.tolist(), relations.t_b.tolist()):
-        ia, ib = _nearest(rt, ta, 1e-3), _nearest(rt, tb, 1e-3)
-        sa, sb = _nearest(stamps, ta, 1e-3), _nearest(stamps, tb, 1e-3)
-        if None in (ia, ib, sa, sb):
+    for (ta, tb), (ia, ib), (sa, sb) in zip(stamp_pairs.tolist(), pose_of.tolist(), scan_of.tolist()):
+        if min(ia, ib, sa, sb) < 0:
             counts["no_scan"] += 1
             continue
         target = np.ascontiguousarray(np.asarray(scans[float(stamps[sa])])[:, :2], dtype=np.float64)
@@ -173,7 +169,7 @@ def scan_matched_relations(reference: Trajectory, relations: Relations, scans_at
             counts["poor_fit"] += 1
             continue
         line_tree = cKDTree(lines)
-        start = matrix_to_se2(inverse(rP[ia]) @ rP[ib])
+        start = matrix_to_se2(inverse(reference.poses[ia]) @ reference.poses[ib])
         ends: list[np.ndarray] = []
         for dx, dy, dyaw in MATCH_STARTS_OFFSETS:
             guess = start + (dx, dy, np.deg2rad(dyaw))
@@ -202,11 +198,3 @@ def scan_matched_relations(reference: Trajectory, relations: Relations, scans_at
                               f"({counts})")
     return (Relations(np.array([k[0] for k in kept]), np.array([k[1] for k in kept]),
                       np.array([k[2] for k in kept])), counts)
-
-
-def _nearest(sorted_times: NDArray[np.float64], t: float, tolerance: float) -> int | None:
-    """Index of the entry of ``sorted_times`` nearest ``t`` if within ``tolerance``, else None."""
-    k = int(np.searchsorted(sorted_times, t))
-    best = min((j for j in (k - 1, k) if 0 <= j < len(sorted_times)), key=lambda j: abs(sorted_times[j] - t),
-               default=None)
-    return best if best is not None and abs(sorted_times[best] - t) <= tolerance else None

@@ -10,6 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import SubmapSlamError
+from ..trajectory import nearest_stamps
 from .registry import open_log
 
 
@@ -25,14 +26,8 @@ def scans_at(log: str | Path, timestamps: Iterable[float], *, max_time_diff: flo
     for scan in open_log(log):
         if not scan.planar:
             raise SubmapSlamError(f"{log} holds 3D scans: judging a trajectory by its scans needs a 2D laser log")
-        if wanted.size and _near(wanted, scan.timestamp, max_time_diff):
+        if wanted.size and nearest_stamps(wanted, [scan.timestamp], max_time_diff)[0] >= 0:
             found[float(scan.timestamp)] = scan.points
     if not found:
         raise SubmapSlamError(f"no scan of {log} is within {max_time_diff} s of the {wanted.size} times asked for")
     return found
-
-
-def _near(sorted_times: NDArray[np.float64], t: float, tolerance: float) -> bool:
-    """Whether an entry of ``sorted_times`` lies within ``tolerance`` of ``t``."""
-    k = int(np.searchsorted(sorted_times, t))
-    return any(abs(sorted_times[j] - t) <= tolerance for j in (k - 1, k) if 0 <= j < len(sorted_times))
