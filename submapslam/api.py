@@ -363,6 +363,8 @@ def evaluate_files(est: str | Path, ref: str | Path, *, align: str = "se3", rela
     (how the poses were paired, when it is doubtful: KITTI files of different lengths). An unknown
     ``align`` fails before any file is read.
     """
+    import numpy as np
+
     from .evaluation.derived_relations import derive_relations as derive
     from .evaluation.metrics import Alignment, ate, relations_error, rpe
     from .io.trajectory import read_relations, read_trajectory
@@ -382,7 +384,12 @@ def evaluate_files(est: str | Path, ref: str | Path, *, align: str = "se3", rela
     if scans is not None:
         from .io.scan_lookup import scans_at as lookup
 
-        scans_at = functools.partial(lookup, scans)
+        # the measures ask only for reference and relation times: the log is read once
+        times = [r.timestamps] + ([rel.t_a, rel.t_b] if rel is not None else [])
+        taken = lookup(scans, np.concatenate(times))
+
+        def scans_at(_times):
+            return taken
     if match_relations:
         from .evaluation.scan_consistency import scan_matched_relations
 

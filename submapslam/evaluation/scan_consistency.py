@@ -28,8 +28,9 @@ from numpy.typing import NDArray
 from ..errors import SubmapSlamError
 from ..trajectory import Relations, Trajectory, nearest_stamps
 
-#: the scans a log took at given times: ``timestamps (K,) [s] -> {timestamp: (N, 2 or 3) points}`` in the
-#: trajectories' body frame (e.g. ``functools.partial(submapslam.io.scan_lookup.scans_at, log)``)
+#: the scans a log took at (at least) the given times: ``timestamps (K,) [s] -> {timestamp: (N, 2 or 3) points}``
+#: in the trajectories' body frame (e.g. ``functools.partial(submapslam.io.scan_lookup.scans_at, log)``, or a
+#: dict read once at every reference time: both measures ask only for reference times)
 ScanSource = Callable[[NDArray[np.float64]], Mapping[float, NDArray[np.float64]]]
 
 #: starts of a relation's scan matching, as offsets ``(dx [m], dy [m], dyaw [deg])`` from the
