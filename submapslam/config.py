@@ -98,7 +98,7 @@ class OdometryConfig(_Strict):
     separate_process: bool | None = Field(
         None, description="register scans in a child process, a few scans ahead of the graph work (KISS-ICP "
         "holds Python's GIL while it registers, so in one process the two wait for each other); the same "
-        "poses either way; None: on for 3D logs, off for 2D lasers"
+        "poses either way; None: on for 3D logs, and for 2D lasers when the process may use more than one core"
     )
 
     @model_validator(mode="after")

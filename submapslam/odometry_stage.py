@@ -133,7 +133,8 @@ def _kept_points(points: np.ndarray, frame: np.ndarray, config: OdometryConfig) 
 
 def _serve() -> None:
     """The child process (``python -m submapslam.odometry_stage``): the config first, then
-    scans from stdin until None, each answered on stdout; last, its peak resident set [KiB].
+    scans from stdin until None, each answered on stdout; last, its peak resident set [KiB] and
+    :meth:`Odometry.checks`.
     Anything a library prints goes to stderr: stdout carries only the messages."""
     import signal
 
@@ -154,7 +155,7 @@ def _serve() -> None:
                                       odometry.last_xyt)))
             except Exception as exc:  # noqa: BLE001 - handed to the parent, raised there
                 _send(outbox, ("error", f"{exc.__class__.__name__}: {exc}"))
-        _send(outbox, ("peak", _own_peak_kib()))
+        _send(outbox, ("end", (_own_peak_kib(), odometry.checks())))
     except (EOFError, BrokenPipeError):  # the parent is gone
         pass
 
@@ -184,6 +185,7 @@ class OdometryProcess:
         self._in_flight = 0
         self._submitted: deque[np.ndarray] = deque()  # the points of the scans in flight
         self.peak_memory_mb = 0.0  # the child's peak resident set [MiB], known after close()
+        self._checks: dict = {}  # the child's Odometry.checks(), known after close()
 
     def _feed(self) -> None:
         try:
@@ -220,19 +222,21 @@ class OdometryProcess:
         return Registered(pose, points[frame] if frame.dtype == bool else frame, frame_down, xyt)
 
     def checks(self) -> dict:
-        """Not reported from a child process (3D runs have none; a planar run forced into a child
-        process with ``odometry.separate_process`` does not report its counts)."""
-        return {}
+        """:meth:`Odometry.checks` of the child's registration, known once :meth:`close` has
+        ended it (empty before, and after a child that died)."""
+        return dict(self._checks)
 
     def close(self) -> None:
-        """Stop the child (scans still in flight are dropped) and record its peak memory."""
+        """Stop the child (scans still in flight are dropped) and record its peak memory and
+        checks."""
         if self._process.poll() is None:
             self._outbox.put(None)
             try:
                 while True:
                     kind, value = self._answer()
-                    if kind == "peak":
-                        self.peak_memory_mb = value / 1024.0
+                    if kind == "end":
+                        peak_kib, self._checks = value
+                        self.peak_memory_mb = peak_kib / 1024.0
                         break
             except SubmapSlamError:
                 pass
@@ -251,10 +255,21 @@ class OdometryProcess:
         self._submitted.clear()
 
 
+def usable_cores() -> int:
+    """How many CPU cores this process may run on (its affinity mask where the OS has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
 def start_odometry(config: OdometryConfig, planar: bool) -> InlineOdometry | OdometryProcess:
     """The registration stage ``config.separate_process`` asks for (None: a child process for
-    3D logs, in this process for 2D lasers, whose scans register in a few milliseconds)."""
-    separate = config.separate_process if config.separate_process is not None else not planar
+    3D logs, and for 2D lasers when this process may use more than one core: the child then
+    registers while the graph worker tests loops, instead of each waiting for the GIL)."""
+    separate = config.separate_process
+    if separate is None:
+        separate = not planar or usable_cores() > 1
     if separate:
         try:
             return OdometryProcess(config, planar)

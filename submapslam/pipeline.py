@@ -460,8 +460,8 @@ class SubmapSLAM:
             raise SubmapSlamError(f"{source or 'log'}: no scans were processed")
         while self._in_flight:
             self.complete_scan()
+        self.close()  # a child process reports its checks as it ends
         odometry_checks = self._odometry.checks() if self._odometry is not None else {}
-        self.close()
         try:
             if failure is None:  # after a failure the graph takes nothing more
                 last = self._builder.flush()

@@ -1,5 +1,6 @@
-"""Registration in a child process: the same poses as in this process, its memory counted,
-a dead child reported in one line, and a caller's script never re-run by it."""
+"""Registration in a child process: the same poses (and, for 2D lasers, odometry checks) as in
+this process, its memory counted, a dead child reported in one line, and a caller's script never
+re-run by it."""
 
 from __future__ import annotations
 
@@ -11,10 +12,16 @@ import numpy as np
 import pytest
 
 from datasets_synth import generate
+from submapslam import odometry_stage
 from submapslam.config import OdometryConfig
 from submapslam.errors import SubmapSlamError
+from submapslam.geometry import se2_to_matrix
 from submapslam.io.registry import open_log
 from submapslam.odometry_stage import InlineOdometry, OdometryProcess, start_odometry
+from submapslam.scan import Scan
+
+from .planar_scenes import wall_points
+from .test_odometry_wheels import ROOM
 
 CLI = [sys.executable, "-m", "submapslam"]
 
@@ -56,8 +63,32 @@ def test_a_dead_child_is_one_clear_error(outdoor_log):
         child.close()
 
 
-def test_default_stage_is_a_child_for_3d_and_inline_for_2d():
-    for planar, kind in ((True, InlineOdometry), (False, OdometryProcess)):
+def test_planar_child_reports_the_same_poses_and_checks():
+    """A planar run in a child process: the same refined poses as in this process, and the
+    odometry checks (summary.json's ``odometry_checks``) come back when the child ends."""
+    scans, wheel = [], None
+    for k in range(24):  # turning 12 deg a scan, the wheel pose updated every 4th scan only
+        xyt = np.array([0.01 * k, -1.5, np.deg2rad(12.0) * k])
+        wheel = xyt if k % 4 == 0 else wheel
+        pts = wall_points(ROOM, xyt, max_range=12.0)
+        scans.append(Scan(k, 0.1 * k, np.c_[pts, np.zeros(len(pts))], odometry=se2_to_matrix(*wheel), planar=True))
+    inline, child = InlineOdometry(OdometryConfig(), True), OdometryProcess(OdometryConfig(), True)
+    try:
+        for scan in scans:
+            child.submit(scan)
+        for scan in scans:
+            inline.submit(scan)
+            a, b = inline.result(), child.result()
+            assert np.array_equal(a.pose, b.pose) and np.array_equal(a.xyt, b.xyt)
+        assert child.checks() == {}  # not known while the child runs
+    finally:
+        child.close()
+    assert child.checks() == inline.checks() and inline.checks()["wheel_overruled"] > 0
+
+
+def test_default_stage_is_a_child_for_3d_and_for_2d_with_a_core_to_spare(monkeypatch):
+    for cores, planar, kind in ((2, True, OdometryProcess), (1, True, InlineOdometry), (1, False, OdometryProcess)):
+        monkeypatch.setattr(odometry_stage, "usable_cores", lambda cores=cores: cores)
         stage = start_odometry(OdometryConfig(), planar)
         try:
             assert isinstance(stage, kind)
@@ -87,9 +118,12 @@ def test_run_counts_the_child_in_its_peak_and_does_not_rerun_the_callers_script(
     # main process's peak and its peak when the child ended plus the child's
     bound = max(by_process["main"], by_process["main_when_odometry_ended"] + by_process["odometry"])
     assert summary["peak_memory_mb"] == pytest.approx(bound, abs=0.11)
-    # the 2D path keeps registration in the process: nothing to add
+    # registration kept in this process (a 2D run on one core, or asked for): nothing to add
+    config = tmp_path / "inline.yaml"
+    config.write_text("odometry:\n  separate_process: false\n")
     planar = subprocess.run([*CLI, "run", str(generate("rectangle", tmp_path / "r", laps=1, max_scans=30)),
-                             "--out", str(tmp_path / "out2")], capture_output=True, text=True, timeout=300)
+                             "--out", str(tmp_path / "out2"), "--config", str(config)],
+                            capture_output=True, text=True, timeout=300)
     assert planar.returncode == 0, planar.stderr
     planar_peaks = json.loads((tmp_path / "out2" / "summary.json").read_text())["peak_memory_mb_by_process"]
     assert planar_peaks["odometry"] == 0 and planar_peaks["main_when_odometry_ended"] == 0 < planar_peaks["main"]

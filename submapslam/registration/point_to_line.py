@@ -20,10 +20,14 @@ from __future__ import annotations
 import math
 from collections import deque
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .kdtree2d import KdTree2D
+
+if TYPE_CHECKING:  # a type only: a planar run's odometry process need not load scipy.spatial
+    from scipy.spatial import cKDTree
 
 
 def first_point_per_cell(xy: np.ndarray, cell: float) -> np.ndarray:
