@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import math
 from collections import deque
-
 from typing import TYPE_CHECKING
 
 import numpy as np
