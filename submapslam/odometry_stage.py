@@ -29,6 +29,7 @@ import numpy as np
 from .config import OdometryConfig
 from .errors import SubmapSlamError
 from .odometry import Odometry, odometry_voxels
+from .process_stats import single_threaded_blas
 from .scan import Scan
 
 log = logging.getLogger(__name__)
@@ -139,6 +140,7 @@ def _serve() -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it finishes the scans in flight
+    single_threaded_blas(load_scipy=False)
     inbox, outbox = sys.stdin.buffer, os.fdopen(os.dup(1), "wb")
     os.dup2(2, 1)
     try:

@@ -23,7 +23,13 @@ from .graph_builder import GraphBuilder
 from .observer import RunObserver, notify_closed_submap
 from .odometry import resolve_registration
 from .odometry_stage import InlineOdometry, OdometryProcess, start_odometry
-from .process_stats import combined_peak_mb, current_memory_mb, peak_memory_mb, release_free_memory
+from .process_stats import (
+    combined_peak_mb,
+    current_memory_mb,
+    peak_memory_mb,
+    release_free_memory,
+    single_threaded_blas,
+)
 from .result import LoopRecord, SlamResult
 from .scan import LoopHint, Scan
 from .submaps import Submap, SubmapBuilder
@@ -676,23 +682,24 @@ def run(
         while slam.in_flight:  # the scans read are all completed (the end of the log, an input error)
             complete_one()
 
-    try:
+    with single_threaded_blas():  # the run's threads and its odometry process need the cores
         try:
-            read_all()
-        except OptimisationError as exc:  # the run ends here; its result is kept as after a stop
-            failure, interrupted = str(exc), True
-            slam.close()
-        if n == 0 and interrupted:
-            raise SubmapSlamError(f"{source or 'log'}: stopped before the first scan was processed")
-        if resume_from is not None and n < resume_from.n_scans and input_error is None and not interrupted:
-            raise InputError(source or "log",
-                             f"holds {n} scans, fewer than the {resume_from.n_scans} of the checkpoint")
-    except BaseException:
-        slam.close()  # no result follows: end the odometry process
-        raise
-    if interrupted and on_checkpoint is not None:
-        on_checkpoint(slam.checkpoint(source))
-    result = slam.finish(input_error=input_error, source=source, interrupted=interrupted, failure=failure)
+            try:
+                read_all()
+            except OptimisationError as exc:  # the run ends here; its result is kept as after a stop
+                failure, interrupted = str(exc), True
+                slam.close()
+            if n == 0 and interrupted:
+                raise SubmapSlamError(f"{source or 'log'}: stopped before the first scan was processed")
+            if resume_from is not None and n < resume_from.n_scans and input_error is None and not interrupted:
+                raise InputError(source or "log",
+                                 f"holds {n} scans, fewer than the {resume_from.n_scans} of the checkpoint")
+        except BaseException:
+            slam.close()  # no result follows: end the odometry process
+            raise
+        if interrupted and on_checkpoint is not None:
+            on_checkpoint(slam.checkpoint(source))
+        result = slam.finish(input_error=input_error, source=source, interrupted=interrupted, failure=failure)
     result.log_info = dict(getattr(scans, "log_info", None) or {})  # the reader's account (record, skips)
     result.input_warnings = slam.input_warnings()
     if result.log_info.get("nan_only_scans"):

@@ -45,3 +45,24 @@ def release_free_memory() -> None:
         libc.malloc_trim(0)
     except (OSError, AttributeError):  # not glibc
         pass
+
+
+def single_threaded_blas(load_scipy: bool = True):
+    """Keep the BLAS libraries numpy and scipy load (OpenBLAS, MKL) to one thread
+    (:mod:`threadpoolctl`): at once, and until the end of a ``with`` block when used as one
+    (then the previous limits come back).
+
+    Only libraries already loaded are limited: ``load_scipy`` first loads scipy's own OpenBLAS
+    (it comes with ``scipy.linalg``); a process that never imports scipy (a planar run's odometry
+    process) passes False.
+
+    Our products are small (a scan's few hundred points by a 3x3 or 4x4). With a thread per core,
+    OpenBLAS's threads spin between calls and take the CPU the run's own threads and odometry
+    process need: Intel's whole run took 41 s and 61 s of CPU, one BLAS thread 34 s and 48 s,
+    with the same poses."""
+    from threadpoolctl import threadpool_limits
+
+    if load_scipy:
+        import scipy.linalg  # noqa: F401 - loads scipy's BLAS, to be limited with numpy's
+
+    return threadpool_limits(limits=1, user_api="blas")
