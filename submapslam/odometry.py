@@ -11,6 +11,7 @@ scans (:mod:`.registration.point_to_line`), which removes point-to-point ICP's l
 from __future__ import annotations
 
 import math
+import statistics
 from collections import deque
 
 import numpy as np
@@ -198,7 +199,7 @@ class Odometry:
                 if alt_fit > fit:
                     xyt, initial_guess, fit = alt_xyt, alternative, alt_fit
                     self.wheel_overruled += 1
-                usual = 0.5 * float(np.median(self._recent_fits)) if self._recent_fits else 0.0
+                usual = 0.5 * statistics.median(self._recent_fits) if self._recent_fits else 0.0
                 if fit < usual:
                     # a turned guess wins only if it fits as the last scans did: where the scan sees
                     # mostly new ground (a doorway), every guess fits poorly and the best of them is
@@ -216,7 +217,7 @@ class Odometry:
                 self._recent_fits.append(fit)
             elif self._refiner is not None:
                 fit = self._fit(frame_down, xyt)
-                poor = bool(self._recent_fits) and fit < 0.75 * float(np.median(self._recent_fits))
+                poor = bool(self._recent_fits) and fit < 0.75 * statistics.median(self._recent_fits)
                 if poor and prediction is not self.last_delta and self._departs(initial_guess, xyt):
                     # the wheels and the motion model agreed, yet registration ended far from both
                     # and fits the last scans worse than usual (Intel's scan 11455 once turned 20 deg
@@ -267,7 +268,7 @@ class Odometry:
             return self._preprocessor.preprocess(scan.points, no_times, self.last_delta)
         motion = self.last_delta
         if last_gap is not None and self._gaps:
-            sweep = float(np.median(self._gaps))  # a sweep lasts no longer than the usual time between scans
+            sweep = statistics.median(self._gaps)  # a sweep lasts no longer than the usual time between scans
             if last_gap > sweep:  # after a pause or in a keyframed log: the last motion took longer than a sweep
                 motion = blend_poses(np.eye(4), self.last_delta, sweep / last_gap)
         return self._deskewing.preprocess(scan.points, (times - times.min()) / span, motion)
