@@ -1,8 +1,13 @@
-"""The process's own memory figures (Linux): the true peak and the current resident set."""
+"""The process's own resources: its memory figures (Linux: the true peak and the current resident
+set) and how many threads its BLAS libraries may use."""
 
 from __future__ import annotations
 
 import resource
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from threadpoolctl import threadpool_limits
 
 
 def peak_memory_mb() -> float:
@@ -47,7 +52,7 @@ def release_free_memory() -> None:
         pass
 
 
-def single_threaded_blas(load_scipy: bool = True):
+def single_threaded_blas(load_scipy: bool = True) -> threadpool_limits:
     """Keep the BLAS libraries numpy and scipy load (OpenBLAS, MKL) to one thread
     (:mod:`threadpoolctl`): at once, and until the end of a ``with`` block when used as one
     (then the previous limits come back).
