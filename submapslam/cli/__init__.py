@@ -10,6 +10,7 @@ from typing import Annotated
 import typer
 
 from .. import __version__
+from ..process_stats import one_malloc_arena
 from ._common import console
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode="rich",
@@ -95,7 +96,8 @@ _register_commands()
 
 
 def main() -> None:
-    """Console-script entry point."""
+    """Console-script entry point (a process of our own: one malloc arena for all its threads)."""
+    one_malloc_arena()
     app()
 
 
