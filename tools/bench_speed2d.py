@@ -14,9 +14,9 @@ one after the other (``--repeat`` times, alternating, so both see the same machi
 
 Wall time is measured around the child process, peak memory is its own ``ru_maxrss`` from
 ``os.wait4`` (for submapslam the larger of its main and odometry processes), and, for submapslam,
-its ``summary.json`` ``peak_memory_mb`` as well (both processes counted). Printed per run: wall, user+sys CPU, peak RSS, and submapslam's ratios to
-KISS-ICP from the same round; plus a digest of submapslam's ``poses_tum.txt`` (equal digests =
-bit-identical trajectories).
+its ``summary.json`` ``peak_memory_mb`` as well (both processes counted). Printed per run: wall,
+user+sys CPU, peak RSS, and submapslam's ratios to KISS-ICP from the same round; plus a digest of
+submapslam's ``poses_tum.txt`` (equal digests = bit-identical trajectories).
 """
 
 from __future__ import annotations
