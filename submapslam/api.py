@@ -382,14 +382,11 @@ def evaluate_files(est: str | Path, ref: str | Path, *, align: str = "se3", rela
     extra = {}
     scans_at = None
     if scans is not None:
-        from .io.scan_lookup import scans_at as lookup
+        from .io.scan_lookup import scans_read_once
 
-        # the measures ask only for reference and relation times: the log is read once
+        # the measures ask only for reference and relation times
         times = [r.timestamps] + ([rel.t_a, rel.t_b] if rel is not None else [])
-        taken = lookup(scans, np.concatenate(times))
-
-        def scans_at(_times):
-            return taken
+        scans_at = scans_read_once(scans, np.concatenate(times))
     if match_relations:
         from .evaluation.scan_consistency import scan_matched_relations
 

@@ -3,6 +3,7 @@ set) and how many threads its BLAS libraries may use."""
 
 from __future__ import annotations
 
+import functools
 import resource
 from typing import TYPE_CHECKING
 
@@ -42,14 +43,19 @@ def release_free_memory() -> None:
     """Hand the memory the heap holds free back to the system (glibc's ``malloc_trim``; nothing
     elsewhere). Freed temporaries otherwise stay in the resident set, and a run's last step (fusing
     the map and the grid) adds its own peak on top of them."""
+    try:
+        _libc().malloc_trim(0)
+    except (OSError, AttributeError):  # not glibc
+        pass
+
+
+@functools.cache
+def _libc():
+    """The C library (``ctypes``); OSError where it cannot be loaded."""
     import ctypes
     import ctypes.util
 
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        libc.malloc_trim(0)
-    except (OSError, AttributeError):  # not glibc
-        pass
+    return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
 
 
 _M_ARENA_MAX = -8  # glibc's mallopt parameter number (malloc.h)
@@ -64,12 +70,8 @@ def one_malloc_arena() -> bool:
     fragmentation. A run's threads take turns at the GIL anyway, so one arena costs no time:
     Intel's run 36.3 -> 35.5 s, its peak with the odometry process 282.3 -> 263.5 MiB. It is
     process-wide and permanent, so only the command line (a process of our own) calls it."""
-    import ctypes
-    import ctypes.util
-
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        return bool(libc.mallopt(_M_ARENA_MAX, 1))
+        return bool(_libc().mallopt(_M_ARENA_MAX, 1))
     except (OSError, AttributeError):  # not glibc
         return False
 

@@ -112,15 +112,12 @@ def scan_judged(name: str, data: Path, run_out: Path) -> dict:
     from submapslam.evaluation.derived_relations import count_loop_relations, derive_relations
     from submapslam.evaluation.metrics import relations_error
     from submapslam.evaluation.scan_consistency import loop_pair_comparison, scan_matched_relations
-    from submapslam.io.scan_lookup import scans_at
+    from submapslam.io.scan_lookup import scans_read_once
     from submapslam.io.trajectory import carmen_reference_trajectory, read_trajectory
 
     raw, ref = LOGS[name]
     run, reference = read_trajectory(run_out / "poses_tum.txt"), carmen_reference_trajectory(data / ref, data / raw)
-    taken = scans_at(data / raw, reference.timestamps)  # both measures ask only for reference times: one read
-
-    def scans(_times):
-        return taken
+    scans = scans_read_once(data / raw, reference.timestamps)  # both measures ask only for reference times
     matched, counts = scan_matched_relations(reference, derive_relations(reference), scans)
     return {"loop_pair_misfit": loop_pair_comparison(run, reference, scans),
             "matched_relations": {**counts, "loops": count_loop_relations(matched),

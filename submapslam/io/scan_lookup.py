@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
@@ -31,3 +31,12 @@ def scans_at(log: str | Path, timestamps: Iterable[float], *, max_time_diff: flo
     if not found:
         raise SubmapSlamError(f"no scan of {log} is within {max_time_diff} s of the {wanted.size} times asked for")
     return found
+
+
+def scans_read_once(log: str | Path, timestamps: Iterable[float], *,
+                    max_time_diff: float = 1e-3) -> Callable[[NDArray[np.float64]], dict[float, NDArray[np.float64]]]:
+    """:func:`scans_at` of ``log`` at ``timestamps``, read now and handed out for every later ask
+    (a :data:`~submapslam.evaluation.scan_consistency.ScanSource` for measures that ask only for
+    some of those times: the log is read once, not once per measure)."""
+    taken = scans_at(log, timestamps, max_time_diff=max_time_diff)
+    return lambda _times: taken
