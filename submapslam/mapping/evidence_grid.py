@@ -55,13 +55,12 @@ class EvidenceGrid:
         ``(M, 3)``: ends of beams that returned nothing: free along them (at most
         ``max_free_range``), no hit.
         """
+        hits = transform_points(T_grid_sensor, points)[:, :2]
         if no_returns is not None and len(no_returns) and carve_free:
-            self._carve_no_returns(T_grid_sensor, np.asarray(no_returns, dtype=np.float64),
-                                   transform_points(T_grid_sensor, np.asarray(points, dtype=np.float64))[:, :2])
+            self._carve_no_returns(T_grid_sensor, np.asarray(no_returns, dtype=np.float64), hits)
         if len(points) == 0:
             return
         p = self.params
-        hits = transform_points(T_grid_sensor, points)[:, :2]
         flat = self.logodds.reshape(-1)
         width = self.logodds.shape[1]
         r, c, inside = self.cells(hits)
@@ -74,32 +73,63 @@ class EvidenceGrid:
             lengths = np.linalg.norm(vec, axis=1)
             free_len = np.minimum(lengths - p.resolution, p.max_free_range)
             steps = np.maximum(0, np.floor(free_len / p.resolution).astype(int))
-            ray = np.repeat(np.arange(len(hits)), steps)
-            offsets = np.arange(int(steps.sum())) - np.repeat(np.cumsum(steps) - steps, steps)
-            scale = offsets * p.resolution / lengths[ray]
-            # column by column: the same arithmetic as cells(origin + vec * scale), fewer temporaries
-            col = np.floor((origin[0] + vec[ray, 0] * scale - self.origin[0]) / p.resolution).astype(np.int64)
-            row = np.floor((origin[1] + vec[ray, 1] * scale - self.origin[1]) / p.resolution).astype(np.int64)
+            row, col = self._ray_cells(origin, vec, lengths, steps)
             o_r, o_c, o_in = self.cells(origin[None, :])
             if o_in[0] and inside.all() and min(r.min(), o_r[0]) >= 1 and min(c.min(), o_c[0]) >= 1 \
                     and max(r.max(), o_r[0]) < self.logodds.shape[0] - 1 and max(c.max(), o_c[0]) < width - 1:
                 # sensor and hits a cell inside the border: every point between them is inside
-                free_idx = row * width + col
+                row *= width
+                row += col
+                free_idx = row.astype(np.int64)
             else:
-                ok = (col >= 0) & (row >= 0) & (col < width) & (row < self.logodds.shape[0])
-                free_idx = row[ok] * width + col[ok]
-            if self._is_hit is None:
-                self._is_hit = np.zeros(flat.shape, dtype=bool)
-            self._is_hit[hit_idx] = True
-            free_idx = free_idx[~self._is_hit[free_idx]]  # a hit cell is not also free
-            self._is_hit[hit_idx] = False
-            flat[free_idx] = np.maximum(flat[free_idx] + p.l_free, p.l_min)
-            if self.free_run is not None:
-                runs = self.free_run.reshape(-1)
-                runs[free_idx] = np.minimum(runs[free_idx], 254) + 1
+                free_idx = self._inside_index(row, col)
+            self._add_free(free_idx, hit_idx)
         flat[hit_idx] = np.minimum(flat[hit_idx] + p.l_occ, p.l_max)
         if self.free_run is not None:
             self.free_run.reshape(-1)[hit_idx] = 0
+
+    def _ray_cells(self, origin: np.ndarray, vec: np.ndarray, lengths: np.ndarray,
+                   steps: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows and columns (float64, whole numbers) of the points one cell apart along rays from
+        ``origin (2,)`` along ``vec (N, 2)`` of ``lengths (N,)``: ``steps (N,)`` points a ray,
+        from the origin on. The arithmetic of :meth:`cells` on ``origin + vec * k * res / length``,
+        in place, column by column."""
+        res = self.params.resolution
+        ray = np.repeat(np.arange(len(steps)), steps)
+        offsets = np.arange(int(steps.sum()), dtype=np.float64)  # whole numbers: exact as float64
+        offsets -= np.repeat((np.cumsum(steps) - steps).astype(np.float64), steps)
+        offsets *= res
+        offsets /= lengths[ray]  # each point's fraction of its ray
+        out = []
+        for axis in (1, 0):  # y -> row, x -> column
+            v = np.ascontiguousarray(vec[:, axis])[ray]
+            v *= offsets
+            v += origin[axis]
+            v -= self.origin[axis]
+            v /= res
+            out.append(np.floor(v, out=v))
+        return out[0], out[1]
+
+    def _inside_index(self, row: np.ndarray, col: np.ndarray) -> np.ndarray:
+        """Flat indices (int64) of the cells ``row``, ``col`` (float64 whole numbers) inside the grid."""
+        height, width = self.logodds.shape
+        ok = (col >= 0) & (row >= 0) & (col < width) & (row < height)
+        return (row[ok] * width + col[ok]).astype(np.int64)
+
+    def _add_free(self, free_idx: np.ndarray, hit_idx: np.ndarray) -> None:
+        """Free evidence once in each cell of ``free_idx`` (repeats allowed) not among the scan's
+        hit cells ``hit_idx``."""
+        p = self.params
+        flat = self.logodds.reshape(-1)
+        if self._is_hit is None:
+            self._is_hit = np.zeros(flat.shape, dtype=bool)
+        self._is_hit[hit_idx] = True
+        free_idx = free_idx[~self._is_hit[free_idx]]  # a hit cell is not also free
+        self._is_hit[hit_idx] = False
+        flat[free_idx] = np.maximum(flat[free_idx] + p.l_free, p.l_min)
+        if self.free_run is not None:
+            runs = self.free_run.reshape(-1)
+            runs[free_idx] = np.minimum(runs[free_idx], 254) + 1
 
     def _carve_no_returns(self, T_grid_sensor: np.ndarray, no_returns: np.ndarray, hits: np.ndarray) -> None:
         """Free evidence along beams that returned nothing, up to ``max_free_range`` (clipped to
@@ -114,24 +144,9 @@ class EvidenceGrid:
         steps = np.floor(np.minimum(lengths, p.max_free_range) / p.resolution).astype(int)
         if not len(steps) or steps.sum() == 0:
             return
-        ray = np.repeat(np.arange(len(vec)), steps)
-        offsets = np.arange(int(steps.sum())) - np.repeat(np.cumsum(steps) - steps, steps)
-        scale = offsets * p.resolution / lengths[ray]
-        r, c, inside = self.cells(origin + vec[ray] * scale[:, None])
-        width = self.logodds.shape[1]
-        free_idx = r[inside] * width + c[inside]  # repeats: each cell still counts once (see integrate_scan)
+        row, col = self._ray_cells(origin, vec, lengths, steps)
         hr, hc, h_in = self.cells(hits)
-        hit_idx = hr[h_in] * width + hc[h_in]
-        flat = self.logodds.reshape(-1)
-        if self._is_hit is None:
-            self._is_hit = np.zeros(flat.shape, dtype=bool)
-        self._is_hit[hit_idx] = True
-        free_idx = free_idx[~self._is_hit[free_idx]]  # the scan's hit cells are spared
-        self._is_hit[hit_idx] = False
-        flat[free_idx] = np.maximum(flat[free_idx] + p.l_free, p.l_min)
-        if self.free_run is not None:
-            runs = self.free_run.reshape(-1)
-            runs[free_idx] = np.minimum(runs[free_idx], 254) + 1
+        self._add_free(self._inside_index(row, col), hr[h_in] * self.logodds.shape[1] + hc[h_in])
 
     def probabilities(self) -> np.ndarray:
         """Occupancy probability per cell, ``(rows, cols)`` float32 (the logistic of the log-odds).

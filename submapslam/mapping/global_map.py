@@ -23,14 +23,15 @@ def local_grid_jobs(result: SlamResult, ids: Iterable[int]) -> list[LocalGridJob
 
 
 def local_grid(T_anchor_scans: np.ndarray, scan_points: list[np.ndarray], params: GridParams,
-               no_returns: list[np.ndarray] | None = None) -> EvidenceGrid | None:
+               no_returns: list[np.ndarray] | None = None, extent: np.ndarray | None = None) -> EvidenceGrid | None:
     """Evidence grid of one submap in its anchor frame from its scans (``(n_k, 3)`` sensor frame);
     ``no_returns``: per scan the ends of its beams that returned nothing (free, never hit; they
-    do not widen the grid)."""
-    world = [transform_points(T, p)[:, :2] for T, p in zip(T_anchor_scans, scan_points) if len(p)]
-    if not world:
+    do not widen the grid). ``extent``: the scans' :func:`local_extent` when known (not computed
+    again)."""
+    if extent is None:
+        extent = local_extent(T_anchor_scans, scan_points)
+    if extent is None:
         return None
-    extent = np.vstack([*world, T_anchor_scans[:, :2, 3]])
     grid = EvidenceGrid.covering(extent, params)
     if no_returns:
         no_returns = list(no_returns)  # spilled (:mod:`.scan_spill`): read once, not a scan at a time
@@ -81,9 +82,11 @@ def build_global_grid(result: SlamResult, params: GridParams | None = None,
     """
     params = params or grid_params(result)
     corners = []
+    extents = []  # each submap's local_extent, for its local grid
     for T_world_anchor, poses, points in zip(result.submap_poses, result.submap_scan_poses,
                                              result.submap_scan_points):
         extent = local_extent(poses, points)
+        extents.append(extent)
         if extent is None:
             continue
         (x0, y0), (x1, y1) = extent - [[params.resolution] * 2, [-params.resolution] * 2]
@@ -103,7 +106,7 @@ def build_global_grid(result: SlamResult, params: GridParams | None = None,
         if track and k in starts:
             occupied_at_start = global_grid.logodds > params.occupied_threshold
         no_returns = result.submap_scan_no_returns[k] if k < len(result.submap_scan_no_returns) else None
-        grid = next(made) if made is not None else local_grid(poses, points, params, no_returns)
+        grid = next(made) if made is not None else local_grid(poses, points, params, no_returns, extents[k])
         if grid is not None:
             cleared += fuse_submap_grids(global_grid, grid, T_world_anchor,
                                          left if occupied_at_start is not None else None, occupied_at_start)
