@@ -392,18 +392,17 @@ class _MergeHelper:
         return verify_items(self.closer, items, self.submaps, map_poses)
 
     def make(self, job: LocalGridJob, params: GridParams) -> None:
-        from .mapping.global_map import local_grid
+        from .mapping.global_map import job_grid
 
         self._lower_priority()
-        key, poses, points = job
-        self.grids[key] = local_grid(poses, points, params)
+        self.grids[job[0]] = job_grid(job, params)
 
     def take(self, key: int, job: LocalGridJob | None, params: GridParams, made: None = None) -> EvidenceGrid | None:
         """The grid made ahead for ``key`` (``made``: that :meth:`make`'s result, so that Ray runs
         this after it), or ``job``'s made now."""
         if job is None:
             return self.grids.pop(key)
-        from .mapping.global_map import local_grid
+        from .mapping.global_map import job_grid
 
         self._lower_priority()
-        return local_grid(job[1], job[2], params)
+        return job_grid(job, params)

@@ -222,13 +222,12 @@ def test_ray_local_grids_made_ahead_or_on_demand_equal_those_made_here(sequentia
 
     from submapslam.fleet_ray import RayBatch, ray_module
     from submapslam.io.map_store import load_map
-    from submapslam.mapping.global_map import grid_params, local_grid
+    from submapslam.mapping.global_map import grid_params, job_grid, local_grid_jobs
 
     out, _, _, _, _ = sequential
     result = load_map(out / "hall.a" / "map").result
     params = grid_params(result)
-    jobs = [(k, poses, points) for k, (poses, points) in enumerate(zip(result.submap_scan_poses,
-                                                                       result.submap_scan_points))]
+    jobs = local_grid_jobs(result, range(result.n_submaps))
     assert len(jobs) >= 2
     side = RayBatch(ray_module(), num_cpus=2)
     try:
@@ -242,8 +241,8 @@ def test_ray_local_grids_made_ahead_or_on_demand_equal_those_made_here(sequentia
         del stream
     finally:
         side.close()
-    for (_, poses, points), grid in zip(jobs, made, strict=True):
-        here = local_grid(poses, points, params)
+    for job, grid in zip(jobs, made, strict=True):
+        here = job_grid(job, params)
         assert np.array_equal(grid.logodds, here.logodds) and np.array_equal(grid.origin, here.origin)
         assert np.array_equal(grid.free_run, here.free_run)
 

@@ -72,3 +72,21 @@ def test_max_range_beams_are_free_space_not_walls(tmp_path):
     occupied = np.argwhere(grid.logodds > grid.params.occupied_threshold)
     xy = grid.origin + (occupied[:, ::-1] + 0.5) * grid.params.resolution
     assert len(xy) > 100 and xy[:, 0].max() < 8.6
+
+
+def test_local_grids_made_from_jobs_carve_the_no_returns_as_the_grid_does(tmp_path):
+    """A local grid made elsewhere (``batch``'s Ray actors take :func:`local_grid_jobs`) is the one
+    :func:`build_global_grid` makes itself: the doorway's no-returns carved too."""
+    from submapslam.mapping.global_map import grid_params, job_grid, local_grid, local_grid_jobs
+
+    log = tmp_path / "aces_like.clf"
+    _write_log(log)
+    result, _ = run_log(log, None)
+    params = grid_params(result)
+    jobs = local_grid_jobs(result, range(result.n_submaps))
+    assert any(job[3] for job in jobs)
+    here, _ = build_global_grid(result, params)
+    made, _ = build_global_grid(result, params, local_grids=[job_grid(job, params) for job in jobs])
+    assert np.array_equal(made.logodds, here.logodds)
+    without, _ = build_global_grid(result, params, local_grids=[local_grid(p, s, params) for _, p, s, _ in jobs])
+    assert not np.array_equal(without.logodds, here.logodds)  # the no-returns' free space is there to lose

@@ -13,13 +13,22 @@ from ..geometry import transform_points
 from ..result import SlamResult
 from .evidence_grid import EvidenceGrid, GridParams, fuse_submap_grids
 
-LocalGridJob = tuple[int, np.ndarray, list[np.ndarray]]
-# one submap's local grid to make elsewhere: (key, T_anchor_scans (K, 4, 4), scan points [(n_k, 3)])
+LocalGridJob = tuple[int, np.ndarray, list[np.ndarray], list[np.ndarray] | None]
+# one submap's local grid to make elsewhere: (key, T_anchor_scans (K, 4, 4), scan points [(n_k, 3)],
+# per scan the ends of its beams that returned nothing [(m_k, 3)] or None)
 
 
 def local_grid_jobs(result: SlamResult, ids: Iterable[int]) -> list[LocalGridJob]:
     """The jobs for the local grids of ``result``'s submaps ``ids`` (keyed by id)."""
-    return [(i, result.submap_scan_poses[i], result.submap_scan_points[i]) for i in ids]
+    no_returns = result.submap_scan_no_returns
+    return [(i, result.submap_scan_poses[i], result.submap_scan_points[i],
+             no_returns[i] if i < len(no_returns) else None) for i in ids]
+
+
+def job_grid(job: LocalGridJob, params: GridParams) -> EvidenceGrid | None:
+    """The local grid of ``job``: what :func:`build_global_grid` makes of that submap."""
+    _, poses, points, no_returns = job
+    return local_grid(poses, points, params, no_returns)
 
 
 def local_grid(T_anchor_scans: np.ndarray, scan_points: list[np.ndarray], params: GridParams,
