@@ -297,6 +297,8 @@ class MappingConfig(_Strict):
         "per hit and per ray, clearing of what moved); the cell size is grid_resolution / grid_resolution_3d "
         "and, for 3D LiDAR, the free range grid_max_free_range_3d")
     write_grid: bool = True
+    write_pcd: bool = Field(False, description="also write map.pcd (and map_dynamic.pcd): the fused cloud as "
+                            "binary PCD, for PCL-based tools (ROS pcl_ros, Autoware, NDT localisers)")
     split_movers: bool = Field(
         True, description="3D LiDAR: each closed submap's voxels that other scans of its window saw through "
         "(clusters, :mod:`submapslam.mapping.moving_points`) leave its cloud (map.ply, place descriptors, "

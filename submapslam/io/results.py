@@ -15,6 +15,7 @@ from ..mapping.global_map import MapOutputs
 from ..process_stats import combined_peak_mb, peak_memory_mb, peaks_by_process
 from ..result import SlamResult
 from .g2o import write_g2o
+from .pcd import write_pcd
 from .ply import write_ply
 from .trajectory import Trajectory, write_kitti, write_tum, write_tum_cov
 
@@ -25,7 +26,8 @@ def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs,
     build_map_outputs`); return ``{name: path}``. Nothing is computed here.
 
     Files: ``poses_tum.txt``, ``poses_kitti.txt``, ``odometry_tum.txt``, ``graph.g2o``,
-    ``map.ply``, ``map_dynamic.ply`` (3D runs that split what moved off the map), ``config.yaml``, ``summary.json``, ``loops.csv``, ``submaps.csv`` (anchor poses,
+    ``map.ply``, ``map_dynamic.ply`` (3D runs that split what moved off the map), with
+    ``mapping.write_pcd`` the same clouds as ``map.pcd`` / ``map_dynamic.pcd``, ``config.yaml``, ``summary.json``, ``loops.csv``, ``submaps.csv`` (anchor poses,
     marginal standard deviations and the x-y covariance in the anchor frame, for ellipses),
     ``poses_cov.txt`` (every scan's pose and its 6x6 covariance: :func:`~.trajectory.write_tum_cov`), and
     for planar runs ``map.pgm`` + ``map.yaml`` (occupancy grid in the ROS map_server format,
@@ -49,6 +51,12 @@ def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs,
     if maps.dynamic_points is not None:
         paths["map_dynamic.ply"] = out / "map_dynamic.ply"
         write_ply(paths["map_dynamic.ply"], maps.dynamic_points)
+    if result.config.mapping.write_pcd:
+        clouds = {"map.pcd": maps.points, "map_dynamic.pcd": maps.dynamic_points}
+        for name, points in clouds.items():
+            if points is not None:
+                paths[name] = out / name
+                write_pcd(paths[name], points)
     paths["config.yaml"].write_text(dump_config(result.config))
     _write_loops(paths["loops.csv"], result)
     _write_submaps(paths["submaps.csv"], result)
