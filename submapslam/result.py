@@ -91,7 +91,7 @@ class SlamResult:
             points (anchor frame) that moved, taken out of ``submap_points``; None otherwise.
         submap_scan_no_returns: planar runs: per submap each scan's ``(m, 3)`` ends of the beams
             that returned nothing (free space in the grid; an empty list per submap when the log
-            gives none, and for maps loaded from a map folder, which do not keep them).
+            gives none; a map folder keeps them).
         odometry_checks: planar runs: how often the odometry's checks overruled its first guess
             (:meth:`~submapslam.odometry.Odometry.checks`); empty otherwise.
         scan_refinement: planar runs: the figures of the scan-level refinement after the submap

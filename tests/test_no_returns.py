@@ -90,3 +90,21 @@ def test_local_grids_made_from_jobs_carve_the_no_returns_as_the_grid_does(tmp_pa
     assert np.array_equal(made.logodds, here.logodds)
     without, _ = build_global_grid(result, params, local_grids=[local_grid(p, s, params) for _, p, s, _ in jobs])
     assert not np.array_equal(without.logodds, here.logodds)  # the no-returns' free space is there to lose
+
+
+def test_a_saved_map_keeps_the_no_returns_and_gives_the_same_grid(tmp_path):
+    """``OUT/map/`` (what ``run --map`` and ``batch`` extend) keeps each scan's no-returns: the
+    loaded map's grid is the run's own, doorway included."""
+    from submapslam.io.map_store import load_map, save_map
+
+    log = tmp_path / "aces_like.clf"
+    _write_log(log)
+    result, _ = run_log(log, tmp_path / "out")
+    loaded = load_map(tmp_path / "out" / "map").result
+    assert [len(s) for s in loaded.submap_scan_no_returns] == [len(s) for s in result.submap_scan_no_returns]
+    assert sum(len(e) for s in loaded.submap_scan_no_returns for e in s) > 500
+    here, _ = build_global_grid(result)
+    again, _ = build_global_grid(loaded)
+    assert np.array_equal(again.logodds, here.logodds)
+    save_map(load_map(tmp_path / "out" / "map"), tmp_path / "copy")  # and saved again, the same bytes
+    assert (tmp_path / "copy" / "submaps.npz").read_bytes() == (tmp_path / "out" / "map" / "submaps.npz").read_bytes()

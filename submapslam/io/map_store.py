@@ -11,7 +11,9 @@ of a ``run``) in open formats, no pickles:
 * ``submaps.npz`` — per submap: ``anchor_poses (S, 4, 4)``, ``covariances (S, 6, 6)`` (GTSAM
   order), ``descriptors (S, rings, sectors)``, the clouds (anchor frame, stored in their own
   float type), the scan indices and ``T_anchor_scan`` of the scans fused into each, and the
-  scans' grid points (sensor frame) the occupancy grids are built from;
+  scans' grid points (sensor frame) the occupancy grids are built from, with, for a 2D laser
+  whose log has no-return readings, each grid scan's no-return beam ends
+  (``no_return_points``, ``no_return_counts``: free space in the grids);
 * ``graph.npz`` — the edges exactly (``i, j, T_i_j, information (GTSAM order), kind``);
   ``graph.g2o`` — the same graph for g2o/GTSAM tools (the loader reads ``graph.npz``);
 * ``loops.json`` — every tested hypothesis (the map's loops.csv, with the constraint).
@@ -108,6 +110,20 @@ def _submap_arrays(session_map: SessionMap) -> Iterator[tuple[str, np.ndarray]]:
     yield "grid_points", _Stacked(grid_scans, (3,), grid_dtype)
     yield "grid_counts", np.array([len(p) for p in grid_scans], dtype=np.int64)
     yield "grid_scans_per_submap", np.array([len(s) for s in r.submap_scan_points], dtype=np.int64)
+    no_returns = _no_returns_per_grid_scan(r)
+    if no_returns is not None:
+        yield "no_return_points", _Stacked(no_returns, (3,), "float32")
+        yield "no_return_counts", np.array([len(p) for p in no_returns], dtype=np.int64)
+
+
+def _no_returns_per_grid_scan(r: SlamResult) -> list[np.ndarray] | None:
+    """Each grid scan's ``(m, 3)`` no-return beam ends, in the order of ``grid_points`` (empty for
+    submaps without); None when the run has none."""
+    held = r.submap_scan_no_returns
+    if len(held) != r.n_submaps or not any(len(n) for n in held):
+        return None
+    empty = np.zeros((0, 3), dtype=np.float32)
+    return [p for scans, ends in zip(r.submap_scan_points, held) for p in (list(ends) if len(ends) else [empty] * len(scans))]
 
 
 def save_map(session_map: SessionMap, folder: str | Path) -> dict[str, Path]:
@@ -215,6 +231,11 @@ def load_map(folder: str | Path) -> SessionMap:
     grid_all = _split(sub["grid_points"], np.concatenate([[0], np.cumsum(sub["grid_counts"])]))
     per = np.concatenate([[0], np.cumsum(sub["grid_scans_per_submap"])])
     grid_points = [grid_all[per[k]:per[k + 1]] for k in range(len(per) - 1)]
+    no_returns: list[list[np.ndarray]] = []
+    if "no_return_points" in sub:  # maps of 2D logs with no-return readings (older maps: none kept)
+        ends = _split(sub["no_return_points"], np.concatenate([[0], np.cumsum(sub["no_return_counts"])]))
+        no_returns = [ends[per[k]:per[k + 1]] for k in range(len(per) - 1)]
+        no_returns = [scans if any(len(e) for e in scans) else [] for scans in no_returns]
     edges = [(int(i), int(j), T, info, str(kind)) for i, j, T, info, kind in
              zip(graph["i"], graph["j"], graph["T_i_j"], graph["information"], graph["kind"])]
     loops = [_loop_record(d) for d in json.loads((folder / "loops.json").read_text())]
@@ -222,6 +243,7 @@ def load_map(folder: str | Path) -> SessionMap:
         timestamps=scans["timestamps"], poses=scans["poses"], odometry_poses=scans["odometry_poses"],
         submap_poses=sub["anchor_poses"], submap_covariances=sub["covariances"], submap_points=points,
         submap_scan_indices=scan_indices, submap_scan_poses=scan_poses, submap_scan_points=grid_points,
+        submap_scan_no_returns=no_returns,
         edges=edges, loops=loops, planar=bool(manifest["planar"]), config=config,
         map_voxel_size=float(manifest["map_voxel_size"]), path_length_m=float(manifest["path_length_m"]),
         source=manifest.get("source", ""), covariance_model=manifest.get("covariance_model") or {})
