@@ -31,3 +31,13 @@ def test_a_run_writes_map_pcd_when_asked_and_it_holds_map_ply_s_points(tmp_path)
     ply = read_ply_points(paths["map.ply"])
     assert len(records) == len(ply) > 100
     assert np.array_equal(np.stack([records["x"], records["y"], records["z"]], axis=1), ply.astype(np.float32))
+
+
+def test_a_pcd_that_cannot_be_written_is_one_line_naming_it(tmp_path):
+    import pytest
+
+    from submapslam.errors import SubmapSlamError
+
+    target = tmp_path / "no_such_folder" / "map.pcd"
+    with pytest.raises(SubmapSlamError, match="no_such_folder/map.pcd: could not write the PCD file"):
+        write_pcd(target, np.zeros((3, 3)))

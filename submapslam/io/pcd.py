@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import SubmapSlamError
+from .ply import write_header_and_records
 
 _KINDS = {"F": "f", "U": "u", "I": "i"}  # PCD TYPE -> numpy kind
 _HEADER_BYTES = 65536
@@ -66,9 +66,4 @@ def write_pcd(path: str | Path, points: np.ndarray) -> None:
     header = ("# .PCD v0.7 - Point Cloud Data file format (written by submapslam)\nVERSION 0.7\n"
               "FIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
               f"WIDTH {len(rows)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(rows)}\nDATA binary\n")
-    try:
-        with open(path, "wb") as fh:
-            fh.write(header.encode("ascii"))
-            rows.tofile(fh)
-    except OSError as exc:
-        raise SubmapSlamError(f"{path}: could not write the PCD file ({exc})") from exc
+    write_header_and_records(path, header, rows, "PCD")

@@ -39,12 +39,18 @@ def write_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None = 
         rows["x"], rows["y"], rows["z"] = points.T
         rgb = np.round(np.clip(colors, 0.0, 1.0) * 255.0).astype(np.uint8)
         rows["red"], rows["green"], rows["blue"] = rgb.T
+    write_header_and_records(path, header, rows, "PLY")
+
+
+def write_header_and_records(path: str | Path, header: str, rows: np.ndarray, kind: str) -> None:
+    """Write an ASCII ``header`` and then ``rows``' bytes as they lie in memory (a binary cloud
+    file of ``kind``, e.g. "PLY"); a file that cannot be written is one :class:`SubmapSlamError`."""
     try:
         with open(path, "wb") as fh:
             fh.write(header.encode("ascii"))
             rows.tofile(fh)
     except OSError as exc:
-        raise SubmapSlamError(f"{path}: could not write the PLY file ({exc})") from exc
+        raise SubmapSlamError(f"{path}: could not write the {kind} file ({exc})") from exc
 
 
 PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
