@@ -2,6 +2,10 @@
 and how many accepted loop closures are false (transform off by more than 1 m from the truth).
 
 Usage: python tools/bench_synthetic.py [--worlds rectangle rooms ...] [--laps 2] [--seed 0]
+
+``--worlds scanners`` runs the 2D worlds with other scanners than the default SICK-like one: a
+270 deg / 1081-beam (Hokuyo UTM-like), a 360 deg / 720-beam 12 m (RPLidar-like), a 240 deg /
+682-beam 5.6 m (Hokuyo URG-like) and the default with 3 cm range noise.
 """
 
 from __future__ import annotations
@@ -23,12 +27,19 @@ VARIANTS = {
     "rectangle-sparse": {"world": "rectangle", "feature_density": 0.4, "sensor_options": {"max_range": 8.0}},
     "rectangle-short-range": {"world": "rectangle", "sensor_options": {"beams": 181, "range_noise": 0.03, "max_range": 10.0}},
     "outdoor": {"blocks": (2, 1)},
+    # other 2D scanners than the SICK-like 180 deg / 361 beams / 30 m default
+    "rooms-270": {"world": "rooms", "sensor_options": {"fov_deg": 270.0, "beams": 1081}},  # Hokuyo UTM-like
+    "figure8-360": {"world": "figure8", "sensor_options": {"fov_deg": 360.0, "beams": 720, "max_range": 12.0}},  # RPLidar-like
+    "figure8-240": {"world": "figure8", "sensor_options": {"fov_deg": 240.0, "beams": 682, "max_range": 5.6}},  # Hokuyo URG-like
+    "figure8-noisy": {"world": "figure8", "sensor_options": {"range_noise": 0.03}},
 }
+SCANNERS = ["rooms-270", "figure8-360", "figure8-240", "figure8-noisy"]
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--worlds", nargs="+", default=["rectangle", "rooms", "figure8", "rectangle-sparse", "rectangle-short-range"])
+    ap.add_argument("--worlds", nargs="+", default=["rectangle", "rooms", "figure8", "rectangle-sparse", "rectangle-short-range"],
+                    help=f"worlds or variants ({', '.join(VARIANTS)}); 'scanners' stands for {', '.join(SCANNERS)}")
     ap.add_argument("--laps", type=int, default=2)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
@@ -41,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
 
     print("| world | scans | wheel ATE [m] | odometry ATE [m] | submapslam ATE [m] | loops accepted / tested | false closures | run time [s] |")
     print("|---|---|---|---|---|---|---|---|")
-    for name in args.worlds:
+    for name in [w for world in args.worlds for w in (SCANNERS if world == "scanners" else [world])]:
         opts = dict(VARIANTS.get(name, {}))
         world = opts.pop("world", name)
         with tempfile.TemporaryDirectory() as tmp:
