@@ -154,6 +154,12 @@ class SlamResult:
     def loops_accepted(self) -> int:
         return sum(1 for lp in self.loops if lp.accepted)
 
+    def no_returns_of(self, k: int) -> list[np.ndarray]:
+        """Submap ``k``'s per-scan ``(m, 3)`` no-return beam ends (:attr:`submap_scan_no_returns`),
+        or an empty list when the run keeps none for it."""
+        held = self.submap_scan_no_returns
+        return held[k] if len(held) == self.n_submaps else []
+
     def pose_covariances(self) -> np.ndarray | None:
         """``(N, 6, 6)`` covariance of every scan pose (GTSAM order ``(rx, ry, rz, x, y, z)``, in
         the scan's own frame: :func:`~submapslam.uncertainty.scan_covariances`); None when the run

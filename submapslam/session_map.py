@@ -120,8 +120,7 @@ def restrict(result: SlamResult, sessions: list[SessionInfo]) -> SlamResult:
         submap_scan_indices=[[scan_new[i] for i in result.submap_scan_indices[k]] for k in sub_idx],
         submap_scan_poses=[result.submap_scan_poses[k] for k in sub_idx],
         submap_scan_points=[result.submap_scan_points[k] for k in sub_idx],
-        submap_scan_no_returns=[result.submap_scan_no_returns[k] for k in sub_idx]
-        if len(result.submap_scan_no_returns) == result.n_submaps else [],
+        submap_scan_no_returns=[result.no_returns_of(k) for k in sub_idx],
         edges=edges,
         loops=loops,
         memory_mb_by_km=[],

@@ -72,17 +72,13 @@ def real3d_rows(data: Path, out: Path) -> list[dict]:
 
 
 def synthetic_rows(work: Path, out: Path) -> list[dict]:
-    from bench_synthetic import SCANNERS, VARIANTS
-
-    from datasets_synth import generate
+    from bench_synthetic import SCANNERS, write_variant
 
     rows = []
     for name in ["rectangle", "rooms", "figure8", *SCANNERS]:
-        opts = dict(VARIANTS.get(name, {}))
-        world = opts.pop("world", name)
         log = work / f"synthetic_{name}"
         if not (log / "meta.yaml").exists():
-            generate(world, log, seed=0, laps=2, **opts)
+            write_variant(name, log, seed=0, laps=2)
         rows.append(run_and_evaluate(name, "synthetic 2D", log, out))
     return rows
 

@@ -36,6 +36,15 @@ VARIANTS = {
 SCANNERS = ["rooms-270", "figure8-360", "figure8-240", "figure8-noisy"]
 
 
+def write_variant(name: str, out: Path, seed: int, laps: int) -> Path:
+    """Generate the world or :data:`VARIANTS` entry ``name`` as a log folder ``out``."""
+    from datasets_synth import generate
+
+    opts = dict(VARIANTS.get(name, {}))
+    world = opts.pop("world", name)
+    return generate(world, out, seed=seed, laps=laps, **opts)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--worlds", nargs="+", default=["rectangle", "rooms", "figure8", "rectangle-sparse", "rectangle-short-range"],
@@ -44,7 +53,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
 
-    from datasets_synth import generate
     from submapslam.api import run_log
     from submapslam.evaluation.metrics import ate
     from submapslam.geometry import inverse
@@ -53,10 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     print("| world | scans | wheel ATE [m] | odometry ATE [m] | submapslam ATE [m] | loops accepted / tested | false closures | run time [s] |")
     print("|---|---|---|---|---|---|---|---|")
     for name in [w for world in args.worlds for w in (SCANNERS if world == "scanners" else [world])]:
-        opts = dict(VARIANTS.get(name, {}))
-        world = opts.pop("world", name)
         with tempfile.TemporaryDirectory() as tmp:
-            log = generate(world, Path(tmp) / "log", seed=args.seed, laps=args.laps, **opts)
+            log = write_variant(name, Path(tmp) / "log", args.seed, args.laps)
             t0 = time.perf_counter()
             res, _ = run_log(log, None)
             wall = time.perf_counter() - t0

@@ -95,9 +95,7 @@ def _concatenate(maps: list[SessionMap]) -> tuple[SlamResult, list[SessionInfo],
         submap_scan_indices=[[i + so for i in idx] for r, so, _ in parts for idx in r.submap_scan_indices],
         submap_scan_poses=[p for r, _, _ in parts for p in r.submap_scan_poses],
         submap_scan_points=[p for r, _, _ in parts for p in r.submap_scan_points],
-        submap_scan_no_returns=[n for r, _, _ in parts for n in (r.submap_scan_no_returns if len(
-            r.submap_scan_no_returns) == r.n_submaps else [[]] * r.n_submaps)]
-        if any(r.submap_scan_no_returns for r, _, _ in parts) else [],
+        submap_scan_no_returns=[r.no_returns_of(k) for r, _, _ in parts for k in range(r.n_submaps)],
         edges=[(i + mo, j + mo, T, info, kind) for r, _, mo in parts for i, j, T, info, kind in r.edges],
         loops=[replace(lp, i=lp.i + mo, j=lp.j + mo) for r, _, mo in parts for lp in r.loops],
         planar=first.planar, config=first.config,

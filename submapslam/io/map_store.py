@@ -119,8 +119,8 @@ def _submap_arrays(session_map: SessionMap) -> Iterator[tuple[str, np.ndarray]]:
 def _no_returns_per_grid_scan(r: SlamResult) -> list[np.ndarray] | None:
     """Each grid scan's ``(m, 3)`` no-return beam ends, in the order of ``grid_points`` (empty for
     submaps without); None when the run has none."""
-    held = r.submap_scan_no_returns
-    if len(held) != r.n_submaps or not any(len(n) for n in held):
+    held = [r.no_returns_of(k) for k in range(r.n_submaps)]
+    if not any(len(n) for n in held):
         return None
     empty = np.zeros((0, 3), dtype=np.float32)
     return [p for scans, ends in zip(r.submap_scan_points, held) for p in (list(ends) if len(ends) else [empty] * len(scans))]

@@ -13,16 +13,14 @@ from ..geometry import transform_points
 from ..result import SlamResult
 from .evidence_grid import EvidenceGrid, GridParams, fuse_submap_grids
 
-LocalGridJob = tuple[int, np.ndarray, list[np.ndarray], list[np.ndarray] | None]
+LocalGridJob = tuple[int, np.ndarray, list[np.ndarray], list[np.ndarray]]
 # one submap's local grid to make elsewhere: (key, T_anchor_scans (K, 4, 4), scan points [(n_k, 3)],
-# per scan the ends of its beams that returned nothing [(m_k, 3)] or None)
+# per scan the ends of its beams that returned nothing [(m_k, 3)], empty when the log has none)
 
 
 def local_grid_jobs(result: SlamResult, ids: Iterable[int]) -> list[LocalGridJob]:
     """The jobs for the local grids of ``result``'s submaps ``ids`` (keyed by id)."""
-    no_returns = result.submap_scan_no_returns
-    return [(i, result.submap_scan_poses[i], result.submap_scan_points[i],
-             no_returns[i] if i < len(no_returns) else None) for i in ids]
+    return [(i, result.submap_scan_poses[i], result.submap_scan_points[i], result.no_returns_of(i)) for i in ids]
 
 
 def job_grid(job: LocalGridJob, params: GridParams) -> EvidenceGrid | None:
@@ -114,7 +112,7 @@ def build_global_grid(result: SlamResult, params: GridParams | None = None,
                                                             result.submap_scan_points)):
         if track and k in starts:
             occupied_at_start = global_grid.logodds > params.occupied_threshold
-        no_returns = result.submap_scan_no_returns[k] if k < len(result.submap_scan_no_returns) else None
+        no_returns = result.no_returns_of(k)
         grid = next(made) if made is not None else local_grid(poses, points, params, no_returns, extents[k])
         if grid is not None:
             cleared += fuse_submap_grids(global_grid, grid, T_world_anchor,
