@@ -234,7 +234,8 @@ class BackendConfig(_Strict):
     ground_priors_level_test: bool = Field(
         True, description="3D logs: at the end of the run, test whether the ground was level (the anchors' "
         "ground normals, carried through the odometry, turn over 3 anchors by more than the odometry's own "
-        "tilt sigma can: uncertainty.LevelGroundTest); if it was not, the ground priors leave the graph when "
+        "tilt sigma can: uncertainty.LevelGroundTest); if it was not, or if too few anchors saw the ground to "
+        "tell (fewer than 8 windows, e.g. a hand-held sensor indoors), the ground priors leave the graph when "
         "they raise the loop closures' summed chi-square by more than 3.84 or when there is no closure "
         "(summary.json: ground_priors). false: the priors always stay")
     ground_prior_kernel: float | None = Field(

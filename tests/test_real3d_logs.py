@@ -22,8 +22,11 @@ def _run_against_reference(name: str):
     result = run(open_log(folder / "scans"))
     stamps = np.loadtxt(folder / "scans" / "times.txt", ndmin=1)
     reference = read_kitti(folder / "reference_poses_kitti.txt", timestamps=stamps)
-    estimate = Trajectory(result.timestamps, result.poses)
-    return result, reference, float(ate(estimate, reference, align="se3")["rmse"])
+    return result, reference, _ate(result.timestamps, result.poses, reference)
+
+
+def _ate(stamps: np.ndarray, poses: np.ndarray, reference: Trajectory) -> float:
+    return float(ate(Trajectory(stamps, poses), reference, align="se3")["rmse"])
 
 
 def _dynamic_share(result) -> float:
@@ -49,8 +52,14 @@ def test_livox_loop_is_closed_and_within_a_tenth_of_a_metre():
     assert _dynamic_share(result) <= 0.005
 
 
-def test_livox_main_building_within_a_tenth_of_a_metre():
-    result, _, error = _run_against_reference("livox_hku_main_building")
+def test_livox_main_building_within_a_tenth_of_a_metre_and_no_worse_than_its_odometry():
+    """No closure, and ground seen under 2 of 8 anchors: too little to test the level priors' bet,
+    so without a closure to vouch for them they go, and the run keeps its odometry (with them it
+    had ended at 0.0625 m against the odometry's 0.0483 m)."""
+    result, reference, error = _run_against_reference("livox_hku_main_building")
     assert len(result.poses) == 457
     assert error <= 0.10, f"ATE {error:.3f} m"
+    odometry_error = _ate(result.timestamps, result.odometry_poses, reference)
+    assert error <= odometry_error + 0.002, f"ATE {error:.4f} m, its odometry {odometry_error:.4f} m"
+    assert result.ground_priors["level"] is None and result.ground_priors["kept"] is False
     assert _dynamic_share(result) <= 0.005
