@@ -1,9 +1,9 @@
-"""One regression bench over every log we have, at defaults, in one table: rerun it whenever the
-data path changes.
+"""One regression bench over every log we have, at defaults, in one table, with KISS-ICP on the same
+scans beside each run: rerun it whenever the data path changes.
 
 Usage:
     python tools/bench_regression.py [--data ../shared/data] [--work DIR] [--out DIR] [--json FILE]
-        [--only real2d real3d synthetic terrain] [--terrain-scans 600]
+        [--only real2d real3d synthetic terrain sensors3d] [--terrain-scans 600] [--no-peers]
 
 Rows, each run in a child process (wall time and its own peak RSS from ``wait4``):
 
@@ -14,16 +14,23 @@ Rows, each run in a child process (wall time and its own peak RSS from ``wait4``
 * **synthetic**: the 2D worlds of ``bench_synthetic`` with the default scanner and the other
   scanners (``bench_synthetic.SCANNERS``), 2 laps, seed 0, written under WORK;
 * **terrain**: terrain cities along the KITTI 00, 05 and 08 paths (16 rings, the first
-  ``--terrain-scans`` scans; ``bench_terrain.generate`` writes them under WORK once).
+  ``--terrain-scans`` scans; ``bench_terrain.generate`` writes them under WORK once);
+* **sensors3d**: the same terrain with other 3D sensors: 64 rings along KITTI 05, and the
+  Livox-like pattern with irregular keyframes along KITTI 00 (``--terrain-scans`` scans each).
 
 Per row: scans, ATE [m], odometry ATE [m] (the same run before loop closure), closures accepted and
-false (3D and synthetic, against the truth), wall [s], peak RSS [MiB].
+false (3D and synthetic, against the truth), wall [s], peak RSS [MiB]; and, unless ``--no-peers``,
+KISS-ICP 1.3 on the same scans right after it (2D: ``bench_speed2d``'s child, max_range 40 m,
+voxel 0.1 m; 3D: ``bench_city_child.py``, its defaults without deskewing), its ATE against the
+same reference and submapslam's wall-time and peak-memory ratios to it (one run each: the machine
+is shared, so compare ratios, not seconds).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 from pathlib import Path
@@ -32,12 +39,15 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tools"))
 sys.path.insert(0, str(REPO))
 
-GROUPS = ("real2d", "real3d", "synthetic", "terrain")
+GROUPS = ("real2d", "real3d", "synthetic", "terrain", "sensors3d")
 TERRAIN_PATHS = ("00", "05", "08")
+#: other 3D sensors on the terrain worlds: (KITTI path, bench_terrain's RINGS, the row's kind)
+OTHER_SENSORS = (("05", "64", "synthetic 3D, 64 rings"), ("00", "livox", "synthetic 3D, Livox-like keyframes"))
 
 
-def run_and_evaluate(name: str, kind: str, log: Path, out: Path) -> dict:
-    """``submapslam run LOG`` in a child process, then the figures of ``bench_terrain.evaluate``."""
+def run_and_evaluate(name: str, kind: str, log: Path, out: Path, peers: bool) -> dict:
+    """``submapslam run LOG`` in a child process, then the figures of ``bench_terrain.evaluate``
+    (and KISS-ICP's beside them when ``peers``)."""
     from bench_city import run_child
     from bench_terrain import evaluate
 
@@ -46,64 +56,130 @@ def run_and_evaluate(name: str, kind: str, log: Path, out: Path) -> dict:
     if usage["exit_code"] != 0:
         return {"name": name, "kind": kind, "error": f"exit code {usage['exit_code']} (see {out / name}.log)"}
     figures = evaluate(log, out / name)
-    return {"name": name, "kind": kind, "scans": figures["scans"], "ate_m": figures["ate_m"],
-            "odometry_ate_m": figures["odometry_ate_m"], "closures": figures["closures_accepted"],
-            "false_closures": figures["false_closures"], "wall_s": usage["wall_s"],
+    row = {"name": name, "kind": kind, "scans": figures["scans"], "ate_m": figures["ate_m"],
+           "odometry_ate_m": figures["odometry_ate_m"], "closures": figures["closures_accepted"],
+           "false_closures": figures["false_closures"], "wall_s": usage["wall_s"],
+           "peak_rss_mib": usage["peak_rss_kib"] / 1024.0}
+    return with_peer(row, kiss_icp_3d(log, out / f"{name}-kiss-icp") if peers else None)
+
+
+def kiss_icp_3d(log: Path, out: Path) -> dict:
+    """KISS-ICP on a 3D log (``bench_city_child.py``): its ATE against the log's reference, wall [s]
+    and peak RSS [MiB], or ``{"error"}``."""
+    from bench_city import CHILD, evaluate_peer, ground_truth_per_scan, run_child
+
+    usage = run_child([sys.executable, str(CHILD), "kiss-icp", str(log), str(out)], out.with_suffix(".log"))
+    if usage["exit_code"] != 0:
+        return {"error": f"exit code {usage['exit_code']} (see {out.with_suffix('.log')})"}
+    gt, gt_scan_poses = ground_truth_per_scan(log, json.loads((out / "result.json").read_text()).get("scans"))
+    return {"ate_m": evaluate_peer(out, gt, gt_scan_poses)["ate_m"], "wall_s": usage["wall_s"],
             "peak_rss_mib": usage["peak_rss_kib"] / 1024.0}
 
 
-def real2d_rows(data: Path, out: Path) -> list[dict]:
+def kiss_icp_2d(log: Path, reference, out: Path) -> dict:
+    """KISS-ICP on a 2D log (``bench_speed2d``'s child, its poses in ``out``.tum): its ATE against
+    ``reference`` (a Trajectory), wall [s] and peak RSS [MiB], or ``{"error"}``."""
+    from bench_city import run_child
+
+    from submapslam.evaluation.metrics import ate
+    from submapslam.io.trajectory import read_tum
+
+    poses = out.with_suffix(".tum")
+    cmd = [sys.executable, str(REPO / "tools" / "bench_speed2d.py"), str(log), "--kiss-icp-child", "--poses", str(poses)]
+    usage = run_child(cmd, out.with_suffix(".log"), env=dict(os.environ, PYTHONPATH=str(REPO)))
+    if usage["exit_code"] != 0:
+        return {"error": f"exit code {usage['exit_code']} (see {out.with_suffix('.log')})"}
+    return {"ate_m": float(ate(read_tum(poses), reference)["rmse"]), "wall_s": usage["wall_s"],
+            "peak_rss_mib": usage["peak_rss_kib"] / 1024.0}
+
+
+def with_peer(row: dict, peer: dict | None) -> dict:
+    """``row`` with KISS-ICP's figures (``peer``, None: not run) and submapslam's ratios to them."""
+    if peer is None:
+        return row
+    if "error" in peer:
+        return {**row, "kiss_icp_error": peer["error"]}
+    return {**row, "kiss_icp_ate_m": peer["ate_m"], "kiss_icp_wall_s": peer["wall_s"],
+            "kiss_icp_peak_rss_mib": peer["peak_rss_mib"], "wall_ratio": row["wall_s"] / peer["wall_s"],
+            "memory_ratio": row["peak_rss_mib"] / peer["peak_rss_mib"]}
+
+
+def real2d_rows(data: Path, out: Path, peers: bool) -> list[dict]:
     from bench_real2d import LOGS, run_child
+
+    from submapslam.io.trajectory import carmen_reference_trajectory
 
     rows = []
     for name in LOGS:
         doc = run_child(name, data / "carmen", out, None)
-        rows.append({"name": name, "kind": "real 2D (against the corrected log)", "scans": doc["scans"],
-                     "ate_m": doc["ate"], "odometry_ate_m": doc["ate_odometry"], "closures": doc["loops_accepted"],
-                     "false_closures": None, "wall_s": doc["wall_s"], "peak_rss_mib": doc["peak_rss_mib"]})
+        row = {"name": name, "kind": "real 2D (against the corrected log)", "scans": doc["scans"],
+               "ate_m": doc["ate"], "odometry_ate_m": doc["ate_odometry"], "closures": doc["loops_accepted"],
+               "false_closures": None, "wall_s": doc["wall_s"], "peak_rss_mib": doc["peak_rss_mib"]}
+        raw, ref = LOGS[name]
+        peer = (kiss_icp_2d(data / "carmen" / raw, carmen_reference_trajectory(data / "carmen" / ref,
+                                                                               data / "carmen" / raw),
+                            out / f"{name}-kiss-icp") if peers else None)
+        rows.append(with_peer(row, peer))
     return rows
 
 
-def real3d_rows(data: Path, out: Path) -> list[dict]:
+def real3d_rows(data: Path, out: Path, peers: bool) -> list[dict]:
     from bench_city import REFERENCE_KITTI
 
     logs = sorted(p for p in (data / "lidar3d").iterdir() if (p / REFERENCE_KITTI).exists())
-    return [run_and_evaluate(log.name, "real 3D (against its reference)", log, out) for log in logs]
+    return [run_and_evaluate(log.name, "real 3D (against its reference)", log, out, peers) for log in logs]
 
 
-def synthetic_rows(work: Path, out: Path) -> list[dict]:
+def synthetic_rows(work: Path, out: Path, peers: bool) -> list[dict]:
     from bench_synthetic import SCANNERS, write_variant
+
+    from submapslam.io.trajectory import read_tum
 
     rows = []
     for name in ["rectangle", "rooms", "figure8", *SCANNERS]:
         log = work / f"synthetic_{name}"
         if not (log / "meta.yaml").exists():
             write_variant(name, log, seed=0, laps=2)
-        rows.append(run_and_evaluate(name, "synthetic 2D", log, out))
+        row = run_and_evaluate(name, "synthetic 2D", log, out, peers=False)
+        if peers and "error" not in row:
+            row = with_peer(row, kiss_icp_2d(log, read_tum(log / "groundtruth_tum.txt"), out / f"{name}-kiss-icp"))
+        rows.append(row)
     return rows
 
 
-def terrain_rows(work: Path, out: Path, scans: int) -> list[dict]:
+def terrain_rows(work: Path, out: Path, scans: int, peers: bool) -> list[dict]:
     from bench_terrain import generate
 
-    return [run_and_evaluate(f"terrain {seq}", "synthetic 3D, 16 rings", generate(f"{seq}:16:{scans}", work), out)
-            for seq in TERRAIN_PATHS]
+    return [run_and_evaluate(f"terrain {seq}", "synthetic 3D, 16 rings", generate(f"{seq}:16:{scans}", work), out,
+                             peers) for seq in TERRAIN_PATHS]
+
+
+def sensor_rows(work: Path, out: Path, scans: int, peers: bool) -> list[dict]:
+    from bench_terrain import generate
+
+    return [run_and_evaluate(f"terrain {seq}, {rings}" + (" rings" if rings.isdigit() else ""), kind,
+                             generate(f"{seq}:{rings}:{scans}", work), out, peers)
+            for seq, rings, kind in OTHER_SENSORS]
 
 
 def markdown(rows: list[dict]) -> str:
     def f(v, fmt):
         return "—" if v is None else format(v, fmt)
 
-    lines = ["| data | kind | scans | ATE [m] | odometry ATE [m] | closures (false) | wall [s] | peak RSS [MiB] |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| data | kind | scans | ATE [m] | odometry ATE [m] | closures (false) | wall [s] | peak RSS [MiB] "
+             "| KISS-ICP ATE [m] | wall / KISS-ICP | peak RSS / KISS-ICP |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['name']} | {r['kind']} | failed: {r['error']} | | | | | |")
+            lines.append(f"| {r['name']} | {r['kind']} | failed: {r['error']} | | | | | | | | |")
             continue
         false = "" if r["false_closures"] is None else f" ({r['false_closures']})"
+        peer = (f"failed: {r['kiss_icp_error']} | | " if "kiss_icp_error" in r else
+                f"{f(r.get('kiss_icp_ate_m'), '.4f')} | {f(r.get('wall_ratio'), '.2f')} | "
+                f"{f(r.get('memory_ratio'), '.2f')}")
         lines.append(f"| {r['name']} | {r['kind']} | {r['scans']} | {f(r['ate_m'], '.4f')} | "
                      f"{f(r['odometry_ate_m'], '.4f')} | {r['closures']}{false} | {f(r['wall_s'], '.1f')} | "
-                     f"{f(r['peak_rss_mib'], '.0f')} |")
+                     f"{f(r['peak_rss_mib'], '.0f')} | {peer} |")
     return "\n".join(lines)
 
 
@@ -116,7 +192,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--only", nargs="+", choices=GROUPS, default=list(GROUPS))
     ap.add_argument("--terrain-scans", type=int, default=600)
+    ap.add_argument("--no-peers", action="store_true", help="do not run KISS-ICP beside each log")
     args = ap.parse_args(argv)
+    peers = not args.no_peers
     with tempfile.TemporaryDirectory() as tmp:
         work = args.work or Path(tmp) / "work"
         out = args.out or Path(tmp) / "out"
@@ -125,13 +203,15 @@ def main(argv: list[str] | None = None) -> int:
         rows: list[dict] = []
         for group in args.only:
             if group == "real2d":
-                added = real2d_rows(args.data, out)
+                added = real2d_rows(args.data, out, peers)
             elif group == "real3d":
-                added = real3d_rows(args.data, out)
+                added = real3d_rows(args.data, out, peers)
             elif group == "synthetic":
-                added = synthetic_rows(work, out)
+                added = synthetic_rows(work, out, peers)
+            elif group == "terrain":
+                added = terrain_rows(work, out, args.terrain_scans, peers)
             else:
-                added = terrain_rows(work, out, args.terrain_scans)
+                added = sensor_rows(work, out, args.terrain_scans, peers)
             print("\n".join(markdown(added).splitlines()[2:]), flush=True)
             rows += added
     table = markdown(rows)

@@ -51,13 +51,16 @@ def run_child(cmd: list[str], log_file: Path) -> dict:
             "peak_rss_mib": round(usage.ru_maxrss / 1024.0, 1)}
 
 
-def kiss_icp_child(log: Path, max_scans: int | None) -> None:
-    """KISS-ICP on ``log``'s scans as submapslam's reader yields them; prints the scan count."""
+def kiss_icp_child(log: Path, max_scans: int | None, poses: Path | None = None) -> None:
+    """KISS-ICP on ``log``'s scans as submapslam's reader yields them; prints the scan count and,
+    with ``poses``, writes its trajectory there (TUM, stamped with the scans' timestamps)."""
     import numpy as np
     from kiss_icp.config import load_config
     from kiss_icp.kiss_icp import KissICP
 
     from submapslam.io.registry import open_log
+    from submapslam.io.trajectory import write_tum
+    from submapslam.trajectory import Trajectory
 
     config = load_config(None)
     config.data.deskew = False
@@ -65,12 +68,18 @@ def kiss_icp_child(log: Path, max_scans: int | None) -> None:
     config.mapping.voxel_size = KISS_VOXEL_M
     odom = KissICP(config)
     n = 0
+    stamps, trajectory = [], []
     for scan in open_log(log):
         if max_scans is not None and n >= max_scans:
             break
         pts = np.ascontiguousarray(scan.points, dtype=np.float64)
         odom.register_frame(pts, np.zeros(len(pts)))
+        if poses is not None:
+            stamps.append(scan.timestamp)
+            trajectory.append(np.array(odom.last_pose, dtype=np.float64))
         n += 1
+    if poses is not None:
+        write_tum(poses, Trajectory(np.array(stamps), np.array(trajectory).reshape(-1, 4, 4)))
     print(f"kiss-icp: {n} scans, last pose {odom.last_pose[:2, 3].round(3).tolist()}")
 
 
@@ -137,10 +146,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--max-scans", type=int)
     ap.add_argument("--json", type=Path)
     ap.add_argument("--kiss-icp-child", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--poses", type=Path, help=argparse.SUPPRESS)  # the child: where to write its TUM poses
     args = ap.parse_args(argv)
     if args.kiss_icp_child:
         sys.path.insert(0, str(REPO))
-        kiss_icp_child(args.log, args.max_scans)
+        kiss_icp_child(args.log, args.max_scans, args.poses)
         return 0
     rounds = bench(args.log, args.out, args.tools, args.repeat, args.max_scans)
     print(markdown(rounds))
