@@ -74,3 +74,27 @@ def test_svg_chart_places_points_on_its_axes():
     assert ax == 58 and bx == 200 - 12  # first point on the left axis, last on the right edge
     assert ay == 160 - 42 and by < ay  # y grows upwards
     assert "t [s]" in svg and svg.count("<text") >= 6
+
+
+def test_the_level_priors_decision_in_words():
+    """The report's overview says where a 3D run's up came from, what the level test found and
+    what became of the ground priors, for each way the test can end."""
+    from submapslam.evaluation.html_report import level_priors_in_words
+
+    assert level_priors_in_words({}) is None  # a 2D run, or no level priors
+    dropped = level_priors_in_words({"level_ratio": None, "level": None, "kept": False, "level_priors_from": "ground",
+                                     "priors": 2, "loops": 0, "loop_chi2_with": None, "loop_chi2_without": None})
+    assert "untested" in dropped and "the 2 ground priors left the graph: no closure vouched for them" in dropped
+    kept = level_priors_in_words({"level_ratio": None, "level": None, "kept": True, "level_priors_from": "ground",
+                                  "priors": 1, "loops": 1, "loop_chi2_with": 0.01, "loop_chi2_without": 0.01})
+    assert kept.endswith("stayed: the closures fit them (chi2 0.01 with, 0.01 without)")
+    contradicted = level_priors_in_words({"level_ratio": 2.0, "level": False, "kept": False, "priors": 30,
+                                          "level_priors_from": "ground", "loops": 3, "loop_chi2_with": 12.73,
+                                          "loop_chi2_without": 0.0})
+    assert "not level (turn 2.0" in contradicted and "from 0.0 to 12.73" in contradicted
+    walls = level_priors_in_words({"level_ratio": 2.866, "level": False, "kept": True, "level_priors_from": "walls",
+                                   "priors": 0, "loops": 0})
+    assert walls.startswith("up from the walls' vertical") and "no ground prior to test" in walls
+    assert level_priors_in_words({"level_ratio": 0.43, "level": True, "kept": True,
+                                  "level_priors_from": "walls"}).endswith("level (turn 0.43 of the odometry's "
+                                                                          "allowance); the ground priors stayed")

@@ -88,7 +88,37 @@ def _overview(rec: RunRecord) -> str:
                       f"{consistency['odometry_chi2_max']}, {consistency['odometry_chi2_mean_per_dof']}"))
     if consistency.get("disagrees_with_odometry"):
         pairs.append(("WARNING", consistency["message"]))
+    level = level_priors_in_words(s.get("ground_priors") or {})
+    if level:
+        pairs.append(("level priors (3D)", level))
     return hp.key_values(pairs)
+
+
+def level_priors_in_words(test: dict) -> str | None:
+    """``summary.json``'s ``ground_priors`` (a 3D run's level test and what it decided) in a
+    sentence, or None when the run had none: where the world's up came from, whether the ground
+    was level, untested or not, and whether the ground priors stayed, and why."""
+    if not test:
+        return None
+    source = {"walls": "the walls' vertical", "ground": "the ground planes"}.get(test.get("level_priors_from"))
+    level = test.get("level")
+    ratio = test.get("level_ratio")
+    found = ("level" if level else "not level") + f" (turn {ratio} of the odometry's allowance)" if level is not None \
+        else "untested (too few anchors saw the ground)"
+    words = f"up from {source}; ground {found}" if source else f"ground {found}"
+    priors = test.get("priors")
+    if priors == 0:
+        return f"{words}; no ground prior to test (the walls' level priors are no bet on level ground: they stay)"
+    if test.get("kept", True):
+        why = ""
+        if level is not True and test.get("loop_chi2_with") is not None:
+            why = (f": the closures fit them (chi2 {test['loop_chi2_with']} with, "
+                   f"{test['loop_chi2_without']} without)")
+        return f"{words}; the ground priors stayed{why}"
+    why = ("no closure vouched for them" if not test.get("loops") else
+           f"they raised the closures' chi2 from {test.get('loop_chi2_without')} to {test.get('loop_chi2_with')}")
+    count = f"{priors} " if priors else ""
+    return f"{words}; the {count}ground priors left the graph: {why}"
 
 
 def _uncertainty(rec: RunRecord) -> str:
