@@ -103,8 +103,10 @@ def level_priors_in_words(test: dict) -> str | None:
     source = {"walls": "the walls' vertical", "ground": "the ground planes"}.get(test.get("level_priors_from"))
     level = test.get("level")
     ratio = test.get("level_ratio")
-    found = ("level" if level else "not level") + f" (turn {ratio} of the odometry's allowance)" if level is not None \
-        else "untested (too few anchors saw the ground)"
+    if level is None:
+        found = "untested (too few anchors saw the ground)"
+    else:
+        found = f"{'level' if level else 'not level'} (turn {ratio} of the odometry's allowance)"
     words = f"up from {source}; ground {found}" if source else f"ground {found}"
     priors = test.get("priors")
     if priors == 0:
