@@ -101,6 +101,24 @@ def test_a_climbing_road_without_closures_keeps_its_good_odometry():
     assert error_before > 1.0
 
 
+def test_a_run_too_short_to_test_keeps_the_priors_only_where_closures_vouch_for_them():
+    """Eight anchors over a 3 deg climb and dip: 5 windows of 3 anchors, too few to tell level
+    ground from a hilly road (like the hand-held Livox main building, whose ground 2 of 8 anchors
+    see). Without a closure the untested priors leave and the odometry's heights stand; with true
+    closures that fit them they stay."""
+    grades = [0.0, 1.0, 2.0, 3.0, 3.0, 2.0, 1.0, 0.0]
+    truth, odometry = _drive(grades)
+    alone, error = _run(truth, odometry)
+    assert alone.ground_prior_test["level"] is None and alone.ground_prior_test["level_ratio"] is None
+    assert alone.ground_prior_test["kept"] is False and alone.ground_prior_test["loops"] == 0
+    assert error < 0.01
+    _, error_kept = _run(truth, odometry, ground_priors_level_test=False)
+    assert error_kept > 0.1  # the priors pulled the climb flat
+    level_truth, level_odometry = _drive([0.0] * 8, bias_deg=0.1)
+    vouched, _ = _run(level_truth, level_odometry, loops=[(0, 7), (1, 6)])
+    assert vouched.ground_prior_test["level"] is None and vouched.ground_prior_test["kept"] is True
+
+
 def test_priors_stay_on_level_ground_and_where_the_closures_agree_with_them():
     """Level ground under a 16-ring-like odometry that pitches 0.1 deg up every step and whose
     registrations correct its tilt by 0.1 deg: level, and the priors hold the climb the odometry

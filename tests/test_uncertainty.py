@@ -214,8 +214,10 @@ def test_tilt_change_priors_take_the_runs_own_spread_and_stop_bending_a_good_odo
     submaps = [_ground_submap(k, step, ups[k]) for k in range(n)]
     bend = {}
     for from_data in (False, True):
+        # no closures and no registration: the level test could not tell, and would take the priors
+        # out (test_ground_priors.py); here they stay, to see what their sigma does
         config = BackendConfig(odometry_registration_covariance=False, ground_tilt_change_from_data=from_data,
-                               ground_attitude_sigma_deg=None, robust_kernel="none")
+                               ground_attitude_sigma_deg=None, robust_kernel="none", ground_priors_level_test=False)
         builder = GraphBuilder(config, OdometryConfig(), planar=False, match_voxel=0.5)
         counts = []
         for k, sm in enumerate(submaps):
