@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import tempfile
 from pathlib import Path
@@ -66,31 +65,35 @@ def run_and_evaluate(name: str, kind: str, log: Path, out: Path, peers: bool) ->
 def kiss_icp_3d(log: Path, out: Path) -> dict:
     """KISS-ICP on a 3D log (``bench_city_child.py``): its ATE against the log's reference, wall [s]
     and peak RSS [MiB], or ``{"error"}``."""
-    from bench_city import CHILD, evaluate_peer, ground_truth_per_scan, run_child
+    from bench_city import CHILD, evaluate_peer, ground_truth_per_scan
 
-    usage = run_child([sys.executable, str(CHILD), "kiss-icp", str(log), str(out)], out.with_suffix(".log"))
-    if usage["exit_code"] != 0:
-        return {"error": f"exit code {usage['exit_code']} (see {out.with_suffix('.log')})"}
-    gt, gt_scan_poses = ground_truth_per_scan(log, json.loads((out / "result.json").read_text()).get("scans"))
-    return {"ate_m": evaluate_peer(out, gt, gt_scan_poses)["ate_m"], "wall_s": usage["wall_s"],
-            "peak_rss_mib": usage["peak_rss_kib"] / 1024.0}
+    def score() -> float:
+        gt, gt_scan_poses = ground_truth_per_scan(log, json.loads((out / "result.json").read_text()).get("scans"))
+        return evaluate_peer(out, gt, gt_scan_poses)["ate_m"]
+
+    return _run_peer([sys.executable, str(CHILD), "kiss-icp", str(log), str(out)], out.with_suffix(".log"), score)
 
 
 def kiss_icp_2d(log: Path, reference, out: Path) -> dict:
     """KISS-ICP on a 2D log (``bench_speed2d``'s child, its poses in ``out``.tum): its ATE against
     ``reference`` (a Trajectory), wall [s] and peak RSS [MiB], or ``{"error"}``."""
-    from bench_city import run_child
-
     from submapslam.evaluation.metrics import ate
     from submapslam.io.trajectory import read_tum
 
     poses = out.with_suffix(".tum")
     cmd = [sys.executable, str(REPO / "tools" / "bench_speed2d.py"), str(log), "--kiss-icp-child", "--poses", str(poses)]
-    usage = run_child(cmd, out.with_suffix(".log"), env=dict(os.environ, PYTHONPATH=str(REPO)))
+    return _run_peer(cmd, out.with_suffix(".log"), lambda: float(ate(read_tum(poses), reference)["rmse"]))
+
+
+def _run_peer(cmd: list[str], log_file: Path, score) -> dict:
+    """Run a peer's child ``cmd`` (output to ``log_file``); then ``score() -> ATE [m]``. Returns its
+    ``ate_m``, ``wall_s`` and ``peak_rss_mib``, or ``{"error"}`` naming the log."""
+    from bench_city import run_child
+
+    usage = run_child(cmd, log_file)
     if usage["exit_code"] != 0:
-        return {"error": f"exit code {usage['exit_code']} (see {out.with_suffix('.log')})"}
-    return {"ate_m": float(ate(read_tum(poses), reference)["rmse"]), "wall_s": usage["wall_s"],
-            "peak_rss_mib": usage["peak_rss_kib"] / 1024.0}
+        return {"error": f"exit code {usage['exit_code']} (see {log_file})"}
+    return {"ate_m": score(), "wall_s": usage["wall_s"], "peak_rss_mib": usage["peak_rss_kib"] / 1024.0}
 
 
 def with_peer(row: dict, peer: dict | None) -> dict:
