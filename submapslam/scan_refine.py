@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -106,8 +107,8 @@ def _match_edges(xyt: np.ndarray, odom_xyt: np.ndarray, keyframes: np.ndarray, s
     all_nodes = np.concatenate([p for p in members if len(p)])
     all_pos = xyt[all_nodes, :2]
     which = np.repeat(np.arange(len(members)), counts)
-    hits_per_node = cKDTree(all_pos).query_ball_point(xyt[:, :2], cfg.match_radius_m)
-    for k, hits in enumerate(hits_per_node):
+    tree = cKDTree(all_pos)
+    for k, hits in _hits_in_blocks(tree, xyt[:, :2], cfg.match_radius_m):
         if not hits:
             continue
         hits = np.asarray(hits)
@@ -145,6 +146,15 @@ def _match_edges(xyt: np.ndarray, odom_xyt: np.ndarray, keyframes: np.ndarray, s
         for q, inf, meas in zip(keep.tolist(), np.linalg.inv(cov), measured):
             edges.append(PlanarEdge(int(near[q]), int(nodes[q]), meas, inf, True))
     return edges, tried
+
+
+def _hits_in_blocks(tree: cKDTree, xy: np.ndarray, radius: float, block: int = 256
+                    ) -> Iterator[tuple[int, list[int]]]:
+    """``(k, rows of the tree's points within radius [m] of xy[k])`` for each of ``xy (K, 2)``,
+    queried a block at a time: the hit lists of a long log's every keyframe at once (Python ints)
+    were tens of MB at the end of a run."""
+    for start in range(0, len(xy), block):
+        yield from enumerate(tree.query_ball_point(xy[start:start + block], radius), start)
 
 
 def anchor_sigmas(odom_anchors: np.ndarray, world_anchors: np.ndarray, cfg: ScanRefineConfig

@@ -23,15 +23,17 @@ The NPZ files are zip archives with fixed member dates: saving a loaded map give
 
 from __future__ import annotations
 
+import itertools
 import json
 import zipfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from ..config import config_from_dict, dump_config
 from ..errors import InputError
+from ..mapping.scan_spill import SpilledScans
 from ..result import LoopRecord, SlamResult
 from ..session_map import SessionInfo, SessionMap
 from .g2o import write_g2o
@@ -63,15 +65,18 @@ def _write_npz(path: Path, arrays: dict[str, np.ndarray] | Iterable[tuple[str, n
 
 class _Stacked:
     """Arrays to be stored as one ``np.concatenate``-d array, written piece by piece: the same
-    ``.npy`` bytes without the copy (a city's clouds and grid scans are 100 MB and more)."""
+    ``.npy`` bytes without the copy (a city's clouds and grid scans are 100 MB and more).
 
-    def __init__(self, arrays: list[np.ndarray], width: tuple[int, ...], dtype) -> None:
+    ``arrays``: a list, or any iterable made as it is written (scans spilled to disk, read back a
+    submap at a time) with ``rows``, their total number of rows, given."""
+
+    def __init__(self, arrays: Iterable[np.ndarray], width: tuple[int, ...], dtype, rows: int | None = None) -> None:
         self.arrays, self.width, self.dtype = arrays, width, np.dtype(dtype)
+        self.rows = rows if rows is not None else sum(len(a) for a in arrays)
 
     def write(self, fh) -> None:
-        rows = sum(len(a) for a in self.arrays)
         header = {"descr": np.lib.format.dtype_to_descr(self.dtype), "fortran_order": False,
-                  "shape": (rows, *self.width)}
+                  "shape": (self.rows, *self.width)}
         np.lib.format.write_array_header_1_0(fh, header)
         for a in self.arrays:
             fh.write(np.ascontiguousarray(np.asarray(a, dtype=self.dtype).reshape(-1, *self.width)).tobytes("C"))
@@ -105,25 +110,30 @@ def _submap_arrays(session_map: SessionMap) -> Iterator[tuple[str, np.ndarray]]:
     yield "scan_indices", indices
     yield "scan_offsets", offsets
     yield "scan_poses", _concat(list(r.submap_scan_poses), (4, 4), np.float64)[0]
-    grid_scans = [p for scans in r.submap_scan_points for p in scans]
-    grid_dtype = np.asarray(grid_scans[0]).dtype.name if grid_scans else "float32"
-    yield "grid_points", _Stacked(grid_scans, (3,), grid_dtype)
-    yield "grid_counts", np.array([len(p) for p in grid_scans], dtype=np.int64)
+    # grid scans (spilled to disk during the run) are read back a submap at a time as they are written
+    grid_counts = np.array([n for scans in r.submap_scan_points for n in _lengths(scans)], dtype=np.int64)
+    first = next((scans[0] for scans in r.submap_scan_points if len(scans)), None)
+    grid_dtype = np.asarray(first).dtype.name if first is not None else "float32"
+    yield "grid_points", _Stacked(itertools.chain.from_iterable(r.submap_scan_points), (3,), grid_dtype,
+                                  rows=int(grid_counts.sum()))
+    yield "grid_counts", grid_counts
     yield "grid_scans_per_submap", np.array([len(s) for s in r.submap_scan_points], dtype=np.int64)
-    no_returns = _no_returns_per_grid_scan(r)
-    if no_returns is not None:
-        yield "no_return_points", _Stacked(no_returns, (3,), "float32")
-        yield "no_return_counts", np.array([len(p) for p in no_returns], dtype=np.int64)
-
-
-def _no_returns_per_grid_scan(r: SlamResult) -> list[np.ndarray] | None:
-    """Each grid scan's ``(m, 3)`` no-return beam ends, in the order of ``grid_points`` (empty for
-    submaps without); None when the run has none."""
     held = [r.no_returns_of(k) for k in range(r.n_submaps)]
-    if not any(len(n) for n in held):
-        return None
-    empty = np.zeros((0, 3), dtype=np.float32)
-    return [p for scans, ends in zip(r.submap_scan_points, held) for p in (list(ends) if len(ends) else [empty] * len(scans))]
+    if any(len(ends) for ends in held):
+        # each grid scan's no-return beam ends, in the order of grid_points (none for submaps without)
+        counts = np.array([n for scans, ends in zip(r.submap_scan_points, held)
+                           for n in (_lengths(ends) if len(ends) else [0] * len(scans))], dtype=np.int64)
+        empty = np.zeros((0, 3), dtype=np.float32)
+        per_scan = itertools.chain.from_iterable(ends if len(ends) else [empty] * len(scans)
+                                                 for scans, ends in zip(r.submap_scan_points, held))
+        yield "no_return_points", _Stacked(per_scan, (3,), "float32", rows=int(counts.sum()))
+        yield "no_return_counts", counts
+
+
+def _lengths(scans: Sequence[np.ndarray]) -> list[int]:
+    """Each array's number of rows; spilled scans (:class:`~submapslam.mapping.scan_spill.SpilledScans`)
+    say it without being read."""
+    return scans.lengths() if isinstance(scans, SpilledScans) else [len(p) for p in scans]
 
 
 def save_map(session_map: SessionMap, folder: str | Path) -> dict[str, Path]:

@@ -73,6 +73,10 @@ class SpilledScans(Sequence):
     def __len__(self) -> int:
         return len(self._sizes)
 
+    def lengths(self) -> list[int]:
+        """Each scan's number of rows (its array's first dimension), without reading the file."""
+        return [int(shape[0]) if shape else 1 for shape in self._shapes]
+
     def _array(self, buffer, k: int) -> np.ndarray:
         return np.frombuffer(buffer, dtype=self._dtypes[k], count=int(np.prod(self._shapes[k]))).reshape(self._shapes[k])
 
