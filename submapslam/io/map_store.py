@@ -121,12 +121,11 @@ def _submap_arrays(session_map: SessionMap) -> Iterator[tuple[str, np.ndarray]]:
     held = [r.no_returns_of(k) for k in range(r.n_submaps)]
     if any(len(ends) for ends in held):
         # each grid scan's no-return beam ends, in the order of grid_points (none for submaps without)
-        counts = np.array([n for scans, ends in zip(r.submap_scan_points, held)
-                           for n in (_lengths(ends) if len(ends) else [0] * len(scans))], dtype=np.int64)
         empty = np.zeros((0, 3), dtype=np.float32)
-        per_scan = itertools.chain.from_iterable(ends if len(ends) else [empty] * len(scans)
-                                                 for scans, ends in zip(r.submap_scan_points, held))
-        yield "no_return_points", _Stacked(per_scan, (3,), "float32", rows=int(counts.sum()))
+        per_submap = [ends if len(ends) else [empty] * len(scans) for scans, ends in zip(r.submap_scan_points, held)]
+        counts = np.array([n for ends in per_submap for n in _lengths(ends)], dtype=np.int64)
+        yield "no_return_points", _Stacked(itertools.chain.from_iterable(per_submap), (3,), "float32",
+                                           rows=int(counts.sum()))
         yield "no_return_counts", counts
 
 

@@ -75,7 +75,7 @@ class SpilledScans(Sequence):
 
     def lengths(self) -> list[int]:
         """Each scan's number of rows (its array's first dimension), without reading the file."""
-        return [int(shape[0]) if shape else 1 for shape in self._shapes]
+        return [int(shape[0]) for shape in self._shapes]
 
     def _array(self, buffer, k: int) -> np.ndarray:
         return np.frombuffer(buffer, dtype=self._dtypes[k], count=int(np.prod(self._shapes[k]))).reshape(self._shapes[k])
