@@ -68,6 +68,11 @@ class OdometryConfig(_Strict):
         "by more than this [deg] (or wheel_check_m), the scan is registered from both and the better fit to the "
         "last scans is kept (stale or jumping wheel poses, as in MIT CSAIL's log, otherwise lead ICP astray)")
     wheel_check_m: float = Field(0.25, gt=0, description="2D lasers: the same in translation [m]")
+    startup_refit_scans: int = Field(
+        20, ge=0, description="2D lasers: once this many scans follow the first, the first is registered again "
+        "against all of them (point-to-line) and the run's frame re-based on it. Registered against a map of one "
+        "scan, the first scans carry a shared heading error (0.05-0.08 deg on the rooms world), which every pose "
+        "of the run inherits; 0: never")
     young_map_scans: int = Field(
         3, ge=0, description="3D spinning LiDARs (KISS-ICP registration): while the local map holds fewer than this "
         "many scans, a scan registers without its ground band (its lowest ground_band_m): a map of one scan has its "

@@ -80,3 +80,19 @@ def test_refinement_removes_the_odometry_lag_of_a_short_range_laser(tmp_path):
         result, _ = run_log(log, None, config=cfg, loops=False)
         errors[refine] = ate(Trajectory(result.timestamps, result.odometry_poses), gt)["rmse"]
     assert errors[True] < 0.6 * errors[False]
+
+
+def test_the_first_scan_registered_again_against_the_scans_after_it():
+    """The start's refit (``odometry.startup_refit_scans``): scans 1..20 sit where they truly are
+    in the frame of a first scan whose own pose came out 0.3 deg and 3 cm off; registered against
+    them, the first scan goes back where it belongs, and a refit without enough matches says so."""
+    from submapslam.registration.point_to_line import refit_first_scan
+
+    truths = np.array([[0.1 * k, 0.02 * np.sin(k / 4), np.deg2rad(0.2 * k)] for k in range(21)])
+    frames = [wall_points(ROOM, t) for t in truths]
+    start = truths.copy()
+    start[0] += [0.03, -0.02, np.deg2rad(0.3)]
+    refit = refit_first_scan(frames, start)
+    assert refit is not None
+    assert np.linalg.norm(refit[:2] - truths[0, :2]) < 0.003 and abs(refit[2] - truths[0, 2]) < np.deg2rad(0.02)
+    assert refit_first_scan([frames[0][:30], *frames[1:]], start) is None  # 30 points: fewer than 50 matches

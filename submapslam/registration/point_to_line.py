@@ -119,6 +119,20 @@ class RecentScanMap:
                              iterations=iterations, converged=self.converged)
 
 
+def refit_first_scan(frames_xy: list[np.ndarray], xyts: np.ndarray, iterations: int = 20,
+                     min_inliers: int = 50) -> np.ndarray | None:
+    """The first scan's pose ``(3,)`` registered again, point-to-line, against the scans after it.
+
+    ``frames_xy``: each scan's ``(n_k, 2)`` points in its sensor frame; ``xyts`` ``(K, 3)``: their
+    odometry-frame poses, the first included (the start of the refit). None when fewer than
+    ``min_inliers`` points matched."""
+    target = RecentScanMap(window=max(len(frames_xy) - 1, 1), rebuild_every=1)
+    for xy, xyt in zip(frames_xy[1:], xyts[1:]):
+        target.add(xy, xyt)
+    refined, inliers = target.refine(frames_xy[0], np.asarray(xyts[0], dtype=np.float64), iterations=iterations)
+    return np.asarray(refined, dtype=np.float64) if inliers >= min_inliers else None
+
+
 def _sym3_eigvals(a: float, b: float, c: float, d: float, e: float, f: float) -> tuple[float, float, float]:
     """Eigenvalues, ascending, of the symmetric ``[[a, d, e], [d, b, f], [e, f, c]]`` (closed form)."""
     p1 = d * d + e * e + f * f
