@@ -32,6 +32,7 @@ from .process_stats import (
 )
 from .result import LoopRecord, SlamResult
 from .scan import LoopHint, Scan
+from .start_frame import StartFrame
 from .submaps import Submap, SubmapBuilder
 from .uncertainty import calibrate, covariance_scale, scan_jitter_variance
 
@@ -110,10 +111,8 @@ class SubmapSLAM:
         # or extends the graph, so every graph operation happens in the same order as inline
         self._worker = None
         self._pending = None
-        # planar: the first scans, held until the first is registered again against those after it
-        # (odometry.startup_refit_scans); None once the run's frame is settled
-        self._startup: list[tuple[Scan, Registered]] | None = []
-        self._frame_correction: np.ndarray | None = None  # T_run_odom after the re-base, None: identity
+        # planar: the first scans held until the first is registered again (odometry.startup_refit_scans)
+        self._start_frame = StartFrame(0)
 
     # ------------------------------------------------------------------ streaming
     def process_scan(self, scan: Scan) -> None:
@@ -166,43 +165,8 @@ class SubmapSLAM:
         scan = self._in_flight.popleft()
         with self.timer("odometry"):  # in-process: the registration; a child process: the wait for it
             registered = self._odometry.result()
-        if self._startup is None:
-            self._take(scan, self._in_run_frame(registered))
-            return
-        self._startup.append((scan, registered))
-        if len(self._startup) > self.odometry_config.startup_refit_scans:
-            self._settle_start(refit=True)
-
-    def _settle_start(self, refit: bool) -> None:
-        """Hand on the held first scans; with ``refit``, first re-base the run's frame on the first
-        scan registered again against the scans after it (:func:`refit_first_scan`): every later
-        pose moves by the same rigid correction, so the first scan keeps its pose and the others
-        their odometry relative to each other."""
-        held, self._startup = self._startup or [], None
-        if refit and len(held) > 1:
-            from .geometry import matrix_to_se2, se2_to_matrix
-            from .registration.point_to_line import refit_first_scan
-
-            refit_xyt = refit_first_scan([r.frame_down[:, :2] for _, r in held], np.array([r.xyt for _, r in held]))
-            if refit_xyt is not None:
-                first = held[0][1].pose
-                correction = first @ inverse(se2_to_matrix(*refit_xyt))
-                moved = matrix_to_se2(correction)
-                if np.hypot(moved[0], moved[1]) <= _MAX_START_REFIT_M and abs(moved[2]) <= _MAX_START_REFIT_RAD:
-                    self._frame_correction = correction
-                    log.debug("first scan registered again: the run's frame moves by %s", moved)
-        for k, (scan, registered) in enumerate(held):
-            self._take(scan, registered if k == 0 else self._in_run_frame(registered))
-
-    def _in_run_frame(self, registered: Registered) -> Registered:
-        """``registered`` with its pose in the run's frame (after the start's re-base)."""
-        if self._frame_correction is None:
-            return registered
-        from .geometry import matrix_to_se2
-
-        pose = self._frame_correction @ registered.pose
-        xyt = matrix_to_se2(pose) if registered.xyt is not None else None
-        return Registered(pose, registered.frame, registered.frame_down, xyt)
+        for held_scan, held in self._start_frame.add(scan, registered):
+            self._take(held_scan, held)
 
     def _take(self, scan: Scan, registered: Registered) -> None:
         """Add a registered scan (pose in the run's frame) to the trajectory, submaps, graph and loops."""
@@ -234,8 +198,8 @@ class SubmapSLAM:
         self.odometry_config = resolve_registration(cfg.odometry, scan)
         self._odometry = start_odometry(self.odometry_config, self.planar)
         replaying_start = self._replay is not None and self._replay.known_pose(0) is not None
-        if not self.planar or not self.odometry_config.startup_refit_scans or replaying_start:
-            self._startup = None  # a resumed run's poses are in the frame its first run settled
+        if self.planar and not replaying_start:  # a resumed run's poses are in the frame its first run settled
+            self._start_frame = StartFrame(self.odometry_config.startup_refit_scans)
         voxel = cfg.submaps.voxel_size or self._odometry.voxel_size / 2.0
         # 3D: a submap at the odometry's thinning voxel or coarser is the same when fused from the
         # thinned scans, with ~5x fewer points to transform and voxelise
@@ -513,8 +477,8 @@ class SubmapSLAM:
             raise SubmapSlamError(f"{source or 'log'}: no scans were processed")
         while self._in_flight:
             self.complete_scan()
-        if self._startup is not None:  # a log shorter than the start's refit: its scans as registered
-            self._settle_start(refit=False)
+        for held_scan, held in self._start_frame.settle(refit=False):  # a log shorter than the start's refit
+            self._take(held_scan, held)
         self.close()  # a child process reports its checks as it ends
         odometry_checks = self._odometry.checks() if self._odometry is not None else {}
         try:
@@ -782,9 +746,6 @@ _LATER_SUBMAPS = 4
 # scans registered ahead of the one being completed: keeps an odometry child process busy
 # while the main process builds submaps (a few scans: ~1 MB each, ~20 ms of registration)
 _SCANS_IN_FLIGHT = 3
-# the start's re-base moves the run's frame by at most this much; a larger refit is not believed
-_MAX_START_REFIT_M = 0.1
-_MAX_START_REFIT_RAD = float(np.deg2rad(1.0))
 
 
 class ReadAhead:

@@ -397,6 +397,15 @@ def scan_covariances(result) -> np.ndarray | None:
     scaled by the same per-axis factors as the anchors (:func:`covariance_scale`). A scan shared
     by two submaps (the last of one is the anchor of the next) takes the later submap's, i.e. its
     anchor's. None when the run has no covariances (an empty run, a failed final optimisation).
+
+    A planar run whose scans were refined between their anchors (``result.scan_refinement``: each
+    scan placed by the corrections of its submap's anchor and the next blended along the path, then
+    matched again with the anchors held) counts the measured noise over
+    ``d1 d2 / (d1 + d2)`` instead of ``d1``, ``d1`` and ``d2`` [m] the path from the scan to the
+    submap's anchor and on to the next anchor: the variance of a random walk tied at both ends (a
+    Brownian bridge), zero at either anchor and a quarter of the submap's walk midway. The last
+    submap, with no anchor after it, keeps ``d1``. On the 2D worlds the scans' mean ``(e/sigma)^2``
+    was 0.3-0.5, against their anchors' 0.6-0.9 (BENCHMARKS.md, "Calibrated covariances").
     """
     from .geometry import adjoint, inverse
 
@@ -408,17 +417,20 @@ def scan_covariances(result) -> np.ndarray | None:
     model = getattr(result, "covariance_model", None) or {}
     measured = model.get("variance_per_m")
     jitter = 2.0 * np.asarray(model.get("scan_jitter_variance") or np.zeros(6), dtype=np.float64)
+    bridged = bool(result.planar and getattr(result, "scan_refinement", None))
     out = np.full((len(result.poses), 6, 6), np.nan)
     for k, (idx, T_scans) in enumerate(zip(result.submap_scan_indices, result.submap_scan_poses)):
         steps = np.linalg.norm(np.diff(np.asarray(T_scans)[:, :3, 3], axis=0), axis=1)
         travelled = np.concatenate([[0.0], np.cumsum(steps)])
+        tied = bridged and k + 1 < len(covs) and travelled[-1] > 0.0
         for m, (s, T, dist) in enumerate(zip(idx, T_scans, travelled)):
             A = adjoint(inverse(T))
             if m == 0:  # the anchor's own scan (a refined 2D scan may sit a few mm off it): the anchor's
                 out[s] = A @ covs[k] @ A.T
                 continue
             if measured is not None:
-                rel = np.diag(np.asarray(measured, dtype=np.float64) * max(float(dist), 1.0) + jitter)
+                walk = dist * (travelled[-1] - dist) / travelled[-1] if tied else max(float(dist), 1.0)
+                rel = np.diag(np.asarray(measured, dtype=np.float64) * walk + jitter)
             else:
                 rel = calibrate(within_submap_covariance(T, float(dist), result.planar, backend), scale)
             out[s] = A @ covs[k] @ A.T + rel

@@ -19,7 +19,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("geometry", "config", "errors", "trajectory", "landmark_log", "result", "process_stats", "_deps", "scan",
      "checkpoint", "observer", "session_map", "progress", "uncertainty"),
     ("registration",),
-    ("odometry", "odometry_stage", "submaps", "mapping", "topology", "backend", "ekf"),
+    ("odometry", "odometry_stage", "start_frame", "submaps", "mapping", "topology", "backend", "ekf"),
     ("graph_builder", "scan_refine"),
     ("pipeline", "localization", "fleet"),
     ("evaluation",),

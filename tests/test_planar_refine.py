@@ -96,3 +96,55 @@ def test_the_first_scan_registered_again_against_the_scans_after_it():
     assert refit is not None
     assert np.linalg.norm(refit[:2] - truths[0, :2]) < 0.003 and abs(refit[2] - truths[0, 2]) < np.deg2rad(0.02)
     assert refit_first_scan([frames[0][:30], *frames[1:]], start) is None  # 30 points: fewer than 50 matches
+
+
+def _registered(xyt, points):
+    """A planar scan as the odometry stage returns it: pose from ``xyt``, points in its frame."""
+    from submapslam.geometry import se2_to_matrix
+    from submapslam.odometry_stage import Registered
+
+    frame = np.column_stack([points, np.zeros(len(points))])
+    return Registered(se2_to_matrix(*xyt), frame, frame, np.asarray(xyt, dtype=np.float64))
+
+
+def test_the_start_frame_holds_the_first_scans_and_rebases_the_rest_only_when_believable():
+    """:class:`StartFrame`: nothing passes until the refit's window is full; then every held scan
+    passes in order, the first at its own pose and the others moved by one rigid correction; later
+    scans move by the same correction. A first scan whose refit would move it by more than the cap
+    (here its odometry pose is 0.15 m off across the corridor) leaves the frame alone, and a log that ends before the
+    window is full passes its scans as registered."""
+    from submapslam.geometry import inverse, matrix_to_se2
+    from submapslam.start_frame import MAX_TURN_RAD, StartFrame
+
+    truths = np.array([[0.1 * k, 0.02 * np.sin(k / 4), np.deg2rad(0.2 * k)] for k in range(25)])
+    scans = [_registered(t, wall_points(ROOM, t)) for t in truths]
+
+    def shifted(offset):  # the first scan's odometry pose off by ``offset``, the others true
+        first = _registered(truths[0] + offset, wall_points(ROOM, truths[0]))
+        return [first, *scans[1:]]
+
+    start = StartFrame(20)
+    log = shifted([0.03, -0.02, np.deg2rad(0.3)])
+    assert all(start.add(k, r) == [] for k, r in enumerate(log[:20]))
+    released = start.add(20, log[20])
+    assert [k for k, _ in released] == list(range(21))
+    assert released[0][1] is log[0]
+    correction = start.correction
+    moved = matrix_to_se2(correction)
+    assert abs(moved[2]) < MAX_TURN_RAD and abs(moved[2] - np.deg2rad(0.3)) < np.deg2rad(0.03)
+    for k, r in released[1:]:
+        np.testing.assert_allclose(r.pose, correction @ log[k].pose, atol=1e-12)
+        np.testing.assert_allclose(r.xyt, matrix_to_se2(r.pose), atol=1e-12)
+    (k, later), = start.add(21, log[21])
+    assert k == 21 and np.allclose(inverse(later.pose) @ released[20][1].pose, inverse(log[21].pose) @ log[20].pose)
+
+    far = StartFrame(20)
+    for k, r in enumerate(shifted([0.0, 0.15, 0.0])[:21]):
+        far.add(k, r)
+    assert far.correction is None
+
+    short = StartFrame(20)
+    for k, r in enumerate(log[:5]):
+        short.add(k, r)
+    assert [r is log[k] for k, r in short.settle(refit=False)] == [True] * 5
+    assert short.settle(refit=False) == [] and StartFrame(0).add(7, log[3]) == [(7, log[3])]

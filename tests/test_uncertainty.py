@@ -239,3 +239,26 @@ def test_tilt_change_priors_take_the_runs_own_spread_and_stop_bending_a_good_odo
         short.add_submap(sm, submaps[k - 1] if k else None, False)
     short.finish()
     assert sum(kind == "ground tilt-change prior" for kind, *_ in short.graph._priors.values()) == 2
+
+
+def test_refined_planar_scans_between_two_anchors_grow_as_a_bridge():
+    """Scans refined between their submap's anchor and the next: the measured noise over
+    ``d1 d2 / (d1 + d2)`` (zero at both anchors, a quarter of the walk midway), not ``d1``; the
+    last submap, open at its end, and an unrefined run keep the walk from the anchor."""
+    anchor_cov = np.diag([1e-8, 1e-8, 1e-6, 1e-4, 1e-4, 1e-8])
+    T_scans = np.tile(np.eye(4), (11, 1, 1))
+    T_scans[:, 0, 3] = np.arange(11.0)  # 10 m along x, the last scan the next submap's anchor
+    per_m = np.array([1e-6, 2e-6, 3e-8, 1e-4, 5e-5, 2e-5])
+    result = SimpleNamespace(submap_covariances=np.stack([anchor_cov, anchor_cov]), config=PipelineConfig(),
+                             planar=True, poses=np.tile(np.eye(4), (21, 1, 1)),
+                             submap_scan_indices=[list(range(11)), list(range(10, 21))],
+                             submap_scan_poses=[T_scans, T_scans], covariance_model={"variance_per_m": per_m},
+                             scan_refinement={"keyframes": 7})
+    covs = scan_covariances(result)
+    A = adjoint(inverse(T_scans[5]))
+    carried = A @ anchor_cov @ A.T
+    np.testing.assert_allclose(covs[5], carried + np.diag(per_m * 2.5), rtol=1e-9, atol=1e-15)  # 5 * 5 / 10
+    np.testing.assert_allclose(covs[15], carried + np.diag(per_m * 5.0), rtol=1e-9, atol=1e-15)  # open end
+    unrefined = scan_covariances(SimpleNamespace(**{**vars(result), "scan_refinement": {}}))
+    np.testing.assert_allclose(unrefined[5], carried + np.diag(per_m * 5.0), rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(covs[10], unrefined[10])  # the shared scan: the next submap's anchor
