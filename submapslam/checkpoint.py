@@ -25,9 +25,13 @@ class Checkpoint:
 
     Attributes:
         timestamps: ``(K,)`` the scans' timestamps (a resumed log must give the same).
-        odometry_poses: ``(K, 4, 4)`` ``T_odom_base`` of scans ``0..K-1`` as registered.
+        odometry_poses: ``(K, 4, 4)`` ``T_odom_base`` of scans ``0..K-1`` as registered, in the
+            odometry's own frame (before the start's re-base, :attr:`run_frame`).
         planar_poses: ``(K, 3)`` the same as ``x, y, yaw`` for planar logs (the refinement's own
             numbers, which a matrix round trip would change in the last bit), else None.
+        run_frame: ``(4, 4)`` ``T_run_odom``, the re-base of a planar run's frame on its first scan
+            registered again (:class:`~submapslam.start_frame.StartFrame`; every pose after the
+            first is in the run's frame by it), None: none.
         odometry_information: per submap id >= 1, the ``(6, 6)`` information of its odometry
             edge from the previous submap (GTSAM order).
         odometry_tilt: per submap id (3D, where measured), the ``(2,)`` roll and pitch [rad] by
@@ -47,6 +51,7 @@ class Checkpoint:
     odometry_correction: dict[int, np.ndarray] = field(default_factory=dict)
     loop_records: dict[int, list[LoopRecord]] = field(default_factory=dict)
     source: str = ""
+    run_frame: np.ndarray | None = None
 
     @property
     def n_scans(self) -> int:

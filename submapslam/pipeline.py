@@ -69,7 +69,9 @@ class SubmapSLAM:
         self._replay = resume_from
         self._observer = observer
         self._records_by_submap: dict[int, list[LoopRecord]] = {}  # loop tests per closing submap
-        self._planar_poses: list[np.ndarray] = []  # planar: (3,) x, y, yaw per scan as refined
+        # planar: (T_odom_base (4, 4), x y yaw (3,)) per scan as the odometry registered it, in its own
+        # frame (before the start's re-base): what a checkpoint replays
+        self._registered_planar: list[tuple[np.ndarray, np.ndarray]] = []
         self.timer = StageTimer()
         self._t_start = time.perf_counter()
         self._travelled = 0.0  # odometry path length so far [m]
@@ -165,14 +167,14 @@ class SubmapSLAM:
         scan = self._in_flight.popleft()
         with self.timer("odometry"):  # in-process: the registration; a child process: the wait for it
             registered = self._odometry.result()
+        if self.planar:
+            self._registered_planar.append((registered.pose, registered.xyt))
         for held_scan, held in self._start_frame.add(scan, registered):
             self._take(held_scan, held)
 
     def _take(self, scan: Scan, registered: Registered) -> None:
         """Add a registered scan (pose in the run's frame) to the trajectory, submaps, graph and loops."""
         T_odom_base, frame = registered.pose, registered.frame
-        if self.planar:
-            self._planar_poses.append(registered.xyt)
         self._wheel_scans += scan.odometry is not None
         if self._odom_poses:
             self._travelled += float(np.linalg.norm(T_odom_base[:3, 3] - self._odom_poses[-1][:3, 3]))
@@ -198,7 +200,9 @@ class SubmapSLAM:
         self.odometry_config = resolve_registration(cfg.odometry, scan)
         self._odometry = start_odometry(self.odometry_config, self.planar)
         replaying_start = self._replay is not None and self._replay.known_pose(0) is not None
-        if self.planar and not replaying_start:  # a resumed run's poses are in the frame its first run settled
+        if replaying_start:  # a resumed run's poses are in the frame its first run settled
+            self._start_frame = StartFrame.settled(self._replay.run_frame)
+        elif self.planar:
             self._start_frame = StartFrame(self.odometry_config.startup_refit_scans)
         voxel = cfg.submaps.voxel_size or self._odometry.voxel_size / 2.0
         # 3D: a submap at the odometry's thinning voxel or coarser is the same when fused from the
@@ -355,11 +359,13 @@ class SubmapSLAM:
         import copy
 
         self._settle()
-        planar = np.array(self._planar_poses).reshape(-1, 3) if self.planar else None
+        taken = len(self._odom_poses)  # a checkpoint while the start's scans are passed on holds those taken
+        registered = self._registered_planar[:taken] if self.planar else []
         return Checkpoint(
             timestamps=np.array(self.timestamps, dtype=np.float64),
-            odometry_poses=np.array(self._odom_poses).reshape(-1, 4, 4),
-            planar_poses=planar,
+            odometry_poses=np.array([pose for pose, _ in registered] if self.planar else self._odom_poses).reshape(-1, 4, 4),
+            planar_poses=np.array([xyt for _, xyt in registered]).reshape(-1, 3) if self.planar else None,
+            run_frame=self._start_frame.correction,
             odometry_information=dict(self._graph_builder.odometry_information) if self._graph_builder else {},
             odometry_correction=dict(self._graph_builder.odometry_correction) if self._graph_builder else {},
             odometry_tilt=dict(self._graph_builder.odometry_tilt) if self._graph_builder else {},

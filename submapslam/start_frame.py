@@ -41,13 +41,22 @@ class StartFrame:
     def __init__(self, scans: int) -> None:
         self._scans = scans
         self._held: list[Held] | None = [] if scans > 0 else None
+        self._released = 0  # scans passed on so far
         self.correction: np.ndarray | None = None  # (4, 4) T_run_odom; None: the identity
+
+    @classmethod
+    def settled(cls, correction: np.ndarray | None) -> StartFrame:
+        """A resumed run's: the frame its first run settled (``correction`` ``(4, 4)``, None:
+        the odometry's own), applied to the scans the odometry registers again from the start."""
+        frame = cls(0)
+        frame.correction = None if correction is None else np.asarray(correction, dtype=np.float64)
+        return frame
 
     def add(self, scan: Scan, registered: Registered) -> list[Held]:
         """The scans ready to be taken, in order, their poses in the run's frame: none while the
         start is held, all held ones when the refit is made, else this one."""
         if self._held is None:
-            return [(scan, self.in_run_frame(registered))]
+            return [self._release(scan, registered)]
         self._held.append((scan, registered))
         return self.settle(refit=True) if len(self._held) > self._scans else []
 
@@ -58,10 +67,16 @@ class StartFrame:
         held, self._held = self._held or [], None
         if refit and len(held) > 1:
             self.correction = _start_correction([registered for _, registered in held])
-        return [(scan, registered if k == 0 else self.in_run_frame(registered)) for k, (scan, registered) in enumerate(held)]
+        return [self._release(scan, registered) for scan, registered in held]
+
+    def _release(self, scan: Scan, registered: Registered) -> Held:
+        """A scan passed on: the first as registered, the others in the run's frame."""
+        self._released += 1
+        return scan, registered if self._released == 1 else self.in_run_frame(registered)
 
     def in_run_frame(self, registered: Registered) -> Registered:
-        """``registered`` with its pose (and planar ``xyt``) in the run's frame."""
+        """``registered`` (a pose in the odometry's frame) with its pose (and planar ``xyt``) in the
+        run's frame."""
         if self.correction is None:
             return registered
         pose = self.correction @ registered.pose
