@@ -35,8 +35,8 @@ class StartFrame:
     scan on with its pose in the run's frame.
 
     ``scans``: how many scans after the first the refit waits for (0: no refit, every scan passes
-    straight through, as for 3D runs and resumed runs, whose poses are in the frame their first
-    run settled)."""
+    straight through, as for 3D runs). A resumed run takes the frame its first run settled:
+    :meth:`settled`."""
 
     def __init__(self, scans: int) -> None:
         self._scans = scans
