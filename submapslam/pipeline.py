@@ -401,7 +401,9 @@ class SubmapSLAM:
         call: the cheap streaming read, O(K), that never waits for the graph work running beside.
 
         Each pose is the scan's odometry corrected by the newest optimised submap anchor known
-        when it is read (the live estimate a robot acts on). Earlier poses are not revised here:
+        when it is read (the live estimate a robot acts on). A planar run's first scans come
+        together once its frame is settled (:class:`~submapslam.start_frame.StartFrame`: the first
+        21 at the 21st scan, ``odometry.startup_refit_scans``). Earlier poses are not revised here:
         :meth:`trajectory` gives every scan's current, smoothed estimate (O(all scans), after
         waiting for the graph work); :meth:`finish` the final one.
         """
