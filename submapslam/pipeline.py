@@ -69,9 +69,9 @@ class SubmapSLAM:
         self._replay = resume_from
         self._observer = observer
         self._records_by_submap: dict[int, list[LoopRecord]] = {}  # loop tests per closing submap
-        # planar: (T_odom_base (4, 4), x y yaw (3,)) per scan as the odometry registered it, in its own
-        # frame (before the start's re-base): what a checkpoint replays
-        self._registered_planar: list[tuple[np.ndarray, np.ndarray]] = []
+        # (T_odom_base (4, 4), planar x y yaw (3,) or None) per scan as the odometry registered it, in
+        # its own frame (before a planar start's re-base): what a checkpoint replays
+        self._registered: list[tuple[np.ndarray, np.ndarray | None]] = []
         self.timer = StageTimer()
         self._t_start = time.perf_counter()
         self._travelled = 0.0  # odometry path length so far [m]
@@ -167,8 +167,7 @@ class SubmapSLAM:
         scan = self._in_flight.popleft()
         with self.timer("odometry"):  # in-process: the registration; a child process: the wait for it
             registered = self._odometry.result()
-        if self.planar:
-            self._registered_planar.append((registered.pose, registered.xyt))
+        self._registered.append((registered.pose, registered.xyt))
         for held_scan, held in self._start_frame.add(scan, registered):
             self._take(held_scan, held)
 
@@ -359,12 +358,11 @@ class SubmapSLAM:
         import copy
 
         self._settle()
-        taken = len(self._odom_poses)  # a checkpoint while the start's scans are passed on holds those taken
-        registered = self._registered_planar[:taken] if self.planar else []
+        taken = self._registered[:len(self._odom_poses)]  # while the start's scans are passed on: those taken
         return Checkpoint(
             timestamps=np.array(self.timestamps, dtype=np.float64),
-            odometry_poses=np.array([pose for pose, _ in registered] if self.planar else self._odom_poses).reshape(-1, 4, 4),
-            planar_poses=np.array([xyt for _, xyt in registered]).reshape(-1, 3) if self.planar else None,
+            odometry_poses=np.array([pose for pose, _ in taken]).reshape(-1, 4, 4),
+            planar_poses=np.array([xyt for _, xyt in taken]).reshape(-1, 3) if self.planar else None,
             run_frame=self._start_frame.correction,
             odometry_information=dict(self._graph_builder.odometry_information) if self._graph_builder else {},
             odometry_correction=dict(self._graph_builder.odometry_correction) if self._graph_builder else {},
