@@ -8,8 +8,13 @@ import numpy as np
 import pytest
 
 from submapslam.evaluation.derived_relations import derive_relations
-from submapslam.evaluation.metrics import relations_error
-from submapslam.evaluation.scan_consistency import loop_pairs, pair_misfit, scan_matched_relations
+from submapslam.evaluation.metrics import ate, relations_error, worst_pose_times
+from submapslam.evaluation.scan_consistency import (
+    loop_pair_comparison,
+    loop_pairs,
+    pair_misfit,
+    scan_matched_relations,
+)
 from submapslam.geometry import se2_to_matrix
 from submapslam.io.scan_lookup import scans_at
 from submapslam.io.trajectory import carmen_reference_trajectory
@@ -64,6 +69,25 @@ def test_misfit_measures_the_offset_between_passes() -> None:
         misfit = pair_misfit(shifted, scans, pairs)
         # the walls across x part by the shift, those along x slide on themselves: the median lies between
         assert np.all((misfit > 0.3 * shift) & (misfit <= shift + 0.005)), misfit
+
+
+def test_the_pairs_at_the_worst_poses_are_compared_apart() -> None:
+    """One corner of the estimate's second lap off by 0.3 m: that pose has the largest error, and the
+    comparison at the worst poses holds just its pair, where the scans side with the reference."""
+    truth, _, scans = _two_passes()
+    poses = truth.poses.copy()
+    poses[5] = se2_to_matrix(0.3, 0.0, 0.0) @ poses[5]
+    estimate = Trajectory(truth.timestamps, poses)
+    figures = ate(estimate, truth)
+    worst = worst_pose_times(figures, share=0.1)
+    assert worst.tolist() == [truth.timestamps[5]]  # 10 % of 8 poses: the one moved
+    m = loop_pair_comparison(estimate, truth, lambda times: scans, worst_at=worst)
+    assert m["compared"] == 4 and m["estimate_worse"] == 1 and m["reference_worse"] == 0
+    w = m["at_worst"]
+    assert w["compared"] == 1 and w["estimate_worse"] == 1 and w["reference_worse"] == 0
+    assert w["estimate_median_m"] > 0.09 and w["reference_median_m"] < 0.005
+    assert "at_worst" not in loop_pair_comparison(estimate, truth, lambda times: scans)
+    assert loop_pair_comparison(estimate, truth, lambda times: scans, worst_at=np.array([5.0]))["at_worst"] is None
 
 
 def test_missing_pose_or_scan_gives_nan() -> None:
@@ -168,6 +192,11 @@ def test_eval_cli_scores_both_trajectories_on_the_log_scans(tmp_path) -> None:
     assert m["compared"] > 40 and m["estimate_median_m"] == pytest.approx(m["reference_median_m"], abs=1e-6)
     assert m["reference_median_m"] < 0.06
     assert m["estimate_worse"] == m["reference_worse"] == 0
+    # the same trajectory: its "worst" poses are any; where a compared pair touches them, the same misfit
+    worst = m["at_worst"]
+    assert m["worst_share"] == 0.1 and (worst is None) == ("% largest errors" not in r.output)
+    if worst is not None:
+        assert worst["estimate_median_m"] == pytest.approx(worst["reference_median_m"], abs=1e-6)
     r = runner.invoke(app, ["eval", str(est), str(corrected), "--raw-log", str(raw), "--scans", str(raw),
                             "--derive-relations", "--match-relations", "--json", str(tmp_path / "m.json")])
     assert r.exit_code == 0, r.output
@@ -198,3 +227,19 @@ def test_the_report_checks_a_planar_run_against_its_reference_on_the_log_scans()
     assert check is not None and check["compared"] > 40 and check["estimate_worse"] == check["reference_worse"] == 0
     assert _scan_check(SimpleNamespace(**{**vars(record), "summary": {"planar": False}}), ref, raw) is None
     assert _scan_check(SimpleNamespace(**{**vars(record), "provenance": {"path": "/nowhere/log.clf"}}), ref, None) is None
+
+
+def test_the_report_says_which_trajectory_the_scans_side_with_at_the_worst_poses() -> None:
+    """The report's scan check names the misfit at the run's largest errors when there is one."""
+    from submapslam.evaluation.html_report import _scan_check as scan_check_html
+
+    truth, _, scans = _two_passes()
+    poses = truth.poses.copy()
+    poses[5] = se2_to_matrix(0.3, 0.0, 0.0) @ poses[5]
+    estimate = Trajectory(truth.timestamps, poses)
+    m = {**loop_pair_comparison(estimate, truth, lambda times: scans,
+                                worst_at=worst_pose_times(ate(estimate, truth), 0.1)), "worst_share": 0.1}
+    html = scan_check_html(m, "truth.txt")
+    assert "Where this run is farthest from the reference (its 10 % largest errors, 1 pairs)" in html
+    assert "1 / 0 pairs are worse under each" in html
+    assert "farthest" not in scan_check_html({**m, "at_worst": None}, "truth.txt")

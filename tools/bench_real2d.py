@@ -110,8 +110,12 @@ def scan_judged(name: str, data: Path, run_out: Path) -> dict:
     on the derived relations measured by scan matching
     (:func:`~submapslam.evaluation.scan_consistency.scan_matched_relations`)."""
     from submapslam.evaluation.derived_relations import count_loop_relations, derive_relations
-    from submapslam.evaluation.metrics import relations_error
-    from submapslam.evaluation.scan_consistency import loop_pair_comparison, scan_matched_relations
+    from submapslam.evaluation.metrics import ate, relations_error, worst_pose_times
+    from submapslam.evaluation.scan_consistency import (
+        WORST_SHARE,
+        loop_pair_comparison,
+        scan_matched_relations,
+    )
     from submapslam.io.scan_lookup import scans_read_once
     from submapslam.io.trajectory import carmen_reference_trajectory, read_trajectory
 
@@ -119,7 +123,8 @@ def scan_judged(name: str, data: Path, run_out: Path) -> dict:
     run, reference = read_trajectory(run_out / "poses_tum.txt"), carmen_reference_trajectory(data / ref, data / raw)
     scans = scans_read_once(data / raw, reference.timestamps)  # both measures ask only for reference times
     matched, counts = scan_matched_relations(reference, derive_relations(reference), scans)
-    return {"loop_pair_misfit": loop_pair_comparison(run, reference, scans),
+    worst = worst_pose_times(ate(run, reference), WORST_SHARE)  # where the run parts most from the corrected log
+    return {"loop_pair_misfit": loop_pair_comparison(run, reference, scans, worst_at=worst),
             "matched_relations": {**counts, "loops": count_loop_relations(matched),
                                   "run": relations_error(run, matched),
                                   "corrected": relations_error(reference, matched)}}
@@ -155,8 +160,13 @@ def _matched_cells(m: dict | None) -> str:
 def _misfit_cell(m: dict | None) -> str:
     if not m:
         return "–"
-    return (f"{m['estimate_median_m']:.4f} / {m['reference_median_m']:.4f} ({m['compared']} of {m['pairs']}; "
+    cell = (f"{m['estimate_median_m']:.4f} / {m['reference_median_m']:.4f} ({m['compared']} of {m['pairs']}; "
             f"{m['estimate_worse']} / {m['reference_worse']})")
+    worst = m.get("at_worst")
+    if worst:
+        cell += (f"; at the run's worst 10 %: {worst['estimate_median_m']:.4f} / {worst['reference_median_m']:.4f} "
+                 f"({worst['compared']}; {worst['estimate_worse']} / {worst['reference_worse']})")
+    return cell
 
 
 def main(argv: list[str] | None = None) -> int:

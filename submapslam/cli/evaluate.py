@@ -79,6 +79,13 @@ def register(app: typer.Typer) -> None:
                           f"{misfit['estimate_median_m']:.4f} m under {est.name}, {misfit['reference_median_m']:.4f} m "
                           f"under {ref.name}; {misfit['estimate_worse']} / {misfit['reference_worse']} pairs "
                           f"{100 * misfit['margin_m']:.0f} cm worse under each", highlight=False)
+            worst = misfit.get("at_worst")
+            if worst is not None:
+                console.print(f"  of them at {est.name}'s {100 * misfit['worst_share']:.0f} % largest errors "
+                              f"({worst['compared']} pairs): median {worst['estimate_median_m']:.4f} m under "
+                              f"{est.name}, {worst['reference_median_m']:.4f} m under {ref.name}; "
+                              f"{worst['estimate_worse']} / {worst['reference_worse']} pairs worse under each",
+                              highlight=False)
             out["loop_pair_misfit"] = misfit
         if json_out:
             try:

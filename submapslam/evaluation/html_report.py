@@ -299,6 +299,12 @@ def _scan_check(m: dict, reference_name: str) -> str:
                "distance between two maps, not this run's error alone."
                if m["reference_median_m"] >= m["estimate_median_m"] else
                "This run parts the log's scans more than the reference does where the robot came back.")
+    worst = m.get("at_worst")
+    if worst is not None:
+        verdict += (f" Where this run is farthest from the reference (its {100 * m['worst_share']:.0f} % largest errors, "
+                    f"{worst['compared']} pairs) the median misfit is {worst['estimate_median_m']:.4f} m under this run "
+                    f"and {worst['reference_median_m']:.4f} m under {hp.esc(reference_name)}; "
+                    f"{worst['estimate_worse']} / {worst['reference_worse']} pairs are worse under each.")
     return (f'<p class="note">Scans of one place on passes at least 30 s apart ({m["compared"]} of {m["pairs"]} '
             f"pairs compared, those one trajectory brings within {m['overlap_m']} m): the median distance from one "
             "scan's points to the other's, each placed by its trajectory. A corrected log is another SLAM system's "

@@ -151,6 +151,14 @@ def ate(est: Trajectory, ref: Trajectory, align: AlignMode = Alignment.SE3, max_
     return out
 
 
+def worst_pose_times(ate_figures: dict, share: float = 0.1) -> np.ndarray:
+    """Reference timestamps [s] of the ``share`` of matched poses with the largest error in
+    :func:`ate`'s figures (at least one), largest first."""
+    errors = np.asarray(ate_figures["errors"])
+    count = max(1, int(round(share * len(errors))))
+    return np.asarray(ate_figures["timestamps"])[np.argsort(errors, kind="stable")[::-1][:count]]
+
+
 def rpe(est: Trajectory, ref: Trajectory, delta: float = 1, unit: DeltaUnit | str = DeltaUnit.FRAMES,
         max_diff: float = 0.02) -> dict:
     """Relative pose error over pose pairs ``delta`` frames (or metres of reference path) apart.

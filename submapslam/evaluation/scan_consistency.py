@@ -33,6 +33,10 @@ from ..trajectory import Relations, Trajectory, nearest_stamps
 #: dict read once at every reference time: both measures ask only for reference times)
 ScanSource = Callable[[NDArray[np.float64]], Mapping[float, NDArray[np.float64]]]
 
+#: the share of an estimate's matched poses with the largest ATE whose loop pairs are also compared apart
+#: (``loop_pair_comparison(..., worst_at=...)``): where it parts most from the reference
+WORST_SHARE = 0.1
+
 #: starts of a relation's scan matching, as offsets ``(dx [m], dy [m], dyaw [deg])`` from the
 #: reference's relative pose: wider than any reference's local error (a few cm, under a degree)
 MATCH_STARTS_OFFSETS = ((0.0, 0.0, 0.0), (0.1, 0.0, 2.0), (-0.1, 0.0, -2.0), (0.0, 0.1, -2.0), (0.0, -0.1, 2.0))
@@ -92,7 +96,8 @@ def pair_misfit(trajectory: Trajectory, scans: Mapping[float, NDArray[np.float64
 
 
 def loop_pair_comparison(estimate: Trajectory, reference: Trajectory, scans_at: ScanSource, *,
-                         margin_m: float = 0.03, overlap_m: float = 0.1) -> dict:
+                         margin_m: float = 0.03, overlap_m: float = 0.1,
+                         worst_at: NDArray[np.float64] | None = None) -> dict:
     """``estimate`` and ``reference`` scored on the same loop pairs (:func:`loop_pairs` of the reference)
     with the log's scans (``scans_at``: :data:`ScanSource`).
 
@@ -104,6 +109,12 @@ def loop_pair_comparison(estimate: Trajectory, reference: Trajectory, scans_at: 
     median misfit over the compared pairs [m], and how many compared pairs each places more than
     ``margin_m`` [m] worse than the other. Raises :class:`SubmapSlamError` when the reference has
     no loop pairs or no pair can be compared.
+
+    ``worst_at``: timestamps [s] of the reference poses the estimate is farthest from (e.g. its
+    largest ATE errors). Then ``"at_worst"`` holds the same figures (``compared``, both medians,
+    both counts) over the compared pairs with an end at one of those times, or None when no
+    compared pair touches them: where the two trajectories part most, which one do the scans
+    side with?
     """
     pairs = loop_pairs(reference)
     if not len(pairs):
@@ -115,12 +126,21 @@ def loop_pair_comparison(estimate: Trajectory, reference: Trajectory, scans_at: 
     if not compared.any():
         raise SubmapSlamError(f"none of the {len(pairs)} loop pairs is placed by both trajectories with its scans "
                               f"within {overlap_m} m under either")
-    est, ref = est[compared], ref[compared]
-    return {"pairs": int(placed.sum()), "compared": int(compared.sum()),
-            "estimate_median_m": float(np.median(est)), "reference_median_m": float(np.median(ref)),
+    out = {"pairs": int(placed.sum()), **_misfit_figures(est[compared], ref[compared], margin_m),
+           "margin_m": margin_m, "overlap_m": overlap_m}
+    if worst_at is not None:
+        touches = (nearest_stamps(np.asarray(worst_at, dtype=np.float64), pairs, 1e-6) >= 0).reshape(-1, 2).any(axis=1)
+        near = compared & touches
+        out["at_worst"] = _misfit_figures(est[near], ref[near], margin_m) if near.any() else None
+    return out
+
+
+def _misfit_figures(est: NDArray[np.float64], ref: NDArray[np.float64], margin_m: float) -> dict:
+    """Both trajectories' misfits ``(K,)`` [m] on the same pairs: how many, each median, and how
+    many pairs each places more than ``margin_m`` worse than the other."""
+    return {"compared": len(est), "estimate_median_m": float(np.median(est)), "reference_median_m": float(np.median(ref)),
             "estimate_worse": int(np.count_nonzero(est > ref + margin_m)),
-            "reference_worse": int(np.count_nonzero(ref > est + margin_m)), "margin_m": margin_m,
-            "overlap_m": overlap_m}
+            "reference_worse": int(np.count_nonzero(ref > est + margin_m))}
 
 
 def scan_matched_relations(reference: Trajectory, relations: Relations, scans_at: ScanSource, *,
