@@ -353,9 +353,10 @@ def evaluate_files(est: str | Path, ref: str | Path, *, align: str = "se3", rela
     also ``"loop_pair_misfit"``: how far that log's scans part under each trajectory where the
     reference comes back to a place
     (:func:`~submapslam.evaluation.scan_consistency.loop_pair_comparison`); a reference no more
-    consistent than the estimate bounds what the ATE can say; its ``"at_worst"`` is the same over the
-    pairs at the estimate's largest ATE errors (the top ``WORST_SHARE``, 10 %). With ``match_relations`` (needs
-    ``scans`` and relations) each relation is measured by matching its two scans instead
+    consistent than the estimate bounds what the ATE can say; its ``"at_worst"`` is the same over
+    the pairs at the estimate's largest ATE errors
+    (:func:`~submapslam.evaluation.scan_consistency.loop_pair_check`). With ``match_relations``
+    (needs ``scans`` and relations) each relation is measured by matching its two scans instead
     (:func:`~submapslam.evaluation.scan_consistency.scan_matched_relations`, the benchmark's own
     method); only those scan matching fixes are kept, and ``"relations_matching"`` gives the counts
     and ``"reference_relations"`` the reference's own error on them.
@@ -367,7 +368,7 @@ def evaluate_files(est: str | Path, ref: str | Path, *, align: str = "se3", rela
     import numpy as np
 
     from .evaluation.derived_relations import derive_relations as derive
-    from .evaluation.metrics import Alignment, ate, relations_error, rpe, worst_pose_times
+    from .evaluation.metrics import Alignment, ate, relations_error, rpe
     from .io.trajectory import read_relations, read_trajectory
 
     Alignment(align)
@@ -398,11 +399,9 @@ def evaluate_files(est: str | Path, ref: str | Path, *, align: str = "se3", rela
                "relations": relations_error(e, rel, max_diff=max_diff) if rel is not None else None,
                "warnings": warnings, **extra}
     if scans is not None:
-        from .evaluation.scan_consistency import WORST_SHARE, loop_pair_comparison
+        from .evaluation.scan_consistency import loop_pair_check
 
-        figures["loop_pair_misfit"] = loop_pair_comparison(e, r, scans_at,
-                                                           worst_at=worst_pose_times(figures["ate"], WORST_SHARE))
-        figures["loop_pair_misfit"]["worst_share"] = WORST_SHARE
+        figures["loop_pair_misfit"] = loop_pair_check(e, r, scans_at, figures["ate"])
     return figures
 
 
@@ -537,17 +536,16 @@ def _scan_check(record, reference, raw_log: str | Path | None, align: str = "se3
     (a scan is a cloud, not a line of beams), when the log is not there, or when the reference never
     comes back."""
     from .errors import SubmapSlamError
-    from .evaluation.metrics import ate, worst_pose_times
-    from .evaluation.scan_consistency import WORST_SHARE, loop_pair_comparison
+    from .evaluation.metrics import ate
+    from .evaluation.scan_consistency import loop_pair_check
     from .io.scan_lookup import scans_at
 
     log_path = raw_log if raw_log is not None else (record.provenance or {}).get("path")
     if not record.summary.get("planar") or log_path is None or not Path(log_path).exists() or record.poses is None:
         return None
     try:
-        worst = worst_pose_times(ate(record.poses, reference, align=align), WORST_SHARE)
-        return {**loop_pair_comparison(record.poses, reference, functools.partial(scans_at, log_path), worst_at=worst),
-                "worst_share": WORST_SHARE}
+        return loop_pair_check(record.poses, reference, functools.partial(scans_at, log_path),
+                               ate(record.poses, reference, align=align))
     except SubmapSlamError as exc:
         log.info("no loop-pair check in the report: %s", exc)
         return None

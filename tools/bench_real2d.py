@@ -106,16 +106,12 @@ def run_child(name: str, data: Path, out: Path, config: Path | None, numeric: st
 def scan_judged(name: str, data: Path, run_out: Path) -> dict:
     """What the log's own scans say of the run and of the corrected log (in this process, after the
     child exits: outside its wall time): the loop-pair misfit of both on the same pairs
-    (:func:`~submapslam.evaluation.scan_consistency.loop_pair_comparison`) and both trajectories' error
+    (:func:`~submapslam.evaluation.scan_consistency.loop_pair_check`: also at the run's largest errors) and both trajectories' error
     on the derived relations measured by scan matching
     (:func:`~submapslam.evaluation.scan_consistency.scan_matched_relations`)."""
     from submapslam.evaluation.derived_relations import count_loop_relations, derive_relations
-    from submapslam.evaluation.metrics import ate, relations_error, worst_pose_times
-    from submapslam.evaluation.scan_consistency import (
-        WORST_SHARE,
-        loop_pair_comparison,
-        scan_matched_relations,
-    )
+    from submapslam.evaluation.metrics import ate, relations_error
+    from submapslam.evaluation.scan_consistency import loop_pair_check, scan_matched_relations
     from submapslam.io.scan_lookup import scans_read_once
     from submapslam.io.trajectory import carmen_reference_trajectory, read_trajectory
 
@@ -123,8 +119,7 @@ def scan_judged(name: str, data: Path, run_out: Path) -> dict:
     run, reference = read_trajectory(run_out / "poses_tum.txt"), carmen_reference_trajectory(data / ref, data / raw)
     scans = scans_read_once(data / raw, reference.timestamps)  # both measures ask only for reference times
     matched, counts = scan_matched_relations(reference, derive_relations(reference), scans)
-    worst = worst_pose_times(ate(run, reference), WORST_SHARE)  # where the run parts most from the corrected log
-    return {"loop_pair_misfit": loop_pair_comparison(run, reference, scans, worst_at=worst),
+    return {"loop_pair_misfit": loop_pair_check(run, reference, scans, ate(run, reference)),
             "matched_relations": {**counts, "loops": count_loop_relations(matched),
                                   "run": relations_error(run, matched),
                                   "corrected": relations_error(reference, matched)}}
@@ -164,7 +159,7 @@ def _misfit_cell(m: dict | None) -> str:
             f"{m['estimate_worse']} / {m['reference_worse']})")
     worst = m.get("at_worst")
     if worst:
-        cell += (f"; at the run's worst 10 %: {worst['estimate_median_m']:.4f} / {worst['reference_median_m']:.4f} "
+        cell += (f"; at the run's worst {100 * m['worst_share']:.0f} %: {worst['estimate_median_m']:.4f} / {worst['reference_median_m']:.4f} "
                  f"({worst['compared']}; {worst['estimate_worse']} / {worst['reference_worse']})")
     return cell
 

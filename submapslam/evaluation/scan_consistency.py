@@ -135,6 +135,16 @@ def loop_pair_comparison(estimate: Trajectory, reference: Trajectory, scans_at: 
     return out
 
 
+def loop_pair_check(estimate: Trajectory, reference: Trajectory, scans_at: ScanSource, ate_figures: dict) -> dict:
+    """:func:`loop_pair_comparison` with ``at_worst`` at the estimate's ``WORST_SHARE`` largest
+    errors in ``ate_figures`` (:func:`~.metrics.ate` of ``estimate`` against ``reference``), and
+    that share as ``"worst_share"``."""
+    from .metrics import worst_pose_times
+
+    worst = worst_pose_times(ate_figures, WORST_SHARE)
+    return {**loop_pair_comparison(estimate, reference, scans_at, worst_at=worst), "worst_share": WORST_SHARE}
+
+
 def _misfit_figures(est: NDArray[np.float64], ref: NDArray[np.float64], margin_m: float) -> dict:
     """Both trajectories' misfits ``(K,)`` [m] on the same pairs: how many, each median, and how
     many pairs each places more than ``margin_m`` worse than the other."""
