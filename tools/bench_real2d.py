@@ -106,8 +106,8 @@ def run_child(name: str, data: Path, out: Path, config: Path | None, numeric: st
 def scan_judged(name: str, data: Path, run_out: Path) -> dict:
     """What the log's own scans say of the run and of the corrected log (in this process, after the
     child exits: outside its wall time): the loop-pair misfit of both on the same pairs
-    (:func:`~submapslam.evaluation.scan_consistency.loop_pair_check`: also at the run's largest errors) and both trajectories' error
-    on the derived relations measured by scan matching
+    (:func:`~submapslam.evaluation.scan_consistency.loop_pair_check`: also at the run's largest
+    errors) and both trajectories' error on the derived relations measured by scan matching
     (:func:`~submapslam.evaluation.scan_consistency.scan_matched_relations`)."""
     from submapslam.evaluation.derived_relations import count_loop_relations, derive_relations
     from submapslam.evaluation.metrics import ate, relations_error
@@ -159,8 +159,9 @@ def _misfit_cell(m: dict | None) -> str:
             f"{m['estimate_worse']} / {m['reference_worse']})")
     worst = m.get("at_worst")
     if worst:
-        cell += (f"; at the run's worst {100 * m['worst_share']:.0f} %: {worst['estimate_median_m']:.4f} / {worst['reference_median_m']:.4f} "
-                 f"({worst['compared']}; {worst['estimate_worse']} / {worst['reference_worse']})")
+        cell += (f"; at the run's worst {100 * m['worst_share']:.0f} %: {worst['estimate_median_m']:.4f} / "
+                 f"{worst['reference_median_m']:.4f} ({worst['compared']}; {worst['estimate_worse']} / "
+                 f"{worst['reference_worse']})")
     return cell
 
 

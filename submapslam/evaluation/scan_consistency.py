@@ -27,14 +27,15 @@ from numpy.typing import NDArray
 
 from ..errors import SubmapSlamError
 from ..trajectory import Relations, Trajectory, nearest_stamps
+from .metrics import worst_pose_times
 
 #: the scans a log took at (at least) the given times: ``timestamps (K,) [s] -> {timestamp: (N, 2 or 3) points}``
 #: in the trajectories' body frame (e.g. ``functools.partial(submapslam.io.scan_lookup.scans_at, log)``, or a
 #: dict read once at every reference time: both measures ask only for reference times)
 ScanSource = Callable[[NDArray[np.float64]], Mapping[float, NDArray[np.float64]]]
 
-#: the share of an estimate's matched poses with the largest ATE whose loop pairs are also compared apart
-#: (``loop_pair_comparison(..., worst_at=...)``): where it parts most from the reference
+#: the share of an estimate's matched poses with the largest ATE whose loop pairs :func:`loop_pair_check`
+#: also compares apart: where the estimate parts most from the reference
 WORST_SHARE = 0.1
 
 #: starts of a relation's scan matching, as offsets ``(dx [m], dy [m], dyaw [deg])`` from the
@@ -139,8 +140,6 @@ def loop_pair_check(estimate: Trajectory, reference: Trajectory, scans_at: ScanS
     """:func:`loop_pair_comparison` with ``at_worst`` at the estimate's ``WORST_SHARE`` largest
     errors in ``ate_figures`` (:func:`~.metrics.ate` of ``estimate`` against ``reference``), and
     that share as ``"worst_share"``."""
-    from .metrics import worst_pose_times
-
     worst = worst_pose_times(ate_figures, WORST_SHARE)
     return {**loop_pair_comparison(estimate, reference, scans_at, worst_at=worst), "worst_share": WORST_SHARE}
 
