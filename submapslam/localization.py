@@ -11,7 +11,7 @@ Registration reuses the package's matchers, nothing new:
   against the map's line-like points, once with a wide and once with a tight correspondence
   distance; directions the scene does not constrain (a corridor's axis) take the prediction.
   The global search is the correlative FFT search + ICP of :func:`.registration.planar.match_planar`.
-* 3D maps: generalized ICP from the prediction (open3d); the global search is FPFH + RANSAC,
+* 3D maps: generalized ICP from the prediction (small_gicp); the global search is FPFH + RANSAC,
   then GICP (:func:`.registration.correspondence.check_correspondence`).
 
 Frames: the map's frame is the world frame (for a ``submapslam run`` folder: the pose of that
@@ -230,7 +230,7 @@ class Localizer:
             from .registration.spatial import SpatialCloud
 
             self._cloud = SpatialCloud(pts, self.voxel)
-            self._tree = cKDTree(np.asarray(self._cloud.pcd.points))
+            self._tree = cKDTree(self._cloud.points)
 
     # --- scans ---------------------------------------------------------------------------------
     def preprocess(self, points: np.ndarray) -> np.ndarray:
@@ -313,7 +313,7 @@ class Localizer:
         """``(6, 6)`` information (GTSAM order, the scan's frame) that matching scan points ``(N, 3)``
         (base frame) against the map at ``T_world_base`` gives about the pose; only map points count
         (never the recent scans of unmapped space). Planar: point-to-line
-        (:func:`~submapslam.uncertainty.planar_match_information`); 3D: open3d's point-to-point
+        (:func:`~submapslam.uncertainty.planar_match_information`); 3D: the point-to-point
         information over the inlier RMSE squared, divided by the same inflation."""
         from .uncertainty import (
             REGISTRATION_INFLATION,
@@ -331,18 +331,16 @@ class Localizer:
             r = np.einsum("ij,ij->i", moved[ok] - self._line_pts[i[ok]], n)
             w = 1.0 / (1.0 + (r / (self.inlier / 4)) ** 2)
             return limited_by_the_map(planar_match_information(scan[ok, :2], n @ T[:2, :2], r, w), True)
-        from ._deps import open3d
         from .geometry import adjoint
-        from .registration.spatial import SpatialCloud
+        from .registration.spatial import SpatialCloud, information_matrix, registration_fit
 
-        reg = open3d().pipelines.registration
-        src = SpatialCloud(scan, self.voxel).pcd
-        fit = reg.evaluate_registration(src, self._cloud.pcd, self.inlier, T)
-        if not fit.correspondence_set or len(fit.correspondence_set) < 20:
+        src = SpatialCloud(scan, self.voxel)
+        fitness, rmse = registration_fit(src, self._cloud, T, self.inlier)
+        if round(fitness * len(src.points)) < 20:
             return np.zeros((6, 6))
-        world = np.asarray(reg.get_information_matrix_from_point_clouds(src, self._cloud.pcd, self.inlier, T))
-        var = max(float(fit.inlier_rmse) ** 2, (self.voxel / 4) ** 2)
-        A = adjoint(T)  # open3d's perturbation is in the world frame: I_body = Ad(T)^T I_world Ad(T)
+        world = information_matrix(src, self._cloud, T, self.inlier)
+        var = max(rmse**2, (self.voxel / 4) ** 2)
+        A = adjoint(T)  # the perturbation there is in the world frame: I_body = Ad(T)^T I_world Ad(T)
         return limited_by_the_map(A.T @ world @ A / (var * REGISTRATION_INFLATION), False)
 
     def _bearing_bins(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -372,17 +370,12 @@ class Localizer:
         return _LocalTarget(self, pts[line], normals[line]) if line.sum() >= 10 else None
 
     def _gicp_pose(self, scan: np.ndarray, guess: np.ndarray) -> np.ndarray:
-        from ._deps import open3d
-        from .registration.spatial import SpatialCloud
+        from .registration.spatial import SpatialCloud, gicp
 
-        reg = open3d().pipelines.registration
-        src = SpatialCloud(scan, self.voxel).pcd
+        src = SpatialCloud(scan, self.voxel)
         T = guess
         for dist in (3.0 * self.inlier, self.inlier):
-            icp = reg.registration_generalized_icp(src, self._cloud.pcd, dist, T,
-                                                   reg.TransformationEstimationForGeneralizedICP(),
-                                                   reg.ICPConvergenceCriteria(max_iteration=30))
-            T = np.asarray(icp.transformation)
+            T = gicp(src, self._cloud, T, dist)
         return T
 
     def global_search(self, cloud: np.ndarray) -> tuple[np.ndarray, float, float, float]:

@@ -147,7 +147,7 @@ def test_feature_ransac_recovers_a_transform_and_repeats_exactly():
     source = transform_points(inverse(T_true), target) + rng.normal(0, 0.02, target.shape)
     s, t = SpatialCloud(source, 0.4), SpatialCloud(target, 0.4)
     (s_d, s_f), (t_d, t_f) = s.coarse(), t.coarse()
-    args = (np.asarray(s_d.points), np.asarray(s_f.data).T, np.asarray(t_d.points), np.asarray(t_f.data).T)
+    args = (s_d.points, s_f, t_d.points, t_f)
     first = feature_ransac(*args, inlier_distance=2.4)
     again = feature_ransac(*args, inlier_distance=2.4)
     np.testing.assert_array_equal(first, again)

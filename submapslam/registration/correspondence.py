@@ -6,8 +6,8 @@ good initial guess and decides whether the two submaps really show the same plac
 * planar submaps (2D laser, z = 0): correlative FFT search + ICP in SE(2)
   (:mod:`.planar`); the 3D point-to-plane / GICP systems are singular on planar data;
 * 3D submaps: FPFH features + a seeded RANSAC (:func:`.spatial.feature_ransac`) when there is no
-  usable guess, then generalized ICP; information from open3d's
-  ``get_information_matrix_from_point_clouds``; for tests that are not a refinement, the
+  usable guess, then generalized ICP (small_gicp); information from the point-to-point
+  correspondences (:func:`.spatial.information_matrix`); for tests that are not a refinement, the
   agreement of the structure (non-ground points, :func:`.spatial.structure_agreement`).
 
 Gates: fitness (source points with a target neighbour within the inlier distance), inlier
@@ -25,7 +25,14 @@ from scipy.spatial import cKDTree
 
 from ..geometry import matrix_to_se2
 from .planar import match_planar, planar_cloud
-from .spatial import SpatialCloud, feature_ransac, structure_agreement
+from .spatial import (
+    SpatialCloud,
+    feature_ransac,
+    gicp,
+    information_matrix,
+    registration_fit,
+    structure_agreement,
+)
 
 _PLANAR_PIN = 1e6  # information on z, roll, pitch of a planar result (not observable, pinned)
 
@@ -171,34 +178,25 @@ def _directed_fitness(points_xy: np.ndarray, other: cKDTree, T: np.ndarray, inli
 
 def _spatial(source: SpatialCloud, target: SpatialCloud, initial_guess, yaw_hint, voxel, inlier, refine_only,
              gates) -> CorrespondenceResult:
-    from .._deps import open3d
-
-    o3d = open3d()
-    reg = o3d.pipelines.registration
-    src, tgt = source.pcd, target.pcd
     ambiguity = 0.0
     if initial_guess is not None:
         guess = np.asarray(initial_guess, dtype=np.float64)
     else:
-        (s_d, s_f), (t_d, t_f) = source.coarse(), target.coarse()
-        guess = feature_ransac(np.asarray(s_d.points), np.asarray(s_f.data).T, np.asarray(t_d.points),
-                               np.asarray(t_f.data).T, inlier_distance=1.5 * 4 * voxel, yaw_hint=yaw_hint)
+        (s_coarse, s_features), (t_coarse, t_features) = source.coarse(), target.coarse()
+        guess = feature_ransac(s_coarse.points, s_features, t_coarse.points, t_features,
+                               inlier_distance=1.5 * 4 * voxel, yaw_hint=yaw_hint)
     result = guess
     # Coarse to fine: the wide-basin stage (3x the inlier distance) runs on the 4x-voxel clouds,
-    # the final stage on the match clouds. Stop when fitness and RMSE change by < 1e-4 (relative).
-    stop = reg.ICPConvergenceCriteria(relative_fitness=1e-4, relative_rmse=1e-4, max_iteration=30)
+    # the final stage on the match clouds.
     stages = ((source.level(4), target.level(4), 3 * inlier),) if not refine_only else ()
-    for s_pcd, t_pcd, dist in (*stages, (src, tgt, inlier)):
-        icp = reg.registration_generalized_icp(
-            s_pcd, t_pcd, dist, result, reg.TransformationEstimationForGeneralizedICP(), stop)
-        result = np.asarray(icp.transformation)
-    # the last stage ran at the inlier distance: its fitness and RMSE are those of the final transform
-    fitness, rmse = float(icp.fitness), float(icp.inlier_rmse) if icp.fitness > 0 else float("inf")
-    back = reg.evaluate_registration(tgt, src, inlier, np.linalg.inv(result))
-    overlap = min(fitness, float(back.fitness))
+    for s_cloud, t_cloud, dist in (*stages, (source, target, inlier)):
+        result = gicp(s_cloud, t_cloud, result, dist)
+    fitness, rmse = registration_fit(source, target, result, inlier)
+    back, _ = registration_fit(target, source, np.linalg.inv(result), inlier)
+    overlap = min(fitness, back)
 
     def information() -> np.ndarray:
-        info = np.asarray(reg.get_information_matrix_from_point_clouds(src, tgt, inlier, result))
+        info = information_matrix(source, target, result, inlier)
         info = info / max(rmse, 0.02) ** 2 if np.isfinite(rmse) else np.eye(6) * 1e-6
         return 0.5 * (info + info.T) + np.eye(6) * 1e-6
 
