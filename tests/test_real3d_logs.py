@@ -1,8 +1,9 @@
 """Real 3D logs end to end at the defaults: accuracy against their reference poses.
 
 The two Livox sequences of ../shared/data/lidar3d (a hand-held narrow-field sensor, keyframes
-irregular in time, no IMU used here): the guard that the 3D defaults hold on data they were not
-made on. KISS-ICP 1.3.0 at its defaults gets 0.83 m and 1.54 m on them (SOURCE.txt).
+irregular in time, no IMU used here) and MulRan KAIST03's first keyframes (a 64-ring spinning
+LiDAR on a car): the guard that the 3D defaults hold on data they were not made on. KISS-ICP 1.3.0
+at its defaults gets 0.83 m and 1.54 m on the Livox ones (SOURCE.txt), 0.029 m on MulRan's.
 """
 
 from __future__ import annotations
@@ -62,4 +63,23 @@ def test_livox_main_building_within_a_tenth_of_a_metre_and_no_worse_than_its_odo
     odometry_error = _ate(result.timestamps, result.odometry_poses, reference)
     assert error <= odometry_error + 0.002, f"ATE {error:.4f} m, its odometry {odometry_error:.4f} m"
     assert result.ground_priors["level"] is None and result.ground_priors["kept"] is False
+    assert _dynamic_share(result) <= 0.005
+
+
+def test_mulran_keyframes_of_a_64_ring_lidar_within_five_centimetres():
+    """The first 21 keyframes of MulRan KAIST03 (an Ouster OS1-64 on a car, keyframes 1.0-1.4 m
+    apart, 23 m) against SC-A-LOAM's pose-graph output for them (an estimate, not a survey): 0.036 m
+    at the defaults, KISS-ICP 1.3.0 at its defaults 0.029 m on the same scans
+    (tools/bench_regression.py --only real3d). Each scan enters KISS-ICP's local map 8 scans late
+    (``odometry.movers_delay``), so the first scans register against the first one alone: without
+    the delay 0.032 m; 21 keyframes are too few to retune a default on."""
+    folder = shared_data("lidar3d", "mulran_kaist03")
+    result = run(open_log(folder))
+    assert len(result.poses) == 21
+    stamps = np.loadtxt(folder / "times.txt.xz", ndmin=1)
+    whole = read_kitti(folder / "optimized_poses.txt.xz", timestamps=stamps)
+    reference = Trajectory(whole.timestamps[:21], whole.poses[:21])
+    np.testing.assert_allclose(result.timestamps, reference.timestamps)
+    error = _ate(result.timestamps, result.poses, reference)
+    assert error <= 0.045, f"ATE {error:.4f} m"
     assert _dynamic_share(result) <= 0.005

@@ -192,18 +192,33 @@ def read_log_meta(log: Path) -> dict:
 
 
 REFERENCE_KITTI = "reference_poses_kitti.txt"  # real logs (../shared/data/lidar3d/livox_*): pose k <-> scan k
+#: the reference poses of real logs, one KITTI line per scan file (line k: scan k): the Livox
+#: sequences' and SC-A-LOAM's pose-graph output beside its MulRan keyframes (mulran_kaist03, whose
+#: file covers the whole drive; its first scans are in the folder)
+REFERENCE_FILES = (REFERENCE_KITTI, "optimized_poses.txt.xz")
+
+
+def reference_file(log: Path) -> Path | None:
+    """The real log's reference pose file (:data:`REFERENCE_FILES`), None when it has none."""
+    return next((log / name for name in REFERENCE_FILES if (log / name).exists()), None)
+
+
+def _times_file(log: Path) -> Path:
+    candidates = [log / "times.txt", log / "scans" / "times.txt", log / "times.txt.xz"]
+    return next((p for p in candidates if p.exists()), candidates[0])
 
 
 def ground_truth_per_scan(log: Path, n: int | None = None):
     """``(gt, poses)``: the ground-truth Trajectory, and ``(n, 4, 4)`` ground-truth poses of the
     log's first ``n`` scans (matched to times.txt by timestamp within 20 ms). A real log without
-    ``groundtruth_tum.txt`` uses its ``reference_poses_kitti.txt`` (line k: scan k)."""
+    ``groundtruth_tum.txt`` uses its reference pose file (:func:`reference_file`; line k: scan k)."""
     from submapslam.io.trajectory import read_kitti, read_tum
 
-    times_path = log / "times.txt" if (log / "times.txt").exists() else log / "scans" / "times.txt"
-    if not (log / "groundtruth_tum.txt").exists() and (log / REFERENCE_KITTI).exists():
+    times_path = _times_file(log)
+    reference = reference_file(log)
+    if not (log / "groundtruth_tum.txt").exists() and reference is not None:
         # a real log: the reference poses, one KITTI line per scan file, stamped with times.txt
-        gt = read_kitti(log / REFERENCE_KITTI, timestamps=np.loadtxt(times_path, ndmin=1, usecols=0))
+        gt = read_kitti(reference, timestamps=np.loadtxt(times_path, ndmin=1, usecols=0))
         return gt, gt.poses[:n]
     gt = read_tum(log / "groundtruth_tum.txt")
     times = np.loadtxt(times_path, ndmin=1, usecols=0) if times_path.exists() else gt.timestamps
@@ -552,8 +567,8 @@ def resolve_logs(args) -> list[Path]:
     if not logs:
         raise SystemExit("bench_city: no logs; give LOG folders or --generate NN")
     for log in logs:
-        if not (log / "groundtruth_tum.txt").exists() and not (log / REFERENCE_KITTI).exists():
-            raise SystemExit(f"bench_city: {log}: no groundtruth_tum.txt nor {REFERENCE_KITTI} "
+        if not (log / "groundtruth_tum.txt").exists() and reference_file(log) is None:
+            raise SystemExit(f"bench_city: {log}: no groundtruth_tum.txt nor any of {', '.join(REFERENCE_FILES)} "
                              "(not a synthetic cloud-folder log nor a real log with reference poses?)")
     return logs
 

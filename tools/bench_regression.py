@@ -9,8 +9,9 @@ Rows, each run in a child process (wall time and its own peak RSS from ``wait4``
 
 * **real2d**: the CARMEN logs (Intel, FR079, MIT CSAIL), ATE against their corrected logs
   (``bench_real2d.run_child``; its scan-matched relations are left to that tool);
-* **real3d**: the real LiDAR sequences in ``DATA/lidar3d`` with ``reference_poses_kitti.txt``
-  (the Livox ones), ATE against it (``submapslam run``, then ``bench_terrain.evaluate``);
+* **real3d**: the real LiDAR sequences in ``DATA/lidar3d`` with reference poses
+  (``bench_city.reference_file``: the Livox ones and MulRan KAIST03's first keyframes), ATE
+  against them (``submapslam run``, then ``bench_terrain.evaluate``);
 * **synthetic**: the 2D worlds of ``bench_synthetic`` with the default scanner and the other
   scanners (``bench_synthetic.SCANNERS``), 2 laps, seed 0, written under WORK;
 * **terrain**: terrain cities along the KITTI 00, 05 and 08 paths (16 rings, the first
@@ -127,9 +128,9 @@ def real2d_rows(data: Path, out: Path, peers: bool) -> list[dict]:
 
 
 def real3d_rows(data: Path, out: Path, peers: bool) -> list[dict]:
-    from bench_city import REFERENCE_KITTI
+    from bench_city import reference_file
 
-    logs = sorted(p for p in (data / "lidar3d").iterdir() if (p / REFERENCE_KITTI).exists())
+    logs = sorted(p for p in (data / "lidar3d").iterdir() if reference_file(p) is not None)
     return [run_and_evaluate(log.name, "real 3D (against its reference)", log, out, peers) for log in logs]
 
 
