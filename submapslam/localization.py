@@ -340,7 +340,7 @@ class Localizer:
             return np.zeros((6, 6))
         world = information_matrix(src, self._cloud, T, self.inlier)
         var = max(rmse**2, (self.voxel / 4) ** 2)
-        A = adjoint(T)  # the perturbation there is in the world frame: I_body = Ad(T)^T I_world Ad(T)
+        A = adjoint(T)  # information_matrix perturbs in the map (world) frame: I_body = Ad(T)^T I_world Ad(T)
         return limited_by_the_map(A.T @ world @ A / (var * REGISTRATION_INFLATION), False)
 
     def _bearing_bins(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
