@@ -126,7 +126,7 @@ def registration_fit(source: SpatialCloud, target: SpatialCloud, T: np.ndarray, 
                      ) -> tuple[float, float]:
     """``(fitness, inlier RMSE [m])`` of ``T_target_source``: the share of source points with a target
     point within ``max_distance`` [m] and the RMS distance over those (inf when there are none)."""
-    s_idx, _, dist = _matches(source, target, T, max_distance)
+    _, _, dist = _matches(source, target, T, max_distance)
     if len(dist) == 0:
         return 0.0, float("inf")
     return len(dist) / max(len(source.points), 1), float(np.sqrt(np.mean(dist**2)))
