@@ -125,7 +125,8 @@ class Odometry:
                                                             frame_voxel=self.frame_voxel,
                                                             coarse_distance=8.0 * voxel, fine_distance=2.0 * voxel,
                                                             coarse_translation_epsilon=0.04 * voxel,
-                                                            fine_translation_epsilon=0.004 * voxel))
+                                                            fine_translation_epsilon=0.004 * voxel,
+                                                            far_m=2.0 * voxel))
         elif not planar and (config.drop_movers or config.movers_delay > 0):
             from .mapping.moving_points import MoverFilter
 
@@ -317,10 +318,17 @@ class Odometry:
         return self._refiner.fit(frame_down[:, :2], xyt, 0.5 * self.voxel_size)
 
     def checks(self) -> dict:
-        """Planar runs: how often a check overruled the first guess (``summary.json``
-        ``odometry_checks``): ``wheel_overruled`` scans whose constant-velocity guess fitted
-        better than the wheels', ``registration_overruled`` scans whose wheel pose fitted better
-        than where registration went. Empty for 3D runs."""
+        """How often a check tried more than the first guess (``summary.json`` ``odometry_checks``).
+        Planar runs: ``wheel_overruled`` scans whose constant-velocity guess fitted better than the
+        wheels', ``registration_overruled`` scans whose wheel pose fitted better than where
+        registration went. Narrow-field 3D runs (voxel_gicp): ``turned_guesses_tried`` scans whose
+        usual guesses fitted poorly, ``far_from_prediction`` scans whose best alignment ended far
+        from the prediction, ``near_alignment_kept`` of those where a near one won
+        (:class:`~submapslam.registration.voxel_gicp.VoxelGicpTracker`). Empty for other 3D runs."""
+        if self._gicp is not None:
+            t = self._gicp
+            return {"turned_guesses_tried": t.turned_tries, "far_from_prediction": t.far_results,
+                    "near_alignment_kept": t.near_kept}
         if not self.planar:
             return {}
         return {"wheel_overruled": self.wheel_overruled, "registration_overruled": self.registration_overruled}

@@ -92,8 +92,8 @@ class SlamResult:
         submap_scan_no_returns: planar runs: per submap each scan's ``(m, 3)`` ends of the beams
             that returned nothing (free space in the grid; an empty list per submap when the log
             gives none; a map folder keeps them).
-        odometry_checks: planar runs: how often the odometry's checks overruled its first guess
-            (:meth:`~submapslam.odometry.Odometry.checks`); empty otherwise.
+        odometry_checks: planar and narrow-field 3D runs: how often the odometry's checks tried
+            more than its first guess (:meth:`~submapslam.odometry.Odometry.checks`); empty otherwise.
         scan_refinement: planar runs: the figures of the scan-level refinement after the submap
             solve (:mod:`~submapslam.scan_refine`: keyframes, matches tried and kept, seconds);
             empty when it did not run. ``poses`` and ``submap_scan_poses`` are the refined ones.
