@@ -113,3 +113,16 @@ def test_the_grid_evidence_model_is_set_from_the_config():
     assert (spatial.l_occ, spatial.resolution, spatial.max_free_range) == (1.2, 0.2, 25.0)
     default = grid_params(SimpleNamespace(config=config_from_dict({}), planar=False))
     assert (default.l_occ, default.resolution, default.max_free_range) == (0.85, 0.2, 30.0)
+
+
+def test_probabilities_consumed_in_place_equal_the_copy():
+    params = GridParams(resolution=0.05, free_scan_stride=1)
+    grid = local([(0.0, 0.0), (1.0, 0.5)], None, params)
+    logodds = grid.logodds.copy()
+    copy = grid.probabilities()
+    assert np.array_equal(grid.logodds, logodds)  # the default leaves the grid as it was
+    consumed = grid.probabilities(consume=True)
+    assert consumed is grid.logodds  # no second grid-sized array: the log-odds' own
+    assert np.array_equal(consumed, copy)
+    assert np.allclose(copy, 1.0 / (1.0 + np.exp(-logodds)))
+    assert (copy[logodds > 0] > 0.5).all() and (copy[logodds < 0] < 0.5).all()

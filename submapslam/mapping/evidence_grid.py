@@ -148,12 +148,15 @@ class EvidenceGrid:
         hr, hc, h_in = self.cells(hits)
         self._add_free(self._inside_index(row, col), hr[h_in] * self.logodds.shape[1] + hc[h_in])
 
-    def probabilities(self) -> np.ndarray:
+    def probabilities(self, consume: bool = False) -> np.ndarray:
         """Occupancy probability per cell, ``(rows, cols)`` float32 (the logistic of the log-odds).
 
         Computed in one array, in place: a city-sized grid (10 M cells) is 40 MB a copy, and the
-        chained expression held three of them at the end of a run (the run's memory peak)."""
-        prob = np.negative(self.logodds)
+        chained expression held three of them at the end of a run (the run's memory peak).
+        ``consume``: computed in the log-odds' own array, which then holds the probabilities (for
+        a grid that is done with: the 3.7 km KITTI 00 drive's 13 M cells held 52 MB of log-odds
+        beside 52 MB of probabilities at the end of its run)."""
+        prob = np.negative(self.logodds, out=self.logodds if consume else None)
         np.exp(prob, out=prob)
         prob += 1.0
         return np.reciprocal(prob, out=prob)

@@ -306,6 +306,13 @@ def voxels_left(result: SlamResult, voxel: float, reach: float) -> np.ndarray:
     return moved[moved_by >= kept_by]
 
 
+def _not_held(moved: np.ndarray, moved_keys: np.ndarray, map_keys: np.ndarray) -> tuple[np.ndarray, int]:
+    """The ``moved`` points ``(D, 3)`` whose voxels (``moved_keys`` ``(D,)``) the map's
+    (``map_keys`` ``(M,)``) do not hold, and how many it held."""
+    held = in_voxels(moved_keys, np.sort(map_keys))
+    return moved[~held], int(held.sum())
+
+
 def fused_map(result: SlamResult, voxel: float | None = None) -> np.ndarray:
     """All submap clouds in the world frame, fused at ``voxel`` (default: the run's map voxel)."""
     return fuse_clouds(zip(result.submap_poses, result.submap_points), voxel or result.map_voxel_size)
@@ -352,8 +359,9 @@ def build_map_outputs(result: SlamResult, session_starts: list[int] | None = Non
     reported as moved (``moved_points_in_map``)."""
     t0 = time.perf_counter()
     voxel = result.map_voxel_size
-    points, map_keys = fuse_clouds(zip(result.submap_poses, result.submap_points), voxel, with_keys=True)
-    out = MapOutputs(points=points)
+    out = MapOutputs(points=np.zeros((0, 3), dtype=np.float32))
+    # held by ``out`` alone, so that the filtered clouds below replace it rather than join it
+    out.points, map_keys = fuse_clouds(zip(result.submap_poses, result.submap_points), voxel, with_keys=True)
     moved, moved_keys = None, None
     if result.submap_dynamic_points is not None:
         moved, moved_keys = fuse_clouds(((T, p) for T, p in zip(result.submap_poses, result.submap_dynamic_points)
@@ -363,9 +371,14 @@ def build_map_outputs(result: SlamResult, session_starts: list[int] | None = Non
             stays = ~in_voxels(map_keys, voxels_left(result, voxel, reach))
             out.left_points = int((~stays).sum())
             out.points, map_keys = out.points[stays], map_keys[stays]
+    grid_scans = result.config.mapping.write_grid and any(len(p) for scans in result.submap_scan_points for p in scans)
+    vacate = grid_scans and bool(session_starts) and len(session_starts) > 1 and not result.planar
+    if not vacate:  # the map's voxels are final: their keys need not stay beside the grid
+        if moved is not None:
+            moved, out.moved_points_in_map = _not_held(moved, moved_keys, map_keys)
+        moved_keys = map_keys = None
     gone = None
-    if result.config.mapping.write_grid and any(len(p) for scans in result.submap_scan_points for p in scans):
-        vacate = bool(session_starts) and len(session_starts) > 1 and not result.planar
+    if grid_scans:
         left: list[np.ndarray] = []
         grid, out.cleared_cells = build_global_grid(result, session_starts=session_starts if vacate else None,
                                                     left_between_sessions=left if vacate else None,
@@ -379,11 +392,9 @@ def build_map_outputs(result: SlamResult, session_starts: list[int] | None = Non
                 gone = out.points[in_vacated]
                 out.points, map_keys = out.points[~in_vacated], map_keys[~in_vacated]
             out.vacated_points = int(in_vacated.sum())
-        out.occupancy, out.origin, out.resolution = grid.probabilities(), grid.origin, grid.params.resolution
-    if moved is not None:
-        held = in_voxels(moved_keys, np.sort(map_keys))
-        out.moved_points_in_map = int(held.sum())
-        moved = moved[~held]
+        out.occupancy, out.origin, out.resolution = grid.probabilities(consume=True), grid.origin, grid.params.resolution
+    if moved is not None and vacate:
+        moved, out.moved_points_in_map = _not_held(moved, moved_keys, map_keys)
     parts = [c for c in (moved, gone) if c is not None]
     out.dynamic_points = np.vstack(parts) if parts else None
     out.seconds = time.perf_counter() - t0
