@@ -60,12 +60,23 @@ def read_tum(path: str | Path) -> Trajectory:
 
 def write_tum(path: str | Path, traj: Trajectory) -> None:
     """Write TUM lines; timestamps with 6 decimals, poses with 9 significant digits."""
-    lines = []
-    for t, T in zip(traj.timestamps, traj.poses):
-        q = matrix_to_quat(T[:3, :3])
-        x, y, z = T[:3, 3]
-        lines.append(f"{t:.6f} {x:.9g} {y:.9g} {z:.9g} {q[0]:.9g} {q[1]:.9g} {q[2]:.9g} {q[3]:.9g}")
-    Path(path).write_text("\n".join(lines) + "\n")
+    Path(path).write_text("".join(_tum_lines(traj)) or "\n")
+
+
+_TUM_LINE = "%.6f" + " %.9g" * 7
+
+
+def _tum_lines(traj: Trajectory, extra: np.ndarray | None = None) -> list[str]:
+    """One TUM line a pose, newline included; ``extra`` ``(N, K)``: K more numbers a line (``%.9g``)."""
+    fmt = _TUM_LINE + " %.9g" * (0 if extra is None else extra.shape[1]) + "\n"
+    rows = np.empty((len(traj.poses), 8 + (0 if extra is None else extra.shape[1])))
+    rows[:, 0] = traj.timestamps
+    rows[:, 1:4] = traj.poses[:, :3, 3]
+    if len(rows):
+        rows[:, 4:8] = [matrix_to_quat(T[:3, :3]) for T in traj.poses]
+    if extra is not None:
+        rows[:, 8:] = extra
+    return [fmt % tuple(row) for row in rows.tolist()]
 
 
 #: ``poses_cov.txt``: the 6x6 in the order (x, y, z, rx, ry, rz) of ROS ``PoseWithCovariance``;
@@ -84,15 +95,10 @@ def write_tum_cov(path: str | Path, traj: Trajectory, covariances: np.ndarray) -
     if covs.shape != (len(traj.poses), 6, 6):
         raise ValueError(f"{len(traj.poses)} poses but covariances of shape {covs.shape}")
     order = list(COV_ORDER)
-    lines = ["# t x y z qx qy qz qw, then the upper triangle (21 entries, row by row) of the 6x6 pose covariance "
-             "in the pose's own frame, order x y z rx ry rz [m, rad]"]
-    for t, T, C in zip(traj.timestamps, traj.poses, covs):
-        q = matrix_to_quat(T[:3, :3])
-        x, y, z = T[:3, 3]
-        upper = C[np.ix_(order, order)][_UPPER]
-        lines.append(f"{t:.6f} {x:.9g} {y:.9g} {z:.9g} {q[0]:.9g} {q[1]:.9g} {q[2]:.9g} {q[3]:.9g} "
-                     + " ".join(f"{v:.9g}" for v in upper))
-    Path(path).write_text("\n".join(lines) + "\n")
+    upper = covs[:, order][:, :, order][:, _UPPER[0], _UPPER[1]]  # (N, 21)
+    header = ("# t x y z qx qy qz qw, then the upper triangle (21 entries, row by row) of the 6x6 pose covariance "
+              "in the pose's own frame, order x y z rx ry rz [m, rad]\n")
+    Path(path).write_text(header + "".join(_tum_lines(traj, upper)))
 
 
 def read_tum_cov(path: str | Path) -> tuple[Trajectory, np.ndarray]:
@@ -126,8 +132,8 @@ def read_kitti(path: str | Path, timestamps: np.ndarray | None = None) -> Trajec
 def write_kitti(path: str | Path, poses: np.ndarray) -> None:
     """Write ``(N, 4, 4)`` poses as KITTI lines (row-major 3x4)."""
     poses = np.asarray(poses).reshape(-1, 4, 4)
-    lines = [" ".join(f"{v:.9g}" for v in T[:3, :].reshape(-1)) for T in poses]
-    Path(path).write_text("\n".join(lines) + "\n")
+    fmt = " ".join(["%.9g"] * 12) + "\n"
+    Path(path).write_text("".join(fmt % tuple(row) for row in poses[:, :3, :].reshape(-1, 12).tolist()) or "\n")
 
 
 def _ranges_key(tokens: list[str]) -> bytes:
