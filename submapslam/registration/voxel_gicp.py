@@ -36,7 +36,8 @@ class VoxelGicpSettings:
     (small_gicp's defaults are 1 mm / 0.1 deg; 2 mm / 0.2 deg saves a fifth of its iterations
     on the Livox sequences, at the same ATE).
     turns_deg: when no guess reaches ``enough_inliers``, each guess turned by these angles about
-    the scan's own z axis is tried too (a hand-held sensor turning 20 deg between keyframes: from
+    the scan's own z axis is tried too, in this order, until one reaches it (a hand-held sensor
+    turning 20 deg between keyframes: from
     the usual guesses the alignment can end metres off with the turn right and 76 % inliers,
     where the true step has 98 %).
     far_m / near_share: an alignment that ends more than ``far_m`` and twice the predicted step
@@ -59,7 +60,7 @@ class VoxelGicpSettings:
     coarse_rotation_epsilon_deg: float = 1.0
     fine_translation_epsilon: float = 0.002
     fine_rotation_epsilon_deg: float = 0.2
-    turns_deg: tuple[float, ...] = (-20.0, -10.0, 10.0, 20.0)
+    turns_deg: tuple[float, ...] = (10.0, -10.0, 20.0, -20.0)
     far_m: float = 1.0
     near_share: float = 0.9
 
@@ -112,9 +113,10 @@ class VoxelGicpTracker:
         assert best is not None, "align needs at least one guess"
         if best[0] < enough:
             self.turned_tries += 1
-            for guess in guesses:
-                for turn in s.turns_deg:
-                    best = self._better(best, self._coarse_to_fine(cloud, guess @ _turn_z(turn)))
+            for guess, turn in ((g, t) for g in guesses for t in s.turns_deg):  # the nearest turns first
+                best = self._better(best, self._coarse_to_fine(cloud, guess @ _turn_z(turn)))
+                if best[0] >= enough:  # until one fits well
+                    break
         prediction = guesses[0][:3, 3]
         reach = max(s.far_m, 2.0 * float(np.linalg.norm(prediction - guesses[-1][:3, 3])))
         if np.linalg.norm(best[1][:3, 3] - prediction) > reach:
