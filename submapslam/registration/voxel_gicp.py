@@ -37,9 +37,8 @@ class VoxelGicpSettings:
     on the Livox sequences, at the same ATE).
     turns_deg: when no guess reaches ``enough_inliers``, each guess turned by these angles about
     the scan's own z axis is tried too, in this order, until one reaches it (a hand-held sensor
-    turning 20 deg between keyframes: from
-    the usual guesses the alignment can end metres off with the turn right and 76 % inliers,
-    where the true step has 98 %).
+    turning 20 deg between keyframes: from the usual guesses the alignment can end metres off
+    with the turn right and 76 % inliers, where the true step has 98 %).
     far_m / near_share: an alignment that ends more than ``far_m`` and twice the predicted step
     from the prediction may have slid along a repeated structure (the coarse map's 2 m voxels and
     4 m reach let it: in a hand-held walk through a building, one 3 m bay over, with 85 %
