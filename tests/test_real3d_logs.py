@@ -15,7 +15,7 @@ from submapslam.evaluation.metrics import ate
 from submapslam.io.trajectory import read_kitti
 from submapslam.trajectory import Trajectory
 
-from .conftest import shared_data
+from .conftest import load_tool, shared_data
 
 
 def _run_against_reference(name: str):
@@ -68,20 +68,14 @@ def test_livox_main_building_within_a_tenth_of_a_metre_and_no_worse_than_its_odo
 
 def _cut_against_reference(name: str, folder_out, start: int, step: int) -> float:
     """The ATE [m] of a run on every ``step``-th scan of real log ``name`` from scan ``start``
-    (symbolic links in ``folder_out``), against the reference poses of those scans."""
-    folder = shared_data("lidar3d", name)
-    files = sorted((folder / "scans").glob("*.pcd"))
-    keep = list(range(start, len(files), step))
-    scans = folder_out / "scans"
-    scans.mkdir()
-    for n, k in enumerate(keep):
-        (scans / f"{n:06d}.pcd").symlink_to(files[k])
-    np.savetxt(scans / "times.txt", np.loadtxt(folder / "scans" / "times.txt", ndmin=1)[keep], fmt="%.9f")
-    stamps = np.loadtxt(scans / "times.txt", ndmin=1)
-    reference = read_kitti(folder / "reference_poses_kitti.txt")
-    result = run(open_log(scans))
-    assert len(result.poses) == len(keep)
-    return _ate(result.timestamps, result.poses, Trajectory(stamps, reference.poses[keep]))
+    (``tools/cut_cloud_log.py`` into ``folder_out``), against the reference poses of those scans."""
+    cut = folder_out / "cut"
+    kept = load_tool("cut_cloud_log").cut(shared_data("lidar3d", name), cut, start, step)
+    stamps = np.loadtxt(cut / "scans" / "times.txt", ndmin=1)
+    reference = read_kitti(cut / "reference_poses_kitti.txt", timestamps=stamps)
+    result = run(open_log(cut / "scans"))
+    assert len(result.poses) == kept
+    return _ate(result.timestamps, result.poses, reference)
 
 
 def test_livox_main_building_at_every_second_keyframe(tmp_path):
