@@ -101,7 +101,10 @@ class VoxelGicpTracker:
         then fine from the coarse result; best = most fine inliers (the earlier guess wins ties).
         A guess whose alignment has ``enough_inliers`` of the scan as inliers ends the search
         (on the Livox sequences 4-6 % of the scans then try the no-motion guess; at 0.9, 12-19 %,
-        which found a better alignment for under 2 % of the scans, at the same ATE)."""
+        which found a better alignment for under 2 % of the scans, at the same ATE). Then the
+        turned guesses and the far-result check of :class:`VoxelGicpSettings` (``turns_deg``,
+        ``far_m``); ``guesses[0]`` is the motion prediction, ``guesses[-1]`` the last pose (the
+        predicted step is the distance between them)."""
         s = self.settings
         enough = s.enough_inliers * cloud.size()
         best: tuple[int, np.ndarray] | None = None
