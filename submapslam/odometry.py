@@ -21,6 +21,12 @@ from .geometry import blend_poses, inverse, matrix_to_se2, se2_to_matrix, splice
 from .registration.voxel_gicp import VoxelGicpSettings, VoxelGicpTracker, azimuth_coverage_deg
 from .scan import Scan
 
+#: [m] the starts tried for a 3D log's second scan, along the sensor's x and y axes, besides no
+#: motion (:meth:`Odometry._first_step`); one wins when it puts a FIRST_STEP_MARGIN larger share
+#: of the scan's points above the ground within half a voxel of the first scan
+FIRST_STEP_GUESSES_M = (1.5, -1.5, 3.0, -3.0)
+FIRST_STEP_MARGIN = 0.05
+
 NARROW_FIELD_DEG = 180.0  # auto registration: a first scan seeing less than this around z is a narrow-field sensor
 
 
@@ -112,6 +118,7 @@ class Odometry:
         self.last_delta = np.eye(4)
         self._last_wheel: np.ndarray | None = None
         self.n_registered = 0
+        self.first_step_moved = False  # 3D: the second scan's registration started from a guessed step
         self._scans_in_map = 0  # scans added to KISS-ICP's local map so far
         self.wheel_overruled = 0  # planar scans whose constant-velocity guess fitted better than the wheels'
         self.registration_overruled = 0  # planar scans whose wheel pose fitted better than where registration went
@@ -180,11 +187,10 @@ class Odometry:
                 self.last_xyt = xyt
         elif self._local_map.empty():
             new_pose = initial_guess
-        elif not self.planar and self._scans_in_map < self.config.young_map_scans:
-            # a young map: x, y and yaw from the scan without its ground (whose rings would hold it
-            # where the map's rings are), then height, roll and pitch from the whole scan
-            level = self._align(above_ground_band(source, self.config.ground_band_m), initial_guess)
-            new_pose = splice_height_and_tilt(level, self._align(source, level))
+        elif not self.planar:
+            new_pose = self._align_3d(source, initial_guess)
+            if self.n_registered == 1 and np.allclose(prediction, np.eye(4)):
+                new_pose = self._first_step(source, new_pose)
         else:
             new_pose = self._align(source, initial_guess)
         if self.planar and known is None:
@@ -295,6 +301,43 @@ class Odometry:
         self.last_frame_down = frame_down
         return new_pose
 
+    def _align_3d(self, source: np.ndarray, initial_guess: np.ndarray) -> np.ndarray:
+        """A spinning LiDAR's ``source (N, 3)`` registered to the local map from ``initial_guess``.
+        While the map is young, x, y and yaw come from the scan without its ground (whose rings
+        would hold it where the map's rings are), then height, roll and pitch from the whole scan."""
+        if self._scans_in_map < self.config.young_map_scans:
+            level = self._align(above_ground_band(source, self.config.ground_band_m), initial_guess)
+            return splice_height_and_tilt(level, self._align(source, level))
+        return self._align(source, initial_guess)
+
+    def _first_step(self, source: np.ndarray, from_rest: np.ndarray) -> np.ndarray:
+        """The second scan of a 3D log with no motion known yet: ``from_rest`` ``(4, 4)`` (its
+        registration from no motion) or, if one fits the first scan clearly better, a
+        registration from ``FIRST_STEP_GUESSES_M`` along the sensor's x or y axis. A log that
+        starts at speed (2.6 m a scan) otherwise registers its second scan a few decimetres on
+        (a street constrains little along itself), and the motion model keeps that pace."""
+        import small_gicp
+
+        threshold = 0.5 * self.voxel_size
+        tree = small_gicp.KdTree(np.asarray(self._local_map.point_cloud(), dtype=np.float64))
+        above = above_ground_band(source, self.config.ground_band_m)  # flat ground fits any step along it
+
+        def share(pose: np.ndarray) -> float:
+            _, d2 = tree.batch_knn_search(above @ pose[:3, :3].T + pose[:3, 3], 1)
+            return float(np.mean(np.asarray(d2).reshape(-1) < threshold * threshold))
+
+        best, best_share = from_rest, share(from_rest)
+        for axis in (0, 1):
+            for distance in FIRST_STEP_GUESSES_M:
+                step = np.eye(4)
+                step[axis, 3] = distance
+                pose = self._align_3d(source, self.last_pose @ step)
+                fit = share(pose)
+                if fit > (1.0 + FIRST_STEP_MARGIN) * best_share:
+                    best, best_share = pose, fit
+        self.first_step_moved = best is not from_rest
+        return best
+
     def _align(self, source: np.ndarray, initial_guess: np.ndarray) -> np.ndarray:
         """KISS-ICP point-to-point registration of ``source (N, 3)`` to the local map from ``initial_guess``."""
         sigma = self._threshold.get_threshold()
@@ -324,13 +367,15 @@ class Odometry:
         registration went. Narrow-field 3D runs (voxel_gicp): ``turned_guesses_tried`` scans whose
         usual guesses fitted poorly, ``far_from_prediction`` scans whose best alignment ended far
         from the prediction, ``near_alignment_kept`` of those where a near one won
-        (:class:`~submapslam.registration.voxel_gicp.VoxelGicpTracker`). Empty for other 3D runs."""
+        (:class:`~submapslam.registration.voxel_gicp.VoxelGicpTracker`). Other 3D runs:
+        ``first_step_from_a_guessed_move``, whether the second scan started from a step along the
+        sensor's axes (:meth:`_first_step`)."""
         if self._gicp is not None:
             t = self._gicp
             return {"turned_guesses_tried": t.turned_tries, "far_from_prediction": t.far_results,
                     "near_alignment_kept": t.near_kept}
         if not self.planar:
-            return {}
+            return {"first_step_from_a_guessed_move": self.first_step_moved}
         return {"wheel_overruled": self.wheel_overruled, "registration_overruled": self.registration_overruled}
 
     def _beyond_wheel_check(self, distance_m: float, turn_deg: float) -> bool:
