@@ -321,6 +321,8 @@ class Odometry:
         threshold = 0.5 * self.voxel_size
         tree = small_gicp.KdTree(np.asarray(self._local_map.point_cloud(), dtype=np.float64))
         above = above_ground_band(source, self.config.ground_band_m)  # flat ground fits any step along it
+        if not len(above):
+            return from_rest
 
         def share(pose: np.ndarray) -> float:
             _, d2 = tree.batch_knn_search(above @ pose[:3, :3].T + pose[:3, 3], 1)
