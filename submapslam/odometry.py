@@ -314,8 +314,8 @@ class Odometry:
         """The second scan of a 3D log with no motion known yet: ``from_rest`` ``(4, 4)`` (its
         registration from no motion) or, if one fits the first scan clearly better, a
         registration from ``FIRST_STEP_GUESSES_M`` along the sensor's x or y axis. A log that
-        starts at speed (2.6 m a scan) otherwise registers its second scan a few decimetres on
-        (a street constrains little along itself), and the motion model keeps that pace."""
+        starts at speed (2.6 m a scan) otherwise registered its second scan 0.1 m on (a street
+        constrains little along itself), and the motion model kept that pace."""
         import small_gicp
 
         threshold = 0.5 * self.voxel_size
