@@ -23,27 +23,31 @@ from pathlib import Path
 
 import numpy as np
 
-SCAN_SUFFIXES = (".pcd", ".ply", ".bin")
+from submapslam.io.cloud_folder import SCAN_SUFFIXES
 
 
 def cut(src: Path, dst: Path, start: int, step: int) -> int:
     """Write the cut of ``src`` into ``dst`` (must not exist); return the number of scans kept."""
-    scans = sorted(p for p in (src / "scans").iterdir() if p.suffix in SCAN_SUFFIXES)
-    times_file = next((p for p in (src / "scans" / "times.txt", src / "times.txt") if p.exists()), None)
+    folder = src / "scans"
+    scans = sorted(p for p in folder.iterdir() if p.suffix.lower() in SCAN_SUFFIXES and p.is_file()) \
+        if folder.is_dir() else []
+    times_file = next((p for p in (folder / "times.txt", src / "times.txt") if p.exists()), None)
     if not scans or times_file is None:
-        raise SystemExit(f"cut_cloud_log: {src}: no scans/*.pcd|ply|bin with a times.txt")
+        raise SystemExit(f"cut_cloud_log: {src}: no scans/ folder of {'/'.join(SCAN_SUFFIXES)} scans with a times.txt")
     keep = list(range(start, len(scans), step))
     if not keep:
         raise SystemExit(f"cut_cloud_log: {src} has {len(scans)} scans: none from scan {start} on")
+    reference = src / "reference_poses_kitti.txt"
+    lines = reference.read_text().splitlines() if reference.exists() else None
+    if lines is not None and len(lines) < len(scans):
+        raise SystemExit(f"cut_cloud_log: {reference}: {len(lines)} poses for {len(scans)} scans")
     dst.mkdir(parents=True)
     (dst / "scans").mkdir()
     for n, k in enumerate(keep):
         (dst / "scans" / f"{n:06d}{scans[k].suffix}").symlink_to(scans[k].resolve())
     times = np.loadtxt(times_file, ndmin=1, usecols=0)
     np.savetxt(dst / times_file.relative_to(src), times[keep], fmt="%.9f")
-    reference = src / "reference_poses_kitti.txt"
-    if reference.exists():
-        lines = reference.read_text().splitlines()
+    if lines is not None:
         (dst / reference.name).write_text("\n".join(lines[k] for k in keep) + "\n")
     for name in ("groundtruth_tum.txt", "meta.yaml"):  # time-stamped: the cut's times pick from it
         if (src / name).exists():

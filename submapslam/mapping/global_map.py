@@ -359,9 +359,9 @@ def build_map_outputs(result: SlamResult, session_starts: list[int] | None = Non
     reported as moved (``moved_points_in_map``)."""
     t0 = time.perf_counter()
     voxel = result.map_voxel_size
-    out = MapOutputs(points=np.zeros((0, 3), dtype=np.float32))
-    # held by ``out`` alone, so that the filtered clouds below replace it rather than join it
-    out.points, map_keys = fuse_clouds(zip(result.submap_poses, result.submap_points), voxel, with_keys=True)
+    points, map_keys = fuse_clouds(zip(result.submap_poses, result.submap_points), voxel, with_keys=True)
+    out = MapOutputs(points=points)
+    del points  # held by ``out`` alone: the filtered clouds below replace it rather than join it
     moved, moved_keys = None, None
     if result.submap_dynamic_points is not None:
         moved, moved_keys = fuse_clouds(((T, p) for T, p in zip(result.submap_poses, result.submap_dynamic_points)

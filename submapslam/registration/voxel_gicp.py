@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry import se2_to_matrix
+
 
 @dataclass(frozen=True)
 class VoxelGicpSettings:
@@ -116,7 +118,7 @@ class VoxelGicpTracker:
         if best[0] < enough:
             self.turned_tries += 1
             for guess, turn in ((g, t) for g in guesses for t in s.turns_deg):  # the nearest turns first
-                best = self._better(best, self._coarse_to_fine(cloud, guess @ _turn_z(turn)))
+                best = self._better(best, self._coarse_to_fine(cloud, guess @ se2_to_matrix(0.0, 0.0, np.radians(turn))))
                 if best[0] >= enough:  # until one fits well
                     break
         prediction = guesses[0][:3, 3]
@@ -161,14 +163,6 @@ class VoxelGicpTracker:
         self._coarse.insert(cloud, pose)
         self._fine.insert(cloud, pose)
         self._inserted += 1
-
-
-def _turn_z(deg: float) -> np.ndarray:
-    """``(4, 4)`` rotation by ``deg`` about z."""
-    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
-    T = np.eye(4)
-    T[:2, :2] = [[c, -s], [s, c]]
-    return T
 
 
 def azimuth_coverage_deg(points: np.ndarray, min_range: float = 0.5, bin_deg: float = 10.0) -> float:
