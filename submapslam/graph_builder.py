@@ -24,11 +24,14 @@ from .geometry import inverse, pose_difference
 from .result import LoopRecord
 from .submaps import Submap
 from .uncertainty import (
+    PRIOR_NOISE_INFLATION,
     LevelGroundTest,
     OdometryNoise,
     TiltChangeSpread,
     TiltDrift,
+    measured_vote_variance,
     odometry_information,
+    world_up_covariance,
 )
 
 log = logging.getLogger(__name__)
@@ -61,12 +64,17 @@ def consensus_up(votes: list[np.ndarray], agree_deg: float = 1.0) -> np.ndarray:
     to all others). One submap's walls can be off by degrees (a street canyon fixes the tilt about
     its own axis with a few cross walls; the first submap carries the odometry's start), and every
     level prior of the run is measured against this up."""
+    keep = np.asarray(votes, dtype=np.float64).reshape(-1, 3)[consensus_members(votes, agree_deg)]
+    up = keep.mean(axis=0)
+    return up / np.linalg.norm(up)
+
+
+def consensus_members(votes: list[np.ndarray], agree_deg: float = 1.0) -> np.ndarray:
+    """``(n,)`` bool: the ``votes`` :func:`consensus_up` averages (within ``agree_deg`` of the medoid)."""
     v = np.asarray(votes, dtype=np.float64).reshape(-1, 3)
     angles = np.arccos(np.clip(v @ v.T, -1.0, 1.0))
     medoid = v[int(np.argmin(angles.sum(axis=1)))]
-    keep = v[np.arccos(np.clip(v @ medoid, -1.0, 1.0)) <= np.deg2rad(agree_deg)]
-    up = keep.mean(axis=0)
-    return up / np.linalg.norm(up)
+    return np.arccos(np.clip(v @ medoid, -1.0, 1.0)) <= np.deg2rad(agree_deg)
 
 
 class GraphBuilder:
@@ -107,6 +115,9 @@ class GraphBuilder:
         self._level_from: str | None = None  # 3D: where the level priors' up comes from: "walls" or "ground"
         self._pending_level: list[tuple[int, np.ndarray, np.ndarray]] = []  # (id, ground up, R_odom_anchor) waiting
         self._up_votes: list[np.ndarray] = []  # the first submaps' wall verticals in the odometry frame
+        self._up_vote_ids: list[int] = []  # the submaps those votes came from
+        self._up_from_ground: int | None = None  # the submap whose ground normal is the world's up (ground source)
+        self._world_up_sigma: float | None = None  # [rad] per tilt axis, once finish() gave it to the covariances
         self._waiting_for_up: list[tuple[int, np.ndarray, float, str]] = []  # (id, up in anchor, sigma, kind) waiting
         self._submaps_without_walls = 0  # 3D: submaps seen before the level priors' source was chosen
         # the walls' vertical: spinning LiDARs only. A narrow-field sensor's odometry holds its tilt to
@@ -201,6 +212,7 @@ class GraphBuilder:
             self.wall_verticals += 1
             if self._world_up is None and len(self._up_votes) < WORLD_UP_VOTES:
                 self._up_votes.append(R @ vertical)
+                self._up_vote_ids.append(submap.id)
             self._waiting_for_up.append((submap.id, vertical, np.deg2rad(self.config.wall_vertical_sigma_deg),
                                         WALL_VERTICAL_PRIOR))
             if self._world_up is not None or len(self._up_votes) == WORLD_UP_VOTES:
@@ -236,6 +248,7 @@ class GraphBuilder:
         for key, up, R in self._pending_level:
             if self._world_up is None:
                 self._world_up = R @ up
+                self._up_from_ground = key
             self.graph.add_attitude(key, up, self._world_up, sigma)
         self._pending_level.clear()
 
@@ -295,6 +308,36 @@ class GraphBuilder:
             self.ground_prior_test["level"] = ratio <= 1.0
         if ratio is None or ratio > 1.0:
             self.ground_prior_test.update(self.graph.drop_ground_priors_unless_loops_agree(keep_kinds={WALL_VERTICAL_PRIOR}))
+
+    def _world_up_covariance(self, noise: OdometryNoise) -> np.ndarray | None:
+        """``(3, 3)`` [rad^2]: the error of the world up every level prior is measured against
+        (:func:`~submapslam.uncertainty.world_up_covariance`): the consensus of the first walled
+        submaps' verticals, or the first ground normal, each as far off as the run's priors of
+        that kind are from the estimate (:func:`~submapslam.uncertainty.measured_vote_variance`),
+        and seen through the odometry's tilt (``noise``) at its anchor."""
+        rate, residuals = noise.variance_per_metre(), self.graph.attitude_residuals()
+        if self._world_up is None or rate is None or not residuals:  # no level prior (left): nothing shares it
+            return None
+        if self._up_from_ground is not None:
+            ids, kind, sigma_deg = [self._up_from_ground], GROUND_ATTITUDE_PRIOR, self.config.ground_attitude_sigma_deg
+        else:
+            members = consensus_members(self._up_votes)
+            ids, kind, sigma_deg = ([k for k, m in zip(self._up_vote_ids, members) if m], WALL_VERTICAL_PRIOR,
+                                    self.config.wall_vertical_sigma_deg)
+        vote = measured_vote_variance(residuals.get(kind, np.zeros((0, 2))),
+                                      PRIOR_NOISE_INFLATION * float(np.deg2rad(sigma_deg)) ** 2)
+        path = {k: sum(d for m, d in self.edge_distance.items() if m <= k) for k in ids}
+        cov = world_up_covariance(self._world_up, [path[k] for k in ids], vote, float(np.mean(rate[:2])))
+        self._world_up_sigma = float(np.sqrt(np.trace(cov) / 2.0))
+        return cov
+
+    def world_up_summary(self) -> dict:
+        """What ``summary.json``'s ``covariance_model`` says of the world up the level priors share:
+        its sigma per tilt axis [deg] in the reported covariances, and where it came from."""
+        if self._world_up_sigma is None:
+            return {}
+        source = "ground" if self._up_from_ground is not None else "walls"
+        return {"world_up": {"from": source, "sigma_deg": round(float(np.rad2deg(self._world_up_sigma)), 4)}}
 
     def tilt_change_summary(self) -> dict:
         """``summary.json``'s ``ground_tilt_change``: pairs, their spread and the sigma in use
@@ -388,7 +431,8 @@ class GraphBuilder:
             noise = OdometryNoise(self.odometry_correction, self.edge_distance)
             if self.config.covariance_scale is None and noise.variance_per_metre() is not None:
                 try:
-                    covs = self.graph.estimator_covariances(noise.factor_covariance)
+                    covs = self.graph.estimator_covariances(noise.factor_covariance,
+                                                            up_covariance=self._world_up_covariance(noise))
                     self.covariance_model = noise
                 except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:  # a singular system: the marginals
                     log.warning("the estimate's covariances could not be computed (%s); reporting the graph's "

@@ -544,6 +544,7 @@ class SubmapSLAM:
                                 calibrate(np.array([covs[k] for k in range(n)]).reshape(-1, 6, 6),
                                           covariance_scale(backend, self.planar))),
             covariance_model=({"kind": "measured odometry noise", **noise.summary(),
+                               **self._graph_builder.world_up_summary(),
                                "scan_jitter_variance": [float(v) for v in
                                                         scan_jitter_variance(np.array(self._odom_poses), timestamps)]}
                               if noise is not None else

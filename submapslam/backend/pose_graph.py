@@ -528,8 +528,20 @@ class PoseGraph:
         key = int(self._graph.at(idx).keys()[0])
         return "prior", key, key
 
+    def attitude_residuals(self) -> dict[str, np.ndarray]:
+        """Per kind of attitude prior (:meth:`add_attitude`), ``(n, 2)`` [rad]: how far each active
+        one's node is from it at the estimate, in the prior's own 2-D error space."""
+        gtsam = self._gtsam
+        out: dict[str, list[np.ndarray]] = {}
+        for idx in self._active_factors():
+            factor = self._graph.at(idx)
+            if isinstance(factor, gtsam.AttitudeFactorPose3):
+                out.setdefault(self.factor_kind(idx)[0], []).append(np.asarray(factor.unwhitenedError(self._estimate)))
+        return {kind: np.array(r) for kind, r in out.items()}
+
     def estimator_covariances(self, true_covariance: Callable[[str, int, int, np.ndarray], np.ndarray],
-                              keys: Iterable[int] | None = None, batch: int = 128) -> dict[int, np.ndarray]:
+                              keys: Iterable[int] | None = None, batch: int = 128,
+                              up_covariance: np.ndarray | None = None) -> dict[int, np.ndarray]:
         """``(6, 6)`` covariances (GTSAM order, node frame) of the current estimate of nodes ``keys``
         (default: all) when each factor's measurement error has the covariance
         ``true_covariance(kind, i, j, stated)`` (:meth:`factor_kind`; ``stated``: the covariance
@@ -540,6 +552,10 @@ class PoseGraph:
         included); its covariance is the sandwich ``H^-1 J^T W S W J H^-1`` with ``S`` the true
         covariances. With ``S`` the stated ones and no kernel this is the graph's marginal covariance.
         Sparse: ``H`` is factorised once and solved for ``batch`` nodes at a time.
+
+        ``up_covariance`` ``(3, 3)`` [rad^2]: the error the attitude priors (:meth:`add_attitude`)
+        share, a small rotation (world frame) of the one world up they all hold the nodes to. It
+        tilts the whole estimate alike: ``G Sigma_up G^T`` is added, ``G = H^-1 J^T W (de/du)``.
         """
         from scipy.sparse import coo_matrix
         from scipy.sparse.linalg import splu
@@ -548,6 +564,7 @@ class PoseGraph:
         nodes = sorted(self._initial)
         col = {k: 6 * n for n, k in enumerate(nodes)}
         rows_h, cols_h, vals_h, rows_m, cols_m, vals_m = [], [], [], [], [], []
+        shared_rows, shared_vals = [], []  # J^T W de/du of the attitude priors, (6, 3) per factor
         for idx in self._active_factors():
             factor = self._relaxed.get(idx, self._graph.at(idx))
             kind, i, j = self.factor_kind(idx)
@@ -564,6 +581,11 @@ class PoseGraph:
             linear = factor.linearize(self._estimate)
             A = np.asarray(linear.jacobian()[0], dtype=np.float64)  # whitened (and weighted) Jacobian
             idx_cols = np.concatenate([np.arange(col[int(k)], col[int(k)] + 6) for k in linear.keys()])
+            if up_covariance is not None and isinstance(factor, gtsam.AttitudeFactorPose3):
+                shared_rows.append(idx_cols)
+                # the up turned by u in the world is the node turned by -u there: R -> Exp(-u) R = R Exp(-R^T u)
+                R_node = self._estimate.atPose3(linear.keys()[0]).rotation().matrix()
+                shared_vals.append(A.T @ (-A[:, :3] @ R_node.T))
             for target_rows, target_cols, target_vals, block in ((rows_h, cols_h, vals_h, A.T @ A),
                                                                  (rows_m, cols_m, vals_m, A.T @ R @ A)):
                 target_rows.append(np.repeat(idx_cols, len(idx_cols)))
@@ -573,6 +595,12 @@ class PoseGraph:
         H = coo_matrix((np.concatenate(vals_h), (np.concatenate(rows_h), np.concatenate(cols_h))), shape=(n, n)).tocsc()
         M = coo_matrix((np.concatenate(vals_m), (np.concatenate(rows_m), np.concatenate(cols_m))), shape=(n, n)).tocsr()
         lu = splu(H)
+        tilt = None  # (n, 3): the estimate's error per unit rotation of the world up
+        if shared_rows:
+            g = np.zeros((n, 3))
+            for r, v in zip(shared_rows, shared_vals):
+                g[r] += v
+            tilt = lu.solve(g)
         wanted = list(nodes if keys is None else keys)
         out: dict[int, np.ndarray] = {}
         for start in range(0, len(wanted), batch):
@@ -584,6 +612,9 @@ class PoseGraph:
             MX = M @ X
             for m, k in enumerate(chunk):
                 block = X[:, 6 * m:6 * m + 6].T @ MX[:, 6 * m:6 * m + 6]
+                if tilt is not None:
+                    G = tilt[col[k]:col[k] + 6]
+                    block = block + G @ up_covariance @ G.T
                 out[k] = 0.5 * (block + block.T)
         return out
 
