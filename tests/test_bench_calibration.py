@@ -35,3 +35,10 @@ def test_scores_and_rescales_samples(tmp_path, capsys):
     row = [line for line in out.splitlines() if line.startswith("| w anchors (rescaled)")][0]
     assert "x 0.9" in row or "x 1.0" in row
     assert bench.seed_range("3:6") == [3, 4, 5] and bench.seed_range("1,4") == [1, 4]
+
+
+def test_a_finished_runs_anchors_are_the_submaps_first_scans(tmp_path):
+    bench = _bench()
+    (tmp_path / "submaps.csv").write_text("id,first_scan,last_scan\n0,0,14\n1,14,28\n2,28,40\n")
+    assert bench._anchor_rows(tmp_path / "submaps.csv", [1, 2, 14, 15, 28, 39]) == [2, 4]
+    assert bench._anchor_rows(tmp_path / "none.csv", [1, 2]) == []

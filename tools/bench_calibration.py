@@ -210,13 +210,26 @@ def rescore(files: list[str], scale: list[float] | None) -> int:
     return 0
 
 
+def _anchor_rows(submaps_csv: Path, scans: list[int]) -> list[int]:
+    """Rows of ``scans`` (scan indices) that are a submap's first scan (``submaps.csv``'s
+    ``first_scan``: the anchor's own pose); none without the file."""
+    if not submaps_csv.exists():
+        return []
+    import csv
+
+    with open(submaps_csv, newline="") as f:
+        first = {int(row["first_scan"]) for row in csv.DictReader(f)}
+    return [n for n, k in enumerate(scans) if k in first]
+
+
 def real_run(out: Path, log: Path, corrected: Path | None, scale: list[float] | None) -> int:
     """A finished run's ``poses_cov.txt`` (in ``out``) against the log's reference: a CARMEN log's
     corrected log (``corrected``; itself a few cm off, not ground truth) or a cloud folder's
     ground truth / reference poses (``tools/bench_city.ground_truth_per_scan``). Errors of the
     scans with a reference, relative to the first of them, in each scan's frame, against the
     file's covariances (relative to scan 0, which the graph holds fixed; the first referenced scan
-    is at or near it). Every scan is a sample (neighbours are strongly correlated). ``scale``: the
+    is at or near it). Every scan is a sample (neighbours are strongly correlated); a second row
+    scores the anchors alone (each submap's first scan, ``submaps.csv``). ``scale``: the
     variance scale the run used, to show the raw marginals' figures beside the written ones."""
     from submapslam.geometry import inverse
     from submapslam.io.trajectory import carmen_reference_trajectory, read_tum_cov
@@ -243,6 +256,9 @@ def real_run(out: Path, log: Path, corrected: Path | None, scale: list[float] | 
     print("| covariances | samples | per axis mean (e/sigma)^2 (share <= 3.84) | x-y NEES [95 % band] (share in "
           "95 % bound) | full NEES [95 % band] (share in bound) |\n|---|---|---|---|---|")
     print(table("as written", summarise(errs, c, planar)))
+    anchors = _anchor_rows(out / "submaps.csv", [k for k, _ in rest])
+    if len(anchors) >= 3:
+        print(table("as written, anchors (each submap's first scan)", summarise(errs[anchors], c[anchors], planar)))
     if scale is not None:
         from submapslam.uncertainty import calibrate
 
