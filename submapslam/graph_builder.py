@@ -24,7 +24,6 @@ from .geometry import inverse, pose_difference
 from .result import LoopRecord
 from .submaps import Submap
 from .uncertainty import (
-    PRIOR_NOISE_INFLATION,
     LevelGroundTest,
     OdometryNoise,
     TiltChangeSpread,
@@ -324,8 +323,7 @@ class GraphBuilder:
             members = consensus_members(self._up_votes)
             ids, kind, sigma_deg = ([k for k, m in zip(self._up_vote_ids, members) if m], WALL_VERTICAL_PRIOR,
                                     self.config.wall_vertical_sigma_deg)
-        vote = measured_vote_variance(residuals.get(kind, np.zeros((0, 2))),
-                                      PRIOR_NOISE_INFLATION * float(np.deg2rad(sigma_deg)) ** 2)
+        vote = measured_vote_variance(residuals.get(kind, np.zeros((0, 2))), float(np.deg2rad(sigma_deg)) ** 2)
         path = {k: sum(d for m, d in self.edge_distance.items() if m <= k) for k in ids}
         cov = world_up_covariance(self._world_up, [path[k] for k in ids], vote, float(np.mean(rate[:2])))
         self._world_up_sigma = float(np.sqrt(np.trace(cov) / 2.0))

@@ -269,12 +269,14 @@ def measured_vote_variance(residuals: np.ndarray, stated: float, min_priors: int
     """Variance [rad^2] per tilt axis of one vote for the world up (a wall vertical, a ground
     normal), from how far the run's level priors of that kind are from its estimate: their ``(n, 2)``
     residuals [rad], robust (the median of the squares over chi-square(1)'s, 0.455), pooled over
-    both axes; ``stated`` with fewer than ``min_priors``. The estimate holds each anchor's tilt by
-    its neighbours as well, so a residual is mostly the vote's own error (the terrain worlds' wall
-    verticals: 0.12-0.16 deg, against the 0.5 deg the priors are weighed with)."""
+    both axes; with fewer than ``min_priors``, the priors' ``stated`` variance [rad^2] as
+    :meth:`OdometryNoise.factor_covariance` takes it (times :data:`PRIOR_NOISE_INFLATION`). The
+    estimate holds each anchor's tilt by its neighbours as well, so a residual is mostly the vote's
+    own error (the terrain worlds' wall verticals: 0.12-0.16 deg, against the 0.5 deg the priors
+    are weighed with)."""
     r = np.asarray(residuals, dtype=np.float64).reshape(-1, 2)
     if len(r) < min_priors:
-        return float(stated)
+        return PRIOR_NOISE_INFLATION * float(stated)
     return float(np.median(r**2) / 0.455)
 
 
