@@ -129,7 +129,7 @@ class Odometry:
         if not planar and config.registration == "voxel_gicp":
             voxel = self.voxel_size
             self._gicp = VoxelGicpTracker(VoxelGicpSettings(fine_voxel=voxel, coarse_voxel=4.0 * voxel,
-                                                            frame_voxel=self.frame_voxel,
+                                                            frame_voxel=self.frame_voxel, coarse_frame_voxel=voxel,
                                                             coarse_distance=8.0 * voxel, fine_distance=2.0 * voxel,
                                                             coarse_translation_epsilon=0.04 * voxel,
                                                             fine_translation_epsilon=0.004 * voxel,

@@ -22,11 +22,30 @@ from ..geometry import se2_to_matrix
 
 
 @dataclass(frozen=True)
+class PreparedScan:
+    """One scan as the tracker registers it: small_gicp clouds in the scan's frame, ``fine``
+    (thinned to ``frame_voxel``) and ``coarse`` (to ``coarse_frame_voxel``; ``fine`` itself when
+    that is not coarser)."""
+
+    fine: object
+    coarse: object
+
+    def size(self) -> int:
+        """Points of the fine cloud (inliers are counted against it)."""
+        return self.fine.size()
+
+
+@dataclass(frozen=True)
 class VoxelGicpSettings:
     """Resolutions [m] and distances [m] of the two stages.
 
     fine_voxel: the fine map's voxel; coarse_voxel: the coarse map's; frame_voxel: each scan is
     thinned to this before its covariances are estimated (``neighbours`` nearest points);
+    coarse_frame_voxel: the coarse stage registers the scan thinned again to this (its
+    covariances estimated anew), a point or two per side of a coarse voxel instead of eight:
+    on the Livox sequences and their cuts at the fine voxel (0.5 m) the coarse stage costs
+    two thirds less and every ATE is the same or better (0.75 m: about as good; 1 m: the loop
+    at every second keyframe 0.09 -> 0.12 m); not coarser than ``frame_voxel`` = the same cloud;
     coarse_distance / fine_distance: the largest point-to-voxel distance of a correspondence in
     each stage; horizon: insertions a voxel survives unseen; max_iterations: of each stage;
     enough_inliers: a guess whose alignment has this fraction of the scan's points as inliers is
@@ -51,6 +70,7 @@ class VoxelGicpSettings:
     fine_voxel: float = 0.5
     coarse_voxel: float = 2.0
     frame_voxel: float = 0.25
+    coarse_frame_voxel: float = 0.5
     coarse_distance: float = 4.0
     fine_distance: float = 1.0
     neighbours: int = 10
@@ -91,14 +111,20 @@ class VoxelGicpTracker:
     def empty(self) -> bool:
         return self._inserted == 0
 
-    def prepare(self, points: np.ndarray):
-        """``(N, 3)`` scan points -> a small_gicp cloud thinned to ``frame_voxel`` with covariances."""
-        cloud, _ = self._gicp.preprocess_points(np.ascontiguousarray(points, dtype=np.float64),
-                                                downsampling_resolution=self.settings.frame_voxel,
-                                                num_neighbors=self.settings.neighbours)
-        return cloud
+    def prepare(self, points: np.ndarray) -> PreparedScan:
+        """``(N, 3)`` scan points -> small_gicp clouds with covariances: thinned to ``frame_voxel``
+        (the fine stage's, and what the maps take), and that thinned again to ``coarse_frame_voxel``
+        (the coarse stage's)."""
+        s = self.settings
+        fine, _ = self._gicp.preprocess_points(np.ascontiguousarray(points, dtype=np.float64),
+                                               downsampling_resolution=s.frame_voxel, num_neighbors=s.neighbours)
+        if s.coarse_frame_voxel <= s.frame_voxel:
+            return PreparedScan(fine, fine)
+        coarse = self._gicp.voxelgrid_sampling(fine, s.coarse_frame_voxel)
+        self._gicp.estimate_covariances(coarse, num_neighbors=s.neighbours)
+        return PreparedScan(fine, coarse)
 
-    def align(self, cloud, guesses: list[np.ndarray]) -> tuple[np.ndarray, int]:
+    def align(self, cloud: PreparedScan, guesses: list[np.ndarray]) -> tuple[np.ndarray, int]:
         """The best ``T_odom_scan`` over ``guesses`` (each ``(4, 4)``, tried in order): coarse,
         then fine from the coarse result; best = most fine inliers (the earlier guess wins ties).
         A guess whose alignment has ``enough_inliers`` of the scan as inliers ends the search
@@ -140,28 +166,32 @@ class VoxelGicpTracker:
         """The one of two ``(inliers, T_odom_scan)`` with more inliers (``best`` on a tie)."""
         return candidate if best is None or candidate[0] > best[0] else best
 
-    def _coarse_to_fine(self, cloud, guess: np.ndarray) -> tuple[int, np.ndarray]:
+    def _coarse_to_fine(self, cloud: PreparedScan, guess: np.ndarray) -> tuple[int, np.ndarray]:
         """``(fine inliers, T_odom_scan)`` of the coarse stage from ``guess`` ``(4, 4)``, then the fine one."""
+        return self._fine_stage(cloud, self._coarse_stage(cloud, guess))
+
+    def _coarse_stage(self, cloud: PreparedScan, guess: np.ndarray) -> np.ndarray:
+        """``T_odom_scan`` ``(4, 4)`` of the coarse stage from ``guess`` ``(4, 4)``."""
         s = self.settings
-        coarse = self._gicp.align(self._coarse, cloud, guess, max_correspondence_distance=s.coarse_distance,
+        coarse = self._gicp.align(self._coarse, cloud.coarse, guess, max_correspondence_distance=s.coarse_distance,
                                   max_iterations=s.max_iterations,
                                   translation_epsilon=s.coarse_translation_epsilon,
                                   rotation_epsilon=np.radians(s.coarse_rotation_epsilon_deg))
-        return self._fine_stage(cloud, coarse.T_target_source)
+        return np.asarray(coarse.T_target_source, dtype=np.float64)
 
-    def _fine_stage(self, cloud, guess: np.ndarray) -> tuple[int, np.ndarray]:
+    def _fine_stage(self, cloud: PreparedScan, guess: np.ndarray) -> tuple[int, np.ndarray]:
         """``(inliers, T_odom_scan)`` of the fine stage alone from ``guess`` ``(4, 4)``."""
         s = self.settings
-        fine = self._gicp.align(self._fine, cloud, guess,
+        fine = self._gicp.align(self._fine, cloud.fine, guess,
                                 max_correspondence_distance=s.fine_distance, max_iterations=s.max_iterations,
                                 translation_epsilon=s.fine_translation_epsilon,
                                 rotation_epsilon=np.radians(s.fine_rotation_epsilon_deg))
         return int(fine.num_inliers), np.asarray(fine.T_target_source, dtype=np.float64)
 
-    def insert(self, cloud, pose: np.ndarray) -> None:
-        """Add a prepared scan at ``pose`` (``T_odom_scan``) to both maps."""
-        self._coarse.insert(cloud, pose)
-        self._fine.insert(cloud, pose)
+    def insert(self, cloud: PreparedScan, pose: np.ndarray) -> None:
+        """Add a prepared scan's fine cloud at ``pose`` (``T_odom_scan``) to both maps."""
+        self._coarse.insert(cloud.fine, pose)
+        self._fine.insert(cloud.fine, pose)
         self._inserted += 1
 
 
