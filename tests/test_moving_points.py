@@ -90,6 +90,19 @@ def test_numpy_clusters_are_the_26_connected_components():
     # the same partition: each of our clusters is one of scipy's and their numbers agree
     assert len(np.unique(ours)) == len(np.unique(scipys)) == len(np.unique(ours * len(keys) + scipys))
     assert 1 < len(np.unique(ours)) < len(keys)
+    # each voxel is labelled with the smallest index of its component, also where a component
+    # winds through the key order (a helix and a wall beside the random voxels)
+    t = np.linspace(0.0, 12 * np.pi, 4000)
+    helix = np.stack([15 + 6 * np.cos(t), 15 + 6 * np.sin(t), t / 2], axis=1)
+    wall = np.stack(np.meshgrid(np.arange(0.0, 20.0, 0.3), [40.0], np.arange(0.0, 6.0, 0.3)), -1).reshape(-1, 3)
+    keys = np.unique(voxel_keys(np.concatenate([points, helix, wall]), 0.4))
+    zero = np.zeros(len(keys), dtype=np.int32)
+    ours = spatial_clusters(keys)
+    scipys = co_observed_clusters(keys, zero, zero, np.ones(len(keys), dtype=bool), 0)
+    assert len(np.unique(ours)) == len(np.unique(scipys)) == len(np.unique(ours * len(keys) + scipys))
+    smallest = np.full(len(keys), len(keys))
+    np.minimum.at(smallest, scipys, np.arange(len(keys)))
+    assert np.array_equal(ours, smallest[scipys])
 
 
 @pytest.fixture(scope="module")

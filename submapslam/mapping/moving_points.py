@@ -289,8 +289,10 @@ _HALF_OFFSETS = voxel_keys(_HALF + 0.5, 1.0) - voxel_keys(np.full((1, 3), 0.5), 
 
 
 def spatial_clusters(keys: np.ndarray) -> np.ndarray:
-    """Component id ``(V,)`` of sorted voxel keys (:func:`voxel_keys`) under 26-connectivity: numpy
-    only (min-label propagation with pointer jumping; no scipy in the odometry's child process)."""
+    """Component id ``(V,)`` of sorted voxel keys (:func:`voxel_keys`) under 26-connectivity: the
+    smallest index in each voxel's component. numpy only (no scipy in the odometry's child
+    process): each round hooks the larger of two linked labels under the smaller, then follows
+    the labels to their roots (every label is then a root), and drops the links inside one label."""
     n = len(keys)
     labels = np.arange(n)
     src, nb = [], []
@@ -302,14 +304,17 @@ def spatial_clusters(keys: np.ndarray) -> np.ndarray:
         nb.append(pos[hit])
     src, nb = np.concatenate(src), np.concatenate(nb)
     while len(src):
-        low = np.minimum(labels[src], labels[nb])
-        new = labels.copy()
-        np.minimum.at(new, src, low)
-        np.minimum.at(new, nb, low)
-        new = new[new]  # labels only fall (to a smaller index), so this jumps towards the root
-        if np.array_equal(new, labels):
+        a, b = labels[src], labels[nb]
+        apart = a != b  # a link inside one label stays inside one: its ends follow the same root
+        if not apart.any():
             break
-        labels = new
+        src, nb, a, b = src[apart], nb[apart], a[apart], b[apart]
+        np.minimum.at(labels, np.maximum(a, b), np.minimum(a, b))  # roots only ever fall
+        while True:  # every voxel to its root
+            jumped = labels[labels]
+            if np.array_equal(jumped, labels):
+                break
+            labels = jumped
     return labels
 
 
