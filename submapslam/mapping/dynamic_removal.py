@@ -52,10 +52,18 @@ import numpy as np
 _BITS = 21
 
 
+_KEY_CHUNK = 1 << 16  # points keyed at once: the temporaries of a submap's 700k points stay a few MB
+
+
 def voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
     """One int64 key ``(N,)`` per point ``(N, 3)``: its ``voxel`` cell's integer coordinates, 21 bits each."""
-    ijk = np.floor(np.asarray(points, dtype=np.float64) / voxel).astype(np.int64) + (1 << (_BITS - 1))
-    return (ijk[:, 0] << (2 * _BITS)) | (ijk[:, 1] << _BITS) | ijk[:, 2]
+    points = np.asarray(points)
+    keys = np.empty(len(points), dtype=np.int64)
+    for lo in range(0, len(points), _KEY_CHUNK):
+        ijk = np.floor(np.asarray(points[lo:lo + _KEY_CHUNK], dtype=np.float64) / voxel).astype(np.int64)
+        ijk += 1 << (_BITS - 1)
+        keys[lo:lo + _KEY_CHUNK] = (ijk[:, 0] << (2 * _BITS)) | (ijk[:, 1] << _BITS) | ijk[:, 2]
+    return keys
 
 
 class VoxelAccumulator:
