@@ -43,8 +43,8 @@ class VoxelGicpSettings:
     thinned to this before its covariances are estimated (``neighbours`` nearest points);
     coarse_frame_voxel: the coarse stage registers the scan thinned again to this (its
     covariances estimated anew), a point or two per side of a coarse voxel instead of eight:
-    on the Livox sequences and their cuts at the fine voxel (0.5 m) the coarse stage costs
-    two thirds less and every ATE is the same or better (0.75 m: about as good; 1 m: the loop
+    on the Livox sequences and their cuts at the fine voxel (0.5 m) the coarse stage costs a
+    third less and every ATE is the same or better (0.75 m: about as good; 1 m: the loop
     at every second keyframe 0.09 -> 0.12 m); not coarser than ``frame_voxel`` = the same cloud;
     coarse_distance / fine_distance: the largest point-to-voxel distance of a correspondence in
     each stage; horizon: insertions a voxel survives unseen; max_iterations: of each stage;
