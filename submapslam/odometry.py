@@ -28,6 +28,9 @@ FIRST_STEP_GUESSES_M = (1.5, -1.5, 3.0, -3.0)
 FIRST_STEP_MARGIN = 0.05
 
 NARROW_FIELD_DEG = 180.0  # auto registration: a first scan seeing less than this around z is a narrow-field sensor
+#: planar: a scan fitting the last scans below this share of their usual fit (median of the last 20) is
+#: checked against the previous scan (:meth:`Odometry._check_against_previous_scan`)
+POOR_FIT = 0.75
 
 
 def resolve_registration(config: OdometryConfig, scan: Scan) -> OdometryConfig:
@@ -122,6 +125,8 @@ class Odometry:
         self._scans_in_map = 0  # scans added to KISS-ICP's local map so far
         self.wheel_overruled = 0  # planar scans whose constant-velocity guess fitted better than the wheels'
         self.registration_overruled = 0  # planar scans whose wheel pose fitted better than where registration went
+        self.previous_scan_checked = 0  # planar scans that fitted poorly, so that their match to the previous scan was tried
+        self.previous_scan_preferred = 0  # ... and of them, those where that match's pose was kept
         self._recent_fits: deque[float] = deque(maxlen=20)  # planar: fit of the last scans to the ones before
         self._refiner = None
         self.movers = None  # 3D: keeps what moved out of registration and the local map
@@ -221,6 +226,7 @@ class Odometry:
                                 best, best_guess, best_fit = cand, guess, cand_fit
                     if best_fit >= usual:
                         xyt, initial_guess, fit = best, best_guess, best_fit
+                xyt, fit = self._check_against_previous_scan(frame_down, xyt, fit, prediction)
                 self._recent_fits.append(fit)
             elif self._refiner is not None:
                 fit = self._fit(frame_down, xyt)
@@ -235,6 +241,7 @@ class Odometry:
                     if kept_fit > fit:
                         xyt, fit = kept, kept_fit
                         self.registration_overruled += 1
+                xyt, fit = self._check_against_previous_scan(frame_down, xyt, fit, prediction)
                 self._recent_fits.append(fit)
             if self._refiner is not None:
                 self._refiner.add(frame_down[:, :2], xyt)
@@ -355,6 +362,29 @@ class Odometry:
             xyt, _ = self._refiner.refine(frame_down[:, :2], xyt, matrix_to_se2(initial_guess))
         return xyt
 
+    def _check_against_previous_scan(self, frame_down: np.ndarray, xyt: np.ndarray, fit: float,
+                                     prediction: np.ndarray) -> tuple[np.ndarray, float]:
+        """Planar: ``(xyt, fit)`` of the scan, or of the pose its match to the previous scan gives
+        (:class:`~submapslam.registration.previous_scan.PreviousScan`, refined against the last scans)
+        when ``fit`` is below :data:`POOR_FIT` of the usual and that pose puts clearly more of the scan
+        on the previous scan's points. ``prediction``: the predicted step ``(4, 4)`` from the last pose."""
+        if (not self.config.planar_previous_scan_check or not self._recent_fits or self.last_xyt is None
+                or fit >= POOR_FIT * statistics.median(self._recent_fits)):
+            return xyt, fit
+        from .registration.previous_scan import PreviousScan
+
+        self.previous_scan_checked += 1
+        previous = PreviousScan(self.last_frame_down, self.last_xyt)
+        candidate = previous.candidate(frame_down, prediction)
+        if candidate is None:
+            return xyt, fit
+        pose = se2_to_matrix(*candidate)
+        candidate = self._refine(frame_down, pose, pose)
+        if not previous.prefers(frame_down, candidate, xyt):
+            return xyt, fit
+        self.previous_scan_preferred += 1
+        return candidate, self._fit(frame_down, candidate)
+
     def _fit(self, frame_down: np.ndarray, xyt: np.ndarray) -> float:
         """Share of the scan's points ``(N, 3)`` placed at ``xyt`` within half an odometry-map voxel
         of the last scans (the point-to-line target; 0 when there is none)."""
@@ -378,7 +408,9 @@ class Odometry:
                     "near_alignment_kept": t.near_kept}
         if not self.planar:
             return {"first_step_from_a_guessed_move": self.first_step_moved}
-        return {"wheel_overruled": self.wheel_overruled, "registration_overruled": self.registration_overruled}
+        return {"wheel_overruled": self.wheel_overruled, "registration_overruled": self.registration_overruled,
+                "previous_scan_checked": self.previous_scan_checked,
+                "previous_scan_preferred": self.previous_scan_preferred}
 
     def _beyond_wheel_check(self, distance_m: float, turn_deg: float) -> bool:
         """Two planar poses ``distance_m`` [m] and ``turn_deg`` [deg] apart differ by more than
