@@ -51,3 +51,51 @@ def test_a_numeric_variant_reaches_the_child_as_its_environment(bench, tmp_path,
     assert doc["env"] == bench.NUMERIC["sse"] and "X86_V3" in doc["env"]["NPY_DISABLE_CPU_FEATURES"]
     doc = bench.run_child("intel", tmp_path, tmp_path, None, "native")
     assert doc["env"] == {"NPY_DISABLE_CPU_FEATURES": None, "OPENBLAS_CORETYPE": None}
+
+
+def test_a_cut_keeps_every_kth_scan_of_each_laser_and_every_other_line(tmp_path):
+    """tools/cut_carmen_log.py: each laser record counted on its own, ODOM lines kept, the reader
+    sees a third of the scans with their own times, and an existing file is never overwritten."""
+    from submapslam.io.registry import open_log
+
+    log, cut = tmp_path / "room.clf", tmp_path / "room_every3.clf"
+    _write_log(log)
+    lines = log.read_text().splitlines()
+    lines = [x for k, line in enumerate(lines) for x in (line, f"ODOM 0 0 0 0 0 0 {1000 + 0.2 * k:.6f} host 0",
+                                                          line.replace("FLASER", "RLASER", 1))]
+    log.write_text("\n".join(lines) + "\n")
+    tool = load_tool("cut_carmen_log")
+    assert tool.cut(log, cut, 3) == (40, 120)  # 20 of 60 front and 20 of 60 rear scans
+    kept = cut.read_text().splitlines()
+    assert sum(x.startswith("ODOM") for x in kept) == 60
+    front = [x for x in kept if x.startswith("FLASER")]
+    assert front == [x for x in lines if x.startswith("FLASER")][::3]
+    stamps = [scan.timestamp for scan in open_log(cut)]
+    assert len(stamps) == 20 and stamps == [s.timestamp for s in open_log(log)][::3]
+    with pytest.raises(FileExistsError):
+        tool.cut(log, cut, 2)
+    assert tool.main([str(log), str(cut), "--every", "2"]) == 1  # one line, the file untouched
+    assert cut.read_text().splitlines() == kept
+
+
+def test_the_bench_runs_a_cut_as_its_own_row(bench, tmp_path, monkeypatch):
+    """``--every 2``: the child gets the cut log (written once under OUT/cuts), the row says so."""
+    import subprocess
+    import sys
+
+    seen, popen = [], subprocess.Popen
+
+    def child(cmd, env):
+        seen.append(cmd)
+        script = "import json, sys; json.dump({}, open(sys.argv[1], 'w'))"
+        return popen([sys.executable, "-c", script, cmd[-1]], env=env)
+
+    data = tmp_path / "carmen"
+    data.mkdir()
+    _write_log(data / "intel.clf")
+    monkeypatch.setattr(bench.subprocess, "Popen", child)
+    monkeypatch.setattr(bench, "LOGS", {"intel": ("intel.clf", "intel.clf")})
+    doc = bench.run_child("intel", data, tmp_path / "out", None, "native", every=2)
+    cut = tmp_path / "out" / "cuts" / "intel-every2.clf"
+    assert seen[-1][3] == str(cut) and cut.exists() and doc["name"] == "intel (1 scan in 2)"
+    assert sum(line.startswith("FLASER") for line in cut.read_text().splitlines()) == 30

@@ -3,7 +3,7 @@
 Usage:
     python tools/bench_real2d.py [--data ../shared/data/carmen] [--logs intel fr079 mit-csail]
                                  [--config FILE] [--out DIR] [--json FILE] [--markdown FILE]
-                                 [--numeric native avx2 sse]
+                                 [--numeric native avx2 sse] [--every 1 2 3]
 
 Each log runs in its own child process (``submapslam.api.run_log``, all output files written);
 the parent measures the child's wall time and peak resident set (``os.wait4``). Reported per
@@ -37,6 +37,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tools"))  # cut_carmen_log, when this file is loaded as a module
 
 #: log name -> (raw log file, corrected log file) inside the carmen data folder
 LOGS = {
@@ -82,13 +83,23 @@ def child(log: Path, ref: Path, out: Path, config: Path | None, result_json: Pat
     result_json.write_text(json.dumps(doc, indent=1, default=float) + "\n")
 
 
-def run_child(name: str, data: Path, out: Path, config: Path | None, numeric: str = "native") -> dict:
-    """One log in a child process under the ``numeric`` variant; its figures plus ``wall_s`` and
+def run_child(name: str, data: Path, out: Path, config: Path | None, numeric: str = "native", every: int = 1) -> dict:
+    """One log in a child process under the ``numeric`` variant, at every ``every``-th scan (a cut
+    written under ``out/cuts`` by ``tools/cut_carmen_log.py``); its figures plus ``wall_s`` and
     ``peak_rss_mib``."""
     raw, ref = LOGS[name]
-    tag = name if numeric == "native" else f"{name}-{numeric}"
+    log = data / raw
+    tag = name if every == 1 else f"{name}-every{every}"
+    if every > 1:
+        log = out / "cuts" / f"{tag}.clf"
+        if not log.exists():
+            from cut_carmen_log import cut
+
+            log.parent.mkdir(parents=True, exist_ok=True)
+            cut(data / raw, log, every)
+    tag = tag if numeric == "native" else f"{tag}-{numeric}"
     result_json = out / f"{tag}.json"
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", str(data / raw), str(data / ref),
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", str(log), str(data / ref),
            str(out / tag), str(result_json)] + (["--config", str(config)] if config else [])
     env = {k: v for k, v in os.environ.items() if k not in ("NPY_DISABLE_CPU_FEATURES", "OPENBLAS_CORETYPE")}
     t0 = time.perf_counter()
@@ -99,7 +110,8 @@ def run_child(name: str, data: Path, out: Path, config: Path | None, numeric: st
     if proc.returncode != 0:
         raise SystemExit(f"{name}: child exited with {proc.returncode}")
     doc = json.loads(result_json.read_text())
-    doc.update(name=name, numeric=numeric, wall_s=wall, peak_rss_mib=usage.ru_maxrss / 1024.0, out=str(out / tag))
+    doc.update(name=name if every == 1 else f"{name} (1 scan in {every})", numeric=numeric, every=every,
+               wall_s=wall, peak_rss_mib=usage.ru_maxrss / 1024.0, out=str(out / tag))
     return doc
 
 
@@ -175,6 +187,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--markdown", type=Path)
     ap.add_argument("--numeric", nargs="+", choices=list(NUMERIC), default=["native"],
                     help="numeric variants to run each log under (default: native)")
+    ap.add_argument("--every", nargs="+", type=int, default=[1], metavar="K",
+                    help="also run each log at every K-th scan (1: the log itself; 2 3: at a half and a third of "
+                    "its scan rate, the motion between scans that much larger; the scan-matched columns are left "
+                    "out for cuts)")
     ap.add_argument("--child", nargs=4, metavar=("LOG", "REF", "OUT", "RESULT_JSON"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
@@ -185,11 +201,13 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name in args.logs:  # one after the other: the machine's cores are shared
-        for numeric in args.numeric:
-            rows.append(run_child(name, args.data, out, args.config, numeric))
-            rows[-1].update(scan_judged(name, args.data, Path(rows[-1]["out"])))
-            print(f"{name} ({numeric}): ATE {rows[-1]['ate']:.3f} m, odometry {rows[-1]['ate_odometry']:.3f} m, "
-                  f"{rows[-1]['wall_s']:.1f} s", file=sys.stderr)
+        for every in args.every:
+            for numeric in args.numeric:
+                rows.append(run_child(name, args.data, out, args.config, numeric, every))
+                if every == 1:
+                    rows[-1].update(scan_judged(name, args.data, Path(rows[-1]["out"])))
+                print(f"{rows[-1]['name']} ({numeric}): ATE {rows[-1]['ate']:.3f} m, odometry "
+                      f"{rows[-1]['ate_odometry']:.3f} m, {rows[-1]['wall_s']:.1f} s", file=sys.stderr)
     md = table(rows)
     print(md)
     if args.json:
