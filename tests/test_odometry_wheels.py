@@ -1,6 +1,8 @@
 """Planar odometry when the wheel odometry is stale: the log's pose stands still for a few scans,
 then jumps by all the rotation it missed (MIT CSAIL's FLASER poses)."""
 
+import functools
+
 import numpy as np
 
 from submapslam.config import OdometryConfig
@@ -16,17 +18,25 @@ ROOM = [(-4, -3, 6, -3), (6, -3, 6, 4), (6, 4, 1, 4), (1, 4, 1, 2.5), (1, 2.5, -
         (2, -0.5, 2.6, -0.5), (2.6, -0.5, 2.6, 0.2), (2.6, 0.2, 2, 0.2), (2, 0.2, 2, -0.5)]
 
 
-def _spin(config: OdometryConfig) -> tuple[np.ndarray, np.ndarray]:
-    """A robot turning 12 deg a scan on the spot for 40 scans; the wheel pose is updated every 4th
-    scan only. Returns the true and estimated ``(x, y, yaw)`` of the last scan relative to the first."""
-    odo = Odometry(config, planar=True)
+@functools.cache
+def _spin_scans() -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """A robot turning 12 deg a scan on the spot for 40 scans: the true ``(x, y, yaw)`` and the
+    scans' points ``(N, 3)`` (ray-cast once for every test)."""
     truth = [np.array([0.0, -1.5, 0.0]) + [0.01 * k, 0.0, np.deg2rad(12.0) * k] for k in range(40)]
+    points = [np.c_[pts, np.zeros(len(pts))] for pts in (wall_points(ROOM, xyt, max_range=12.0) for xyt in truth)]
+    return truth, points
+
+
+def _spin(config: OdometryConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The spin of :func:`_spin_scans`; the wheel pose is updated every 4th scan only. Returns the
+    true and estimated ``(x, y, yaw)`` of the last scan relative to the first."""
+    odo = Odometry(config, planar=True)
+    truth, points = _spin_scans()
     wheel = truth[0]
-    for k, xyt in enumerate(truth):
+    for k, (xyt, pts) in enumerate(zip(truth, points)):
         if k % 4 == 0:
             wheel = xyt  # stale in between, then the whole missed turn at once
-        pts = wall_points(ROOM, xyt, max_range=12.0)
-        odo.register(Scan(k, 0.1 * k, np.c_[pts, np.zeros(len(pts))], odometry=se2_to_matrix(*wheel), planar=True))
+        odo.register(Scan(k, 0.1 * k, pts, odometry=se2_to_matrix(*wheel), planar=True))
     return truth[-1] - truth[0], matrix_to_se2(odo.last_pose)
 
 

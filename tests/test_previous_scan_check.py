@@ -2,6 +2,7 @@
 fits the last scans poorly is matched to the scan before it, and that pose is kept when it puts
 clearly more of the scan on the previous scan's points (the wheels missed part of a turn)."""
 
+import functools
 import itertools
 
 import numpy as np
@@ -42,20 +43,28 @@ def test_a_match_that_fits_nothing_proposes_nothing():
     assert previous.candidate(clutter, np.eye(4)) is None
 
 
-def _drive_with_a_missed_turn(config: OdometryConfig, monkeypatch) -> tuple[np.ndarray, np.ndarray, Odometry]:
-    """30 scans, 5 cm and 0.3 deg each; at scan 20 the robot turns 15 deg more, which the wheels
-    miss, and registration stays at the wheels' guess (as FR079's scan 273 did at a third of its
-    rate). Returns the true and estimated ``(x, y, yaw)`` of the last scan and the odometry."""
-    odo = Odometry(config, planar=True)
+@functools.cache
+def _missed_turn_scans() -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """30 scans, 5 cm and 0.3 deg apart; at scan 20 the robot turns 15 deg more, which the wheels
+    miss: the true ``(x, y, yaw)`` and the scans' points ``(N, 3)`` (ray-cast once for every test)."""
     truth = [np.array([-2.0 + 0.05 * k, -1.5, np.deg2rad(0.3) * k + (np.deg2rad(15.0) if k >= 20 else 0.0)])
              for k in range(30)]
+    points = [np.c_[pts, np.zeros(len(pts))] for pts in (wall_points(ROOM, xyt, max_range=12.0) for xyt in truth)]
+    return truth, points
+
+
+def _drive_with_a_missed_turn(config: OdometryConfig, monkeypatch) -> tuple[np.ndarray, np.ndarray, Odometry]:
+    """The drive of :func:`_missed_turn_scans`, where registration stays at the wheels' guess at the
+    missed turn (as FR079's scan 273 did at a third of its rate). Returns the true and estimated
+    ``(x, y, yaw)`` of the last scan and the odometry."""
+    odo = Odometry(config, planar=True)
+    truth, points = _missed_turn_scans()
     align = odo._align
-    for k, xyt in enumerate(truth):
+    for k, (xyt, pts) in enumerate(zip(truth, points)):
         wheel = xyt - [0.0, 0.0, np.deg2rad(15.0) if k >= 20 else 0.0]
         if k == 20:
             monkeypatch.setattr(odo, "_align", lambda source, guess: guess)
-        pts = wall_points(ROOM, xyt, max_range=12.0)
-        odo.register(Scan(k, 0.1 * k, np.c_[pts, np.zeros(len(pts))], odometry=se2_to_matrix(*wheel), planar=True))
+        odo.register(Scan(k, 0.1 * k, pts, odometry=se2_to_matrix(*wheel), planar=True))
         monkeypatch.setattr(odo, "_align", align)
     return truth[-1] - truth[0], matrix_to_se2(odo.last_pose), odo
 
@@ -72,10 +81,16 @@ def test_without_the_check_the_missed_turn_stays(monkeypatch):
     assert _yaw_error_deg(truth, est) > 5.0  # the later scans win back only half of the 15 deg
 
 
+@functools.cache
+def _fr079_third_rate_scans(n: int) -> list[Scan]:
+    """The first ``n`` scans of FR079 at a third of its rate (every third laser scan, the wheels'
+    poses with them: 0.64 s between scans instead of 0.21), read once for every test."""
+    return list(itertools.islice(open_log(shared_data("carmen", "fr079.clf.bz2")), 0, 3 * n, 3))
+
+
 def _fr079_third_rate(config: OdometryConfig, n: int) -> tuple[Trajectory, Odometry]:
-    """The planar odometry alone over the first ``n`` scans of FR079 at a third of its rate
-    (every third laser scan, the wheels' poses with them: 1.9 s between scans instead of 0.64)."""
-    scans = itertools.islice(open_log(shared_data("carmen", "fr079.clf.bz2")), 0, 3 * n, 3)
+    """The planar odometry alone over :func:`_fr079_third_rate_scans`."""
+    scans = _fr079_third_rate_scans(n)
     odo = Odometry(config, planar=True)
     stamps, poses = [], []
     for scan in scans:

@@ -7,9 +7,10 @@ the scans turned +15), ICP from there stays near them, and once one scan is off,
 last scans holds it, so the next scans fit that error better than the truth. The scan before
 the new one is consistent with itself whatever the map holds. So a pose that fits the map poorly
 is checked here: the new scan is matched to the previous one by an exhaustive correlative
-search around the predicted step (:func:`~submapslam.registration.planar.match_planar`, +-1 m,
-+-45 deg), that pose is refined against the map as usual (by the caller), and it is preferred
-when it puts clearly more of the scan on the previous scan's points.
+search around the predicted step (+-1 m, +-45 deg; :func:`correlative_step`: Olson's search on a
+likelihood grid, coarse then fine, numpy only, so that the odometry's child process loads no
+scipy), that pose is refined against the map as usual (by the caller), and it is preferred when
+it puts clearly more of the scan on the previous scan's points.
 
 Frames: points ``(N, 2)`` or ``(N, 3)`` (z ignored) in each scan's sensor frame; poses ``(x, y,
 yaw)`` in the odometry frame [m, rad]; ``T_previous_new`` ``(4, 4)``.
@@ -23,19 +24,23 @@ import numpy as np
 
 from ..geometry import matrix_to_se2, se2_to_matrix
 from .kdtree2d import KdTree2D
+from .point_to_line import first_point_per_cell
+
+#: [m] a point of the new scan this close to the previous scan's counts for the match's fitness
+MATCH_INLIER_M = 0.2
 
 
 class PreviousScan:
     """The scan before the one being registered, placed in the odometry frame.
 
     ``window_m`` / ``yaw_window_deg``: half widths of the correlative search around the predicted
-    step; ``min_match_fitness``: the search's own fitness (share of the scan within its inlier
-    distance of the previous scan) below which it proposes nothing; ``distance`` [m]: a point on
-    the previous scan's points for :meth:`share`; ``margin`` / ``min_share``: a candidate is
+    step; ``min_match_fitness``: the share of the scan within :data:`MATCH_INLIER_M` of the
+    previous scan at the match, below which it proposes nothing; ``distance`` [m]: a point on the
+    previous scan's points for :meth:`share`; ``margin`` / ``min_share``: a candidate is
     preferred when its share beats the registered pose's by ``margin`` and is at least
     ``min_share``. The defaults were chosen on the three real CARMEN logs at their full rate and
-    at a half and a third of it (BENCHMARKS.md: of 2,940 checked scans, the candidate taken by
-    these thresholds was the better pose against the reference in 117 of 137).
+    at a half and a third of it (BENCHMARKS.md: of 2,938 checked scans, the candidate these
+    thresholds take was the better pose against the reference in 115 of 138, worse in 8).
     """
 
     def __init__(self, points_xy: np.ndarray, xyt: np.ndarray, *, window_m: float = 1.0,
@@ -51,36 +56,87 @@ class PreviousScan:
         self.min_share = min_share
         self._tree: KdTree2D | None = None
 
-    def share(self, points_xy: np.ndarray, xyt: np.ndarray) -> float:
-        """Share of ``points_xy`` placed at ``xyt`` within ``distance`` of this scan's points."""
+    def share(self, points_xy: np.ndarray, xyt: np.ndarray, distance: float | None = None) -> float:
+        """Share of ``points_xy`` placed at ``xyt`` within ``distance`` [m] (None: :attr:`distance`)
+        of this scan's points."""
+        distance = self.distance if distance is None else distance
         if len(points_xy) == 0 or len(self.points) == 0:
             return 0.0
         if self._tree is None:
             self._tree = KdTree2D(_placed(self.points, self.xyt))
         d, _ = self._tree.query(_placed(np.asarray(points_xy, dtype=np.float64)[:, :2], xyt),
-                                distance_upper_bound=self.distance)
-        return float(np.count_nonzero(d <= self.distance)) / len(points_xy)
+                                distance_upper_bound=distance)
+        return float(np.count_nonzero(d <= distance)) / len(points_xy)
 
     def candidate(self, points_xy: np.ndarray, T_previous_new: np.ndarray) -> np.ndarray | None:
         """The new scan's odometry pose ``(3,)`` by matching it to this scan from the predicted
-        step ``T_previous_new``; None when the match's fitness is below ``min_match_fitness``."""
-        # scipy's FFT and image filters: loaded by the first check, not by every planar odometry process
-        from .planar import match_planar
-
-        if len(points_xy) < 20 or len(self.points) < 20:
+        step ``T_previous_new`` (:func:`correlative_step`); None when fewer than ``min_match_fitness``
+        of its points then lie within :data:`MATCH_INLIER_M` of this scan's."""
+        pts = np.asarray(points_xy, dtype=np.float64)[:, :2]
+        if len(pts) < 20 or len(self.points) < 20:
             return None
-        pts = np.asarray(points_xy, dtype=np.float64)
-        match = match_planar(pts, self.points, initial_guess=T_previous_new, window=self.window_m,
-                             yaw_window=self.yaw_window)
-        if match.fitness < self.min_match_fitness:
-            return None
-        return matrix_to_se2(se2_to_matrix(*self.xyt) @ match.T)
+        step = correlative_step(pts, self.points, matrix_to_se2(T_previous_new), self.window_m, self.yaw_window)
+        pose = matrix_to_se2(se2_to_matrix(*self.xyt) @ se2_to_matrix(*step))
+        return pose if self.share(pts, pose, MATCH_INLIER_M) >= self.min_match_fitness else None
 
     def prefers(self, points_xy: np.ndarray, candidate_xyt: np.ndarray, registered_xyt: np.ndarray) -> bool:
         """Whether ``candidate_xyt`` puts clearly more of the scan on this scan's points than
         ``registered_xyt`` does (:meth:`share`, ``margin``, ``min_share``)."""
         candidate = self.share(points_xy, candidate_xyt)
         return candidate >= self.min_share and candidate > self.share(points_xy, registered_xyt) + self.margin
+
+
+def correlative_step(source_xy: np.ndarray, target_xy: np.ndarray, guess_xyt: np.ndarray, window_m: float,
+                     yaw_window: float) -> np.ndarray:
+    """``(x, y, yaw)`` of the source scan ``(N, 2)`` in the target scan's frame (``(M, 2)``) that best
+    puts it on the target: every pose within ``window_m`` [m] and ``yaw_window`` [rad] of
+    ``guess_xyt`` scored on the target's likelihood grid (a Gaussian around each target point),
+    first on 0.25 m / 2 deg steps (0.3 m wide Gaussians), then on 0.05 m / 0.5 deg steps within
+    one coarse step of the best (0.1 m wide). Ties keep the pose nearest the guess."""
+    guess = np.asarray(guess_xyt, dtype=np.float64)
+    best = guess
+    for cell, sigma, half_m, half_rad, step_rad in ((0.25, 0.3, window_m, yaw_window, math.radians(2.0)),
+                                                      (0.05, 0.1, 0.25, math.radians(2.0), math.radians(0.5))):
+        grid = _LikelihoodGrid(target_xy, cell, sigma)
+        source = source_xy[first_point_per_cell(source_xy, cell)]
+        steps = np.arange(-int(round(half_m / cell)), int(round(half_m / cell)) + 1)
+        steps = steps[np.argsort(np.abs(steps), kind="stable")]  # nearest the centre first: it wins ties
+        shifts = np.stack(np.meshgrid(steps, steps, indexing="ij"), -1).reshape(-1, 2)  # in cells
+        turns = np.arange(0.0, half_rad + 1e-9, step_rad)
+        turns = np.concatenate([[0.0], np.ravel(np.column_stack([turns[1:], -turns[1:]]))])
+        scores = np.empty((len(turns), len(shifts)))
+        for k, turn in enumerate(turns):
+            c, s = math.cos(best[2] + turn), math.sin(best[2] + turn)
+            scores[k] = grid.score(source @ np.array([[c, s], [-s, c]]) + best[:2], shifts)
+        k, j = np.unravel_index(int(np.argmax(scores)), scores.shape)
+        best = np.array([best[0] + shifts[j, 0] * cell, best[1] + shifts[j, 1] * cell, best[2] + turns[k]])
+    return best
+
+
+class _LikelihoodGrid:
+    """A Gaussian of ``sigma`` [m] around each target point ``(M, 2)`` on ``cell`` [m] squares (the
+    largest where they overlap), with a border of empty cells that lookups off the grid land on."""
+
+    def __init__(self, target_xy: np.ndarray, cell: float, sigma: float) -> None:
+        r = int(math.ceil(3.0 * sigma / cell))
+        self.cell = cell
+        self.lo = target_xy.min(axis=0) - (r + 1) * cell
+        rows, cols = (np.floor((target_xy.max(axis=0) + (r + 1) * cell - self.lo) / cell).astype(np.int64) + 1).tolist()
+        self.rows, self.cols = rows, cols
+        self.values = np.zeros(rows * cols)
+        ij = np.unique(np.floor((target_xy - self.lo) / cell).astype(np.int64), axis=0)
+        for di in range(-r, r + 1):
+            for dj in range(-r, r + 1):
+                value = math.exp(-0.5 * cell * cell * (di * di + dj * dj) / (sigma * sigma))
+                np.maximum.at(self.values, (ij[:, 0] + di) * cols + ij[:, 1] + dj, value)
+
+    def score(self, points: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+        """``(S,)`` summed likelihood of the points ``(N, 2)`` moved by each of ``shifts`` ``(S, 2)``
+        (whole cells); a point off the grid scores 0."""
+        ij = np.floor((points - self.lo) / self.cell).astype(np.int64)
+        rows = np.clip(ij[None, :, 0] + shifts[:, None, 0], 0, self.rows - 1)  # the border: empty cells
+        cols = np.clip(ij[None, :, 1] + shifts[:, None, 1], 0, self.cols - 1)
+        return self.values[rows * self.cols + cols].sum(axis=1)
 
 
 def _placed(points_xy: np.ndarray, xyt: np.ndarray) -> np.ndarray:
