@@ -73,7 +73,7 @@ class OdometryConfig(_Strict):
         "matched to the scan before it (exhaustive correlative search, +-1 m and +-45 deg around the predicted "
         "step), and that pose, refined, is kept when it puts clearly more of the scan on the previous scan's "
         "points. Wheels miss part of a fast turn, registration from them stays near them, and once a scan is off "
-        "the map of the last scans holds its error (FR079 at a third of its scan rate: ATE 1.48 -> 0.08 m)")
+        "the map of the last scans holds its error (FR079 at a third of its scan rate: ATE 1.48 -> 0.10 m)")
     startup_refit_scans: int = Field(
         20, ge=0, description="2D lasers: once this many scans follow the first, the first is registered again "
         "against all of them (point-to-line) and the run's frame re-based on it. Registered against a map of one "

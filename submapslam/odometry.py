@@ -18,6 +18,7 @@ import numpy as np
 
 from .config import OdometryConfig
 from .geometry import blend_poses, inverse, matrix_to_se2, se2_to_matrix, splice_height_and_tilt
+from .registration.previous_scan import PreviousScan
 from .registration.voxel_gicp import VoxelGicpSettings, VoxelGicpTracker, azimuth_coverage_deg
 from .scan import Scan
 
@@ -371,8 +372,6 @@ class Odometry:
         if (not self.config.planar_previous_scan_check or not self._recent_fits or self.last_xyt is None
                 or fit >= POOR_FIT * statistics.median(self._recent_fits)):
             return xyt, fit
-        from .registration.previous_scan import PreviousScan
-
         self.previous_scan_checked += 1
         previous = PreviousScan(self.last_frame_down, self.last_xyt)
         candidate = previous.candidate(frame_down, prediction)

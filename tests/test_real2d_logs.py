@@ -29,9 +29,10 @@ from .report_pages import (
 
 # log, corrected log, ATE bound [m]: ~15 % above the worst the code reaches over the numeric
 # variants of BENCHMARKS.md ("The same code on other CPUs", "Ambiguous correlative peaks"):
-# Intel 0.057-0.063, FR079 0.067-0.083, CSAIL 0.117-0.270 m. Another CPU's SIMD kernels sum in
-# another order, and a 2D run's discrete choices then part. Issue 25's targets, not met on every
-# variant: Intel 0.06, FR079 0.07, CSAIL 0.10.
+# Intel 0.057-0.063, FR079 0.067-0.083, CSAIL 0.117-0.270 m (with the previous-scan check of stop 54,
+# AVX2 and SSE here: Intel 0.060-0.063, FR079 0.072-0.077, CSAIL 0.097-0.116). Another CPU's SIMD
+# kernels sum in another order, and a 2D run's discrete choices then part. Issue 25's targets, not
+# met on every variant: Intel 0.06, FR079 0.07, CSAIL 0.10.
 # The last two columns: the relations bound [m, deg] on the derived relations measured by scan
 # matching (evaluation.scan_consistency.scan_matched_relations), issue 25's targets for Intel and
 # FR079 and Cartographer's published 0.0319 m for CSAIL (the runs reach 0.008-0.017 m, 0.16-0.30 deg);
