@@ -53,6 +53,17 @@ def _missed_turn_scans() -> tuple[list[np.ndarray], list[np.ndarray]]:
     return truth, points
 
 
+def test_the_search_leaves_out_points_beyond_its_reach():
+    """Returns beyond SEARCH_REACH_M (a far facade) stay out of the grids; scans with nothing
+    nearer propose nothing."""
+    first, second = np.array([0.0, -1.5, 0.3]), np.array([0.2, -1.45, 0.3 + np.deg2rad(15.0)])
+    far = np.c_[np.linspace(-40.0, 40.0, 200), np.full(200, 70.0)]  # 70 m away, in each scan's frame
+    previous = PreviousScan(np.r_[wall_points(ROOM, first, max_range=12.0), far], first)
+    candidate = previous.candidate(np.r_[wall_points(ROOM, second, max_range=12.0), far], np.eye(4))
+    assert candidate is not None and _yaw_error_deg(candidate, second) < 1.0
+    assert PreviousScan(far, first).candidate(far, np.eye(4)) is None
+
+
 def _drive_with_a_missed_turn(config: OdometryConfig, monkeypatch) -> tuple[np.ndarray, np.ndarray, Odometry]:
     """The drive of :func:`_missed_turn_scans`, where registration stays at the wheels' guess at the
     missed turn (as FR079's scan 273 did at a third of its rate). Returns the true and estimated

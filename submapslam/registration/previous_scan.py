@@ -28,6 +28,10 @@ from .point_to_line import first_point_per_cell
 
 #: [m] a point of the new scan this close to the previous scan's counts for the match's fitness
 MATCH_INLIER_M = 0.2
+#: [m] the search uses the points of both scans within this range of their sensor: its fine grid
+#: (0.05 m cells over the previous scan's extent) then holds at most 2 M cells (16 MB) for a 180 deg
+#: laser; the real logs' scans reach 25-42 m
+SEARCH_REACH_M = 50.0
 
 
 class PreviousScan:
@@ -70,12 +74,14 @@ class PreviousScan:
 
     def candidate(self, points_xy: np.ndarray, T_previous_new: np.ndarray) -> np.ndarray | None:
         """The new scan's odometry pose ``(3,)`` by matching it to this scan from the predicted
-        step ``T_previous_new`` (:func:`correlative_step`); None when fewer than ``min_match_fitness``
-        of its points then lie within :data:`MATCH_INLIER_M` of this scan's."""
+        step ``T_previous_new`` (:func:`correlative_step` on the points within :data:`SEARCH_REACH_M`);
+        None when either scan has fewer than 20 there, or when fewer than ``min_match_fitness`` of its
+        points then lie within :data:`MATCH_INLIER_M` of this scan's."""
         pts = np.asarray(points_xy, dtype=np.float64)[:, :2]
-        if len(pts) < 20 or len(self.points) < 20:
+        source, target = _within(pts, SEARCH_REACH_M), _within(self.points, SEARCH_REACH_M)
+        if len(source) < 20 or len(target) < 20:
             return None
-        step = correlative_step(pts, self.points, matrix_to_se2(T_previous_new), self.window_m, self.yaw_window)
+        step = correlative_step(source, target, matrix_to_se2(T_previous_new), self.window_m, self.yaw_window)
         pose = matrix_to_se2(se2_to_matrix(*self.xyt) @ se2_to_matrix(*step))
         return pose if self.share(pts, pose, MATCH_INLIER_M) >= self.min_match_fitness else None
 
@@ -137,6 +143,11 @@ class _LikelihoodGrid:
         rows = np.clip(ij[None, :, 0] + shifts[:, None, 0], 0, self.rows - 1)  # the border: empty cells
         cols = np.clip(ij[None, :, 1] + shifts[:, None, 1], 0, self.cols - 1)
         return self.values[rows * self.cols + cols].sum(axis=1)
+
+
+def _within(points_xy: np.ndarray, reach: float) -> np.ndarray:
+    """The points ``(N, 2)`` within ``reach`` [m] of their sensor (the origin)."""
+    return points_xy[np.einsum("ij,ij->i", points_xy, points_xy) <= reach * reach]
 
 
 def _placed(points_xy: np.ndarray, xyt: np.ndarray) -> np.ndarray:
