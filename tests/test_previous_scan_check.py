@@ -29,7 +29,7 @@ def test_the_previous_scan_finds_a_turn_the_prediction_missed():
     previous = PreviousScan(wall_points(ROOM, first, max_range=12.0), first)
     scan = wall_points(ROOM, second, max_range=12.0)
     predicted = first + [0.2, 0.05, 0.0]  # the wheels: the step without the turn
-    candidate = previous.candidate(scan, se2_to_matrix(*(predicted - first)) @ se2_to_matrix(0, 0, 0))
+    candidate = previous.candidate(scan, inverse(se2_to_matrix(*first)) @ se2_to_matrix(*predicted))
     assert candidate is not None
     assert _yaw_error_deg(candidate, second) < 1.0 and np.linalg.norm(candidate[:2] - second[:2]) < 0.05
     assert previous.share(scan, candidate) > 0.8 > 0.3 > previous.share(scan, predicted)
@@ -43,16 +43,6 @@ def test_a_match_that_fits_nothing_proposes_nothing():
     assert previous.candidate(clutter, np.eye(4)) is None
 
 
-@functools.cache
-def _missed_turn_scans() -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """30 scans, 5 cm and 0.3 deg apart; at scan 20 the robot turns 15 deg more, which the wheels
-    miss: the true ``(x, y, yaw)`` and the scans' points ``(N, 3)`` (ray-cast once for every test)."""
-    truth = [np.array([-2.0 + 0.05 * k, -1.5, np.deg2rad(0.3) * k + (np.deg2rad(15.0) if k >= 20 else 0.0)])
-             for k in range(30)]
-    points = [np.c_[pts, np.zeros(len(pts))] for pts in (wall_points(ROOM, xyt, max_range=12.0) for xyt in truth)]
-    return truth, points
-
-
 def test_the_search_leaves_out_points_beyond_its_reach():
     """Returns beyond SEARCH_REACH_M (a far facade) stay out of the grids; scans with nothing
     nearer propose nothing."""
@@ -62,6 +52,16 @@ def test_the_search_leaves_out_points_beyond_its_reach():
     candidate = previous.candidate(np.r_[wall_points(ROOM, second, max_range=12.0), far], np.eye(4))
     assert candidate is not None and _yaw_error_deg(candidate, second) < 1.0
     assert PreviousScan(far, first).candidate(far, np.eye(4)) is None
+
+
+@functools.cache
+def _missed_turn_scans() -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """30 scans, 5 cm and 0.3 deg apart; at scan 20 the robot turns 15 deg more, which the wheels
+    miss: the true ``(x, y, yaw)`` and the scans' points ``(N, 3)`` (ray-cast once for every test)."""
+    truth = [np.array([-2.0 + 0.05 * k, -1.5, np.deg2rad(0.3) * k + (np.deg2rad(15.0) if k >= 20 else 0.0)])
+             for k in range(30)]
+    points = [np.c_[pts, np.zeros(len(pts))] for pts in (wall_points(ROOM, xyt, max_range=12.0) for xyt in truth)]
+    return truth, points
 
 
 def _drive_with_a_missed_turn(config: OdometryConfig, monkeypatch) -> tuple[np.ndarray, np.ndarray, Odometry]:
