@@ -29,8 +29,9 @@ FIRST_STEP_GUESSES_M = (1.5, -1.5, 3.0, -3.0)
 FIRST_STEP_MARGIN = 0.05
 
 NARROW_FIELD_DEG = 180.0  # auto registration: a first scan seeing less than this around z is a narrow-field sensor
-#: planar: a scan fitting the last scans below this share of their usual fit (median of the last 20) is
-#: checked against the previous scan (:meth:`Odometry._check_against_previous_scan`)
+#: planar: a scan fitting the last scans below this share of their usual fit (median of the last 20)
+#: fits poorly: its registration may give way to the wheels' pose, and it is checked against the
+#: previous scan (:meth:`Odometry._check_against_previous_scan`)
 POOR_FIT = 0.75
 
 
@@ -227,11 +228,9 @@ class Odometry:
                                 best, best_guess, best_fit = cand, guess, cand_fit
                     if best_fit >= usual:
                         xyt, initial_guess, fit = best, best_guess, best_fit
-                xyt, fit = self._check_against_previous_scan(frame_down, xyt, fit, prediction)
-                self._recent_fits.append(fit)
             elif self._refiner is not None:
                 fit = self._fit(frame_down, xyt)
-                poor = bool(self._recent_fits) and fit < 0.75 * statistics.median(self._recent_fits)
+                poor = bool(self._recent_fits) and fit < POOR_FIT * statistics.median(self._recent_fits)
                 if poor and prediction is not self.last_delta and self._departs(initial_guess, xyt):
                     # the wheels and the motion model agreed, yet registration ended far from both
                     # and fits the last scans worse than usual (Intel's scan 11455 once turned 20 deg
@@ -242,9 +241,9 @@ class Odometry:
                     if kept_fit > fit:
                         xyt, fit = kept, kept_fit
                         self.registration_overruled += 1
+            if self._refiner is not None:  # one of the branches above set ``fit`` (stale wheels imply the refiner)
                 xyt, fit = self._check_against_previous_scan(frame_down, xyt, fit, prediction)
                 self._recent_fits.append(fit)
-            if self._refiner is not None:
                 self._refiner.add(frame_down[:, :2], xyt)
             new_pose = se2_to_matrix(*xyt)
             self.last_xyt = xyt

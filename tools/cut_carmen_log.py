@@ -3,7 +3,7 @@
 Usage:
     python tools/cut_carmen_log.py SRC DST --every K
 
-SRC is a CARMEN log (plain, ``.gz`` or ``.bz2``); DST (must not exist) gets the same lines with only
+SRC is a CARMEN log (plain, ``.gz``, ``.bz2`` or ``.xz``); DST (must not exist) gets the same lines with only
 every K-th line of each laser record (FLASER, RLASER, ROBOTLASER1/2, RAWLASER1..4: each counted on
 its own from its first line): the wheels' ODOM lines and each kept FLASER's own pose stay, so the cut is the same recording at a
 K-th of its scan rate, the motion between scans K times larger. Its scans keep their times and
@@ -14,8 +14,6 @@ the original (``tools/bench_real2d.py --every K`` runs the cuts against the corr
 from __future__ import annotations
 
 import argparse
-import bz2
-import gzip
 import sys
 from collections import Counter
 from pathlib import Path
@@ -23,6 +21,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from submapslam.io.carmen import RECORD_PRIORITY  # noqa: E402  (every laser record the reader knows)
+from submapslam.io.compression import open_text  # noqa: E402
 
 
 def cut(src: Path, dst: Path, every: int) -> tuple[int, int]:
@@ -31,10 +30,9 @@ def cut(src: Path, dst: Path, every: int) -> tuple[int, int]:
         raise ValueError(f"--every must be at least 1, not {every}")
     if dst.exists():
         raise FileExistsError(f"{dst} exists: not overwritten")
-    opener = bz2.open if src.suffix == ".bz2" else gzip.open if src.suffix == ".gz" else open
     seen: Counter[str] = Counter()
     kept = 0
-    with opener(src, "rt", errors="replace") as lines, open(dst, "x") as out:
+    with open_text(src) as lines, open(dst, "x") as out:
         for line in lines:
             record = line.split(" ", 1)[0]
             if record in RECORD_PRIORITY:
