@@ -103,17 +103,19 @@ def correlative_step(source_xy: np.ndarray, target_xy: np.ndarray, guess_xyt: np
     best = guess
     for cell, sigma, half_m, half_rad, step_rad in ((0.25, 0.3, window_m, yaw_window, math.radians(2.0)),
                                                       (0.05, 0.1, 0.25, math.radians(2.0), math.radians(0.5))):
-        grid = _LikelihoodGrid(target_xy, cell, sigma)
+        max_shift = int(round(half_m / cell))
+        grid = _LikelihoodGrid(target_xy, cell, sigma, max_shift)
         source = source_xy[first_point_per_cell(source_xy, cell)]
-        steps = np.arange(-int(round(half_m / cell)), int(round(half_m / cell)) + 1)
+        steps = np.arange(-max_shift, max_shift + 1)
         steps = steps[np.argsort(np.abs(steps), kind="stable")]  # nearest the centre first: it wins ties
         shifts = np.stack(np.meshgrid(steps, steps, indexing="ij"), -1).reshape(-1, 2)  # in cells
         turns = np.arange(0.0, half_rad + 1e-9, step_rad)
         turns = np.concatenate([[0.0], np.ravel(np.column_stack([turns[1:], -turns[1:]]))])
-        scores = np.empty((len(turns), len(shifts)))
-        for k, turn in enumerate(turns):
+        turned = []
+        for turn in turns:
             c, s = math.cos(best[2] + turn), math.sin(best[2] + turn)
-            scores[k] = grid.score(source @ np.array([[c, s], [-s, c]]) + best[:2], shifts)
+            turned.append(source @ np.array([[c, s], [-s, c]]) + best[:2])
+        scores = grid.scores(np.stack(turned), shifts)
         k, j = np.unravel_index(int(np.argmax(scores)), scores.shape)
         best = np.array([best[0] + shifts[j, 0] * cell, best[1] + shifts[j, 1] * cell, best[2] + turns[k]])
     return best
@@ -121,28 +123,45 @@ def correlative_step(source_xy: np.ndarray, target_xy: np.ndarray, guess_xyt: np
 
 class _LikelihoodGrid:
     """A Gaussian of ``sigma`` [m] around each target point ``(M, 2)`` on ``cell`` [m] squares (the
-    largest where they overlap), with a border of empty cells that lookups off the grid land on."""
+    largest where they overlap), with a border of empty cells that lookups off the grid land on.
+    Lookups shift points by at most ``max_shift`` cells (:meth:`scores`)."""
 
-    def __init__(self, target_xy: np.ndarray, cell: float, sigma: float) -> None:
+    def __init__(self, target_xy: np.ndarray, cell: float, sigma: float, max_shift: int) -> None:
         r = int(math.ceil(3.0 * sigma / cell))
         self.cell = cell
+        self.max_shift = max_shift
         self.lo = target_xy.min(axis=0) - (r + 1) * cell
         rows, cols = (np.floor((target_xy.max(axis=0) + (r + 1) * cell - self.lo) / cell).astype(np.int64) + 1).tolist()
-        self.rows, self.cols = rows, cols
-        self.values = np.zeros(rows * cols)
-        ij = np.unique(np.floor((target_xy - self.lo) / cell).astype(np.int64), axis=0)
+        self.rows, self.cols = rows, cols  # the grid's cells from ``lo``; the Gaussians end a cell inside
+        # stored with 2 * max_shift more empty cells on each side: a point up to max_shift cells off
+        # the grid, shifted by up to max_shift, stays on the stored array without clipping
+        self._pad = 2 * max_shift
+        self._stride = cols + 2 * self._pad
+        self.values = np.zeros((rows + 2 * self._pad) * self._stride)
+        ij = np.unique(np.floor((target_xy - self.lo) / cell).astype(np.int64), axis=0) + self._pad
+        centres = ij[:, 0] * self._stride + ij[:, 1]  # distinct cells: each offset's lookups need no ufunc.at
         for di in range(-r, r + 1):
             for dj in range(-r, r + 1):
                 value = math.exp(-0.5 * cell * cell * (di * di + dj * dj) / (sigma * sigma))
-                np.maximum.at(self.values, (ij[:, 0] + di) * cols + ij[:, 1] + dj, value)
+                at = centres + (di * self._stride + dj)
+                self.values[at] = np.maximum(self.values[at], value)
 
-    def score(self, points: np.ndarray, shifts: np.ndarray) -> np.ndarray:
-        """``(S,)`` summed likelihood of the points ``(N, 2)`` moved by each of ``shifts`` ``(S, 2)``
-        (whole cells); a point off the grid scores 0."""
+    def scores(self, points: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+        """``(T, S)`` summed likelihood of each of ``T`` placements of the points ``(T, N, 2)`` moved
+        by each of ``shifts`` ``(S, 2)`` (whole cells, at most ``max_shift``); a point off the grid
+        scores 0."""
         ij = np.floor((points - self.lo) / self.cell).astype(np.int64)
-        rows = np.clip(ij[None, :, 0] + shifts[:, None, 0], 0, self.rows - 1)  # the border: empty cells
-        cols = np.clip(ij[None, :, 1] + shifts[:, None, 1], 0, self.cols - 1)
-        return self.values[rows * self.cols + cols].sum(axis=1)
+        # a point more than max_shift cells off the grid is off it at every shift: held there
+        w = self.max_shift
+        rows = np.clip(ij[..., 0], -w, self.rows - 1 + w) + self._pad
+        cols = np.clip(ij[..., 1], -w, self.cols - 1 + w) + self._pad
+        base = rows * self._stride + cols  # (T, N)
+        offsets = shifts[:, 0] * self._stride + shifts[:, 1]  # (S,)
+        out = np.empty((len(points), len(shifts)))
+        chunk = max(1, 250_000 // max(1, base.shape[1] * len(shifts)))  # ~2 MB of lookups at a time
+        for k in range(0, len(points), chunk):
+            out[k:k + chunk] = self.values[base[k:k + chunk, None, :] + offsets[None, :, None]].sum(axis=2)
+        return out
 
 
 def _within(points_xy: np.ndarray, reach: float) -> np.ndarray:
