@@ -166,9 +166,10 @@ class OdometryProcess:
     """Registration in a child process (``python -m submapslam.odometry_stage``, a fresh
     interpreter: nothing of this process is copied or re-run, not even a caller's script).
 
-    Scans are queued without waiting (a writer thread feeds the child); :meth:`result` waits for
-    the oldest. The child ignores SIGINT (the parent decides what an interrupt means) and ends
-    when its input closes.
+    Scans are queued without waiting (a writer thread feeds the child) and the child's answers
+    are read as they come (a reader thread: the child never waits for this process to take
+    them, however many scans ahead it is); :meth:`result` waits for the oldest. The child
+    ignores SIGINT (the parent decides what an interrupt means) and ends when its input closes.
     """
 
     def __init__(self, config: OdometryConfig, planar: bool) -> None:
@@ -183,6 +184,9 @@ class OdometryProcess:
         self._outbox: queue.Queue = queue.Queue()
         self._writer = threading.Thread(target=self._feed, name="odometry-feeder", daemon=True)
         self._writer.start()
+        self._inbox: queue.Queue = queue.Queue()  # the child's answers, in order; None once it has ended
+        self._reader = threading.Thread(target=self._drain, name="odometry-reader", daemon=True)
+        self._reader.start()
         self._outbox.put((config.model_dump(), planar))
         self._in_flight = 0
         self._submitted: deque[np.ndarray] = deque()  # the points of the scans in flight
@@ -199,18 +203,31 @@ class OdometryProcess:
         except (BrokenPipeError, OSError, ValueError):  # the child has ended: result() says so
             pass
 
+    def _drain(self) -> None:
+        try:
+            while True:
+                self._inbox.put(_receive(self._process.stdout))
+        except Exception:  # noqa: BLE001 - the child has ended (or its output broke): result() says so
+            self._inbox.put(None)
+
     def submit(self, scan: Scan, known: Known = None) -> None:
         self._outbox.put((_exact_float32(scan.points), _exact_float32(scan.point_times), scan.odometry, known,
                           float(scan.timestamp)))
         self._submitted.append(scan.points)
         self._in_flight += 1
 
+    @property
+    def ready(self) -> int:
+        """Scans the child has answered that :meth:`result` has not yet taken."""
+        return self._inbox.qsize()
+
     def _answer(self) -> tuple[str, object]:
-        try:
-            return _receive(self._process.stdout)
-        except EOFError:
+        answer = self._inbox.get()
+        if answer is None:
+            self._inbox.put(None)  # every later call sees the end too
             code = self._process.wait()
-            raise SubmapSlamError(f"the odometry process ended unexpectedly (exit code {code})") from None
+            raise SubmapSlamError(f"the odometry process ended unexpectedly (exit code {code})")
+        return answer
 
     def result(self) -> Registered:
         if not self._in_flight:
@@ -248,6 +265,7 @@ class OdometryProcess:
                 self._process.kill()
                 self._process.wait()
         self._writer.join(timeout=1.0)
+        self._reader.join(timeout=1.0)
         for stream in (self._process.stdin, self._process.stdout):
             try:
                 stream.close()

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -49,6 +50,23 @@ def test_child_process_registers_exactly_as_this_process(outdoor_log):
         child.close()
     assert child.peak_memory_mb > 20  # the child's own high-water mark, reported on close
     assert child._process.poll() is not None  # and it has ended
+
+
+def test_the_child_runs_ahead_of_a_caller_that_is_busy(outdoor_log):
+    """The child's answers are taken as they come: it registers every scan queued while this
+    process does not ask (40 3D frames, megabytes: far more than a pipe's buffer holds)."""
+    scans = list(open_log(outdoor_log))
+    child = OdometryProcess(OdometryConfig(), False)
+    try:
+        for scan in scans:
+            child.submit(scan)
+        deadline = time.monotonic() + 120.0
+        while child.ready < len(scans) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert child.ready == len(scans)
+        assert sum(child.result().frame.nbytes for _ in scans) > 1_000_000
+    finally:
+        child.close()
 
 
 def test_a_dead_child_is_one_clear_error(outdoor_log):
