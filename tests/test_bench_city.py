@@ -130,13 +130,21 @@ def test_false_closure_counter_on_a_written_graph(tmp_path, bench):
     (bad,) = [d for d in fc["details"] if d["false"]]
     assert (bad["i"], bad["j"]) == (1, 8) and bad["trans_err_m"] == pytest.approx(3.0, abs=1e-6)
 
-    # a correct relative pose between anchors more than twice the extent apart is false too,
-    # and a rotation off by 3 degrees is
+    # a correct relative pose between submaps whose paths stay more than twice the extent apart
+    # is false too, and a rotation off by 3 degrees is
     far_0_4 = inverse(A[0]) @ A[4]  # 40 m apart
     turned = true_0_9 @ se2_to_matrix(0.0, 0.0, np.deg2rad(3.0))
     submaps = bench.read_submaps_csv(tmp_path / "run" / "submaps.csv")
     assert bench.false_closures([(0, 9, true_0_9), (0, 4, far_0_4)], submaps, gt)["false"] == 1
     assert bench.false_closures([(0, 9, turned)], submaps, gt)["false"] == 1
+    # what counts is where the paths come closest, not the anchors: out from (0, 0) to (10, 0),
+    # and on the way back from (25, 2) to (15, 2): anchors 25 m apart, more than twice the
+    # extent (10 m), paths 5.4 m apart at their nearest
+    facing = {0: (0, 10), 1: (74, 84)}
+    fc = bench.false_closures([(0, 1, inverse(gt[0]) @ gt[74])], facing, gt)
+    assert fc["extent_m"] == pytest.approx(10.0) and fc["details"][0]["anchor_distance_m"] > 25
+    assert fc["details"][0]["path_distance_m"] == pytest.approx(np.hypot(5.0, 2.0), abs=1e-3)
+    assert fc["false"] == 0
 
 
 def test_memory_growth_is_the_slope_over_the_second_half(bench):

@@ -2,7 +2,8 @@
 
 For every closed submap ``k`` the graph proposes hypotheses ``(i, k)`` with older submaps:
     * spatial: anchors that may be close given the current estimate and its marginal
-      covariance (the search radius grows with uncertainty);
+      covariance (the search radius grows with uncertainty); for a 2D laser, the submaps whose
+      *paths* may be close (a planar submap sees what is around its own few metres of path);
     * descriptor: place recognition, independent of drift;
     * hints: manual pairs ("a button pushed at a known landmark").
 Each goes through the correspondence test (coarse alignment without a good guess, then fine
@@ -28,6 +29,7 @@ from ..registration.correspondence import (
     check_correspondence,
     match_voxel,
 )
+from ..registration.point_to_line import first_point_per_cell
 from ..registration.spatial import SubmapClouds
 from ..result import LoopRecord
 from ..submaps import Submap
@@ -37,6 +39,12 @@ log = logging.getLogger(__name__)
 
 # chi-square 99.9% quantiles for the translation gate (2 DOF planar, 3 DOF spatial)
 _CHI2_999 = {3: 16.27, 6: 22.46}
+#: [m] planar spatial proposals: a submap's path is its scan positions, one per square of this side
+_PATH_CELL_M = 0.5
+#: planar spatial proposals: submaps at least this far apart on the chain are near when their paths
+#: are; nearer ones when their anchors are (their paths meet through the submaps between them: 3D
+#: logs likewise ask a cycle for 4 submap lengths of path)
+_PATH_MIN_GAP = 4
 
 
 def se3_log_gtsam(T: np.ndarray) -> np.ndarray:
@@ -90,6 +98,7 @@ class LoopCloser:
         self.index = DescriptorIndex()
         self._tested: set[tuple[int, int]] = set()
         self._timer = timer
+        self._paths: dict[int, np.ndarray] = {}  # planar: each submap's thinned path (anchor frame)
 
     def _time(self, stage: str):
         from contextlib import nullcontext
@@ -122,7 +131,10 @@ class LoopCloser:
         if eligible >= 0:
             anchors = np.array([graph.pose(i)[:3, 3] for i in range(eligible + 1)])
             d = np.linalg.norm(anchors - T_k[:3, 3], axis=1)
-            order = np.argsort(d)
+            far_on_chain = min(eligible, k - _PATH_MIN_GAP) + 1  # submaps 0 .. far_on_chain - 1
+            if self.planar and far_on_chain > 0:
+                d[:far_on_chain] = self._path_distances(new, submaps[:far_on_chain], graph)
+            order = np.argsort(d, kind="stable")
             for i in order[: 4 * max(1, c.descriptor_top_k)]:
                 i = int(i)
                 radius = self._radius(graph.marginal_covariance(i), cov_k)
@@ -141,6 +153,30 @@ class LoopCloser:
             if b == k and (a, b) not in self._tested:
                 hyps[a] = Hypothesis(a, k, "hint", None, None, None)
         return [h for h in hyps.values() if (h.i, h.j) not in self._tested]
+
+    def _path_distances(self, new: Submap, older: list[Submap], graph: GraphEstimate) -> np.ndarray:
+        """``(len(older),)`` planar distance [m] from ``new``'s path to each older submap's path,
+        both placed by the current estimate (each path: its scan positions, one per
+        :data:`_PATH_CELL_M` square). A 2D laser's submap sees what is around its own path (rooms,
+        corridors), and one submap's path is metres long: its anchor (the first scan) alone can be
+        far from the place two passes share."""
+        mine = self._world_path(new, graph)
+        theirs = [self._world_path(submap, graph) for submap in older]
+        points = np.concatenate(theirs)
+        starts = np.cumsum([0] + [len(t) for t in theirs[:-1]])
+        nearest = np.full(len(points), np.inf)
+        for q in mine:  # a few dozen positions: one pass over the older paths each
+            np.minimum(nearest, np.hypot(points[:, 0] - q[0], points[:, 1] - q[1]), out=nearest)
+        return np.minimum.reduceat(nearest, starts)
+
+    def _world_path(self, submap: Submap, graph: GraphEstimate) -> np.ndarray:
+        """``(P, 2)`` the submap's thinned scan positions in the world frame (current estimate)."""
+        path = self._paths.get(submap.id)
+        if path is None:
+            xy = submap.T_anchor_scans[:, :2, 3]
+            path = self._paths[submap.id] = xy[first_point_per_cell(xy, _PATH_CELL_M)]
+        T = graph.pose(submap.id)
+        return path @ T[:2, :2].T + T[:2, 3]
 
     def _last_cycle_partner(self, k: int, submaps: list[Submap]) -> int:
         """Newest submap far enough back along the odometry path to close a cycle with ``k``.
