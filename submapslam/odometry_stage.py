@@ -225,7 +225,11 @@ class OdometryProcess:
         answer = self._inbox.get()
         if answer is None:
             self._inbox.put(None)  # every later call sees the end too
-            code = self._process.wait()
+            try:
+                code = self._process.wait(timeout=10.0)
+            except Exception:  # noqa: BLE001 - its output broke while it runs: it is stopped
+                self._process.kill()
+                code = self._process.wait()
             raise SubmapSlamError(f"the odometry process ended unexpectedly (exit code {code})")
         return answer
 

@@ -129,7 +129,8 @@ class SubmapSLAM:
 
     @property
     def look_ahead(self) -> int:
-        """Scans worth keeping in flight: a few for an odometry child process, none in-process."""
+        """Scans worth keeping in flight: for an odometry child process a few 3D scans, or a
+        submap's worth and more of planar ones; none in-process."""
         if not isinstance(self._odometry, OdometryProcess):
             return 0
         return _PLANAR_SCANS_IN_FLIGHT if self.planar else _SCANS_IN_FLIGHT
