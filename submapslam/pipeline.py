@@ -315,7 +315,9 @@ class SubmapSLAM:
             if replay is not None:
                 records = self._loop_closer.replay(submap, replay.loop_records[submap.id])
             else:
-                records = self._loop_closer.process(submap, self.submaps, self._graph_builder.estimate(), hint_pairs)
+                followed_wheels = wheel_odometry and self.config.odometry.use_wheel_odometry
+                records = self._loop_closer.process(submap, self.submaps, self._graph_builder.estimate(), hint_pairs,
+                                                    followed_wheels)
             self.loops.extend(records)
             self._graph_builder.add_loops(records)
         self._records_by_submap[submap.id] = records

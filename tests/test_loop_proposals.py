@@ -77,3 +77,39 @@ def test_near_the_chain_the_anchors_decide():
     closer = LoopCloser(LoopConfig(use_descriptor=False, min_submap_gap=1), planar=True, voxel_size=0.1,
                         max_range=30.0, submap_length=5.0)
     assert [h.i for h in closer.propose(submaps[6], None, submaps, estimate, [])] == [0, 1]
+
+
+def test_without_wheels_a_farther_path_is_proposed():
+    """The same drive with submap 6 on y = 4: its path passes 4 m from submaps 0 and 1. A log
+    whose odometry followed wheels proposes paths within 2 m (plus three sigma) only; one without
+    wheels, whose odometry drifts more, proposes paths within the radius's 5 m floor."""
+    submaps, estimate = _drive()
+    estimate.anchors[6] = se2_to_matrix(30.0, 4.0, np.pi)
+    closer = LoopCloser(LoopConfig(use_descriptor=False), planar=True, voxel_size=0.1, max_range=30.0,
+                        submap_length=5.0)
+    assert closer.propose(submaps[6], None, submaps, estimate, [], wheel_odometry=True) == []
+    hyps = closer.propose(submaps[6], None, submaps, estimate, [], wheel_odometry=False)
+    assert [(h.i, h.source) for h in hyps] == [(0, "spatial"), (1, "spatial")]
+
+
+def test_a_run_tells_the_closer_whether_its_odometry_followed_wheels(tmp_path, monkeypatch):
+    """A planar log with wheel odometry: its run's loop tests know it, unless the config turns the
+    wheels off (``odometry.use_wheel_odometry``), as for a log without them."""
+    from datasets_synth import generate
+    from submapslam.api import run_log
+    from submapslam.config import PipelineConfig
+
+    log = generate("rectangle", tmp_path / "log", seed=1, laps=1, max_scans=200, size=(16.0, 10.0))
+    seen: list[bool] = []
+    original = LoopCloser.process
+
+    def recording(self, new, submaps, graph, hint_pairs, wheel_odometry=True):
+        seen.append(wheel_odometry)
+        return original(self, new, submaps, graph, hint_pairs, wheel_odometry)
+
+    monkeypatch.setattr(LoopCloser, "process", recording)
+    run_log(log, None)
+    assert seen and all(seen)
+    seen.clear()
+    run_log(log, None, config=PipelineConfig.model_validate({"odometry": {"use_wheel_odometry": False}}))
+    assert seen and not any(seen)

@@ -51,6 +51,10 @@ _PATH_MIN_GAP = 4
 #: this) away. (Paths ranked by their distance alone, the floor for both: MIT CSAIL 0.116 -> 0.102 m,
 #: FR079 0.077 -> 0.080 m, closures 69 -> 96; with this: 0.101 and 0.075 m, BENCHMARKS.md.)
 _PATH_NEAR_M = 2.0
+#: [m] the same for a log without wheel odometry: the radius's floor, paths ranked by their distance
+#: alone. Its odometry drifts more and the anchors' estimate says less of where two passes meet
+#: (Intel 0.52 -> 0.30 m, MIT CSAIL 0.78 -> 0.28 m, FR079 0.075 -> 0.080 m without wheels)
+_PATH_NEAR_NO_WHEELS_M = 5.0
 
 
 def se3_log_gtsam(T: np.ndarray) -> np.ndarray:
@@ -123,8 +127,9 @@ class LoopCloser:
         return float(np.clip(floor + c.spatial_sigma * sigma, floor, max(floor, c.spatial_max_radius)))
 
     def propose(self, new: Submap, descriptor: np.ndarray | None, submaps: list[Submap], graph: GraphEstimate,
-                hint_pairs: list[tuple[int, int]]) -> list[Hypothesis]:
-        """Hypotheses ``(i, new.id)`` with older submaps: spatial, by ``descriptor``, and hints."""
+                hint_pairs: list[tuple[int, int]], wheel_odometry: bool = True) -> list[Hypothesis]:
+        """Hypotheses ``(i, new.id)`` with older submaps: spatial, by ``descriptor``, and hints.
+        ``wheel_odometry``: whether the log's odometry had wheels to follow (planar path proposals)."""
         c = self.config
         k = new.id
         eligible = min(k - c.min_submap_gap, self._last_cycle_partner(k, submaps))
@@ -139,9 +144,9 @@ class LoopCloser:
             d = np.linalg.norm(anchors - T_k[:3, 3], axis=1)
             far_on_chain = min(eligible, k - _PATH_MIN_GAP) + 1  # submaps 0 .. far_on_chain - 1
             if self.planar and far_on_chain > 0:
-                # a path passing within p of the new one's ranks as an anchor p + (floor - PATH_NEAR) away
-                by_path = self._path_distances(new, submaps[:far_on_chain], graph) + \
-                    max(self._min_radius - _PATH_NEAR_M, 0.0)
+                # a path passing within p of the new one's ranks as an anchor p + (floor - near) away
+                near = _PATH_NEAR_M if wheel_odometry else _PATH_NEAR_NO_WHEELS_M
+                by_path = self._path_distances(new, submaps[:far_on_chain], graph) + max(self._min_radius - near, 0.0)
                 d[:far_on_chain] = np.minimum(d[:far_on_chain], by_path)
             order = np.argsort(d, kind="stable")
             for i in order[: 4 * max(1, c.descriptor_top_k)]:
@@ -318,8 +323,9 @@ class LoopCloser:
         return True, ""
 
     def process(self, new: Submap, submaps: list[Submap], graph: GraphEstimate,
-                hint_pairs: list[tuple[int, int]]) -> list[LoopRecord]:
-        """Test the hypotheses for a newly closed submap; return every tested one.
+                hint_pairs: list[tuple[int, int]], wheel_odometry: bool = True) -> list[LoopRecord]:
+        """Test the hypotheses for a newly closed submap (``wheel_odometry``: as for
+        :meth:`propose`); return every tested one.
 
         Accepted records carry the constraint (``T_i_j`` and the registration's information);
         nothing is added to the graph here.
@@ -327,7 +333,7 @@ class LoopCloser:
         with self._time("descriptors"):
             descriptor = compute_descriptor(new.points, planar=self.planar, max_range=self.config.descriptor_radius)
         with self._time("loop_proposal"):
-            hyps = self.propose(new, descriptor, submaps, graph, hint_pairs)
+            hyps = self.propose(new, descriptor, submaps, graph, hint_pairs, wheel_odometry)
         records: list[LoopRecord] = []
         with self._time("loop_testing"):
             for hyp in hyps:
