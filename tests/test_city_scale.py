@@ -84,8 +84,8 @@ def test_pipeline_final_check_rejects_a_closure_forced_into_the_graph(tmp_path, 
     original = LoopCloser.process
     forced = []
 
-    def process_with_a_wrong_closure(self, new, submaps, graph, hint_pairs):
-        records = original(self, new, submaps, graph, hint_pairs)
+    def process_with_a_wrong_closure(self, new, submaps, graph, hint_pairs, *args, **kwargs):
+        records = original(self, new, submaps, graph, hint_pairs, *args, **kwargs)
         if new.id == 19 and not forced:  # after the true closures of the second lap (submaps 15-19)
             T_wrong = inverse(graph.pose(8)) @ graph.pose(19) @ se2_to_matrix(15.0, 4.0, 0.2)
             info = np.diag([1 / np.deg2rad(0.5) ** 2] * 3 + [1 / 0.05**2] * 3)
