@@ -264,7 +264,8 @@ class SubmapSLAM:
         for idx in submap.scan_indices:
             self._scan_submap[idx] = submap.id
         hint_pairs = self._hint_pairs()
-        wheel = self._wheel_scans > 0  # read here: the worker must not see the main thread's later scans
+        # whether the odometry followed wheels; read here: the worker must not see the main thread's later scans
+        wheel = self._wheel_scans > 0 and self.config.odometry.use_wheel_odometry
         movers = self._movers.take(submap.scan_indices) if self._movers is not None else None
         if not background:
             self._add_submap_to_graph(submap, hint_pairs, wheel, movers)
@@ -315,9 +316,8 @@ class SubmapSLAM:
             if replay is not None:
                 records = self._loop_closer.replay(submap, replay.loop_records[submap.id])
             else:
-                followed_wheels = wheel_odometry and self.config.odometry.use_wheel_odometry
                 records = self._loop_closer.process(submap, self.submaps, self._graph_builder.estimate(), hint_pairs,
-                                                    followed_wheels)
+                                                    wheel_odometry)
             self.loops.extend(records)
             self._graph_builder.add_loops(records)
         self._records_by_submap[submap.id] = records

@@ -111,11 +111,8 @@ def correlative_step(source_xy: np.ndarray, target_xy: np.ndarray, guess_xyt: np
         shifts = np.stack(np.meshgrid(steps, steps, indexing="ij"), -1).reshape(-1, 2)  # in cells
         turns = np.arange(0.0, half_rad + 1e-9, step_rad)
         turns = np.concatenate([[0.0], np.ravel(np.column_stack([turns[1:], -turns[1:]]))])
-        turned = []
-        for turn in turns:
-            c, s = math.cos(best[2] + turn), math.sin(best[2] + turn)
-            turned.append(source @ np.array([[c, s], [-s, c]]) + best[:2])
-        scores = grid.scores(np.stack(turned), shifts)
+        turned = np.stack([_placed(source, (best[0], best[1], best[2] + turn)) for turn in turns])
+        scores = grid.scores(turned, shifts)
         k, j = np.unravel_index(int(np.argmax(scores)), scores.shape)
         best = np.array([best[0] + shifts[j, 0] * cell, best[1] + shifts[j, 1] * cell, best[2] + turns[k]])
     return best
