@@ -69,6 +69,55 @@ def test_corridor_information_is_weak_along_the_corridor():
     assert cov[3, 3] > 100 * cov[4, 4]  # x (along the corridor) far less certain than y
 
 
+def box_room(seed=0):
+    """A 3D room: floor, ceiling and four walls (8 x 5 x 2.5 m) with a pillar, points every ~10 cm."""
+    rng = np.random.default_rng(seed)
+    u = np.arange(0.0, 1.0, 0.0125)
+    a, b = np.meshgrid(u, u)
+    a, b = a.ravel(), b.ravel()
+    faces = [np.c_[8 * a - 4, 5 * b - 2.5, 0 * a], np.c_[8 * a - 4, 5 * b - 2.5, 0 * a + 2.5],
+             np.c_[8 * a - 4, 0 * a - 2.5, 2.5 * b], np.c_[8 * a - 4, 0 * a + 2.5, 2.5 * b],
+             np.c_[0 * a - 4, 5 * b - 2.5, 2.5 * b], np.c_[0 * a + 4, 5 * b - 2.5, 2.5 * b],
+             np.c_[0.4 * a + 1.0, 0 * a + 0.6, 2.5 * b], np.c_[0 * a + 1.0, 0.4 * a + 0.6, 2.5 * b]]
+    pts = np.vstack(faces)
+    return pts + rng.normal(0, 0.005, pts.shape)
+
+
+@pytest.mark.parametrize("planar_case", [True, False], ids=["planar", "3d"])
+def test_information_is_about_the_source_pose_wherever_the_target_frame_is(planar_case):
+    """The information is about ``T_target_source · Exp(xi)`` (GTSAM's between-factor tangent):
+    matching a cloud against itself gives the same information whether the target frame is the
+    source's own or one 30 m away and turned 90 deg (about the target's origin, a yaw error
+    would move the source by 30 m per radian)."""
+    cloud = corridor_submap(0) if planar_case else box_room(0)
+    far = se2_to_matrix(30.0, -10.0, np.pi / 2) if planar_case else \
+        np.array([[0.0, -1.0, 0.0, 30.0], [1.0, 0.0, 0.0, -10.0], [0.0, 0.0, 1.0, 0.5], [0.0, 0.0, 0.0, 1.0]])
+    infos = []
+    for T in (np.eye(4), far):
+        res = check_correspondence(cloud, transform_points(T, cloud), planar=planar_case, initial_guess=T,
+                                   refine_only=True, voxel_size=0.1)
+        infos.append(res.information_gtsam)
+    axes = [2, 3, 4] if planar_case else list(range(6))
+    here, there = (np.linalg.inv(i[np.ix_(axes, axes)]) for i in infos)
+    sd = np.sqrt(np.diag(here))
+    np.testing.assert_allclose(np.sqrt(np.diag(there)), sd, rtol=0.2)
+    # yaw and the translation across it stay as uncorrelated as at home (about the target's origin
+    # they would be almost fully correlated)
+    corr = there / np.outer(np.sqrt(np.diag(there)), np.sqrt(np.diag(there)))
+    home = here / np.outer(sd, sd)
+    assert np.abs(corr - home).max() < 0.2
+
+
+def test_corridor_information_is_weak_along_the_corridor_as_the_source_sees_it():
+    a, b = np.linspace(0, 20, 400), np.zeros(400)
+    walls = np.vstack([np.c_[a, b, b], np.c_[a, b + 3.0, b]])
+    T = se2_to_matrix(3.0, 0.5, np.pi / 2)  # the corridor (target x) runs along the source's y
+    res = check_correspondence(transform_points(inverse(T), walls), walls, planar=True, initial_guess=T,
+                               refine_only=True)
+    cov = np.linalg.inv(res.information)
+    assert cov[4, 4] > 100 * cov[3, 3]
+
+
 def test_real_laser_submap_recovered_from_far_offset():
     path = shared_data("carmen", "intel.clf.bz2")
     pts = []

@@ -93,6 +93,23 @@ def test_a_batch_of_scans_is_registered_to_its_cloud():
     assert (res.fitness > 0.9).all() and (res.inlier_rmse < 0.005).all()
 
 
+def test_a_scan_in_a_corridor_is_uncertain_along_the_corridor_in_its_own_frame():
+    """The information is about the scan pose perturbed in the scan's frame (a Pose2
+    between-factor's tangent): a scan turned 90 deg in a corridor along the cloud's x is uncertain
+    along its own y."""
+    from scipy.spatial import cKDTree
+
+    from submapslam.registration.point_to_line import line_normals
+
+    x = np.arange(-10.0, 10.0, 0.05)
+    cloud = np.vstack([np.c_[x, np.full_like(x, -1.5)], np.c_[x, np.full_like(x, 1.5)]])
+    pose = np.array([[0.3, 0.2, np.pi / 2]])  # the scan in the cloud's frame
+    scan = _between(pose, np.c_[cloud, np.zeros(len(cloud))])[np.abs(cloud[:, 0] - 0.3) < 6, :2]
+    res = match_scans(cloud, line_normals(cloud, cKDTree(cloud)), [scan], pose)
+    info = res.information[0]
+    assert info[0, 0] > 0 and info[1, 1] < 1e-3 * info[0, 0]
+
+
 def test_anchors_where_the_solve_bent_the_odometry_are_held_loosely():
     """Five anchors 2 m apart; the submap solve moved the last two 0.2 m sideways and turned the
     last one 1 deg: the anchors on either side of each bend get sigmas of 0.2 m / 1 deg, the rest

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..geometry import matrix_to_se2
+from ..geometry import adjoint, matrix_to_se2
 from .planar import match_planar, planar_cloud
 from .spatial import (
     SpatialCloud,
@@ -42,7 +42,9 @@ class CorrespondenceResult:
     """Outcome of a correspondence test.
 
     ``T_target_source`` maps source-submap points into the target submap's anchor frame;
-    ``information`` is ``(6, 6)`` in GTSAM Pose3 tangent order ``(rx, ry, rz, tx, ty, tz)``
+    ``information`` is ``(6, 6)`` in GTSAM Pose3 tangent order ``(rx, ry, rz, tx, ty, tz)``, about
+    ``T_target_source · Exp(xi)``: the source pose perturbed in its own frame, the tangent of a
+    GTSAM between-factor's noise
     (3D results compute it on first access: most tested hypotheses are rejected and never
     need it).
     """
@@ -196,7 +198,10 @@ def _spatial(source: SpatialCloud, target: SpatialCloud, initial_guess, yaw_hint
     overlap = min(fitness, back)
 
     def information() -> np.ndarray:
-        info = information_matrix(source, target, result, inlier)
+        # information_matrix perturbs the target's frame (about its origin); GTSAM's between-factor
+        # perturbs the source pose in its own frame: I_source = Ad(T)^T I_target Ad(T)
+        A = adjoint(result)
+        info = A.T @ information_matrix(source, target, result, inlier) @ A
         info = info / max(rmse, 0.02) ** 2 if np.isfinite(rmse) else np.eye(6) * 1e-6
         return 0.5 * (info + info.T) + np.eye(6) * 1e-6
 

@@ -10,7 +10,8 @@ matched entirely in SE(2):
    are kept: their ratio measures ambiguity.
 2. fine: point-to-point ICP with a shrinking correspondence distance (scipy cKDTree).
 3. information: Gauss-Newton Hessian of the ICP residuals at the solution, ``(3, 3)`` over
-   ``(x, y, yaw)``, scaled by the inlier residual variance.
+   ``(x, y, yaw)`` of the source pose perturbed in its own frame, scaled by the inlier residual
+   variance.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ class PlanarMatch:
     ambiguity: float        # second distinct peak / best peak, [0, 1]; near 1 = ambiguous
     fitness: float
     inlier_rmse: float
-    information: np.ndarray  # (3, 3) over (x, y, yaw)
+    information: np.ndarray  # (3, 3) over (x, y, yaw), the source pose perturbed in its own frame
 
     @property
     def T(self) -> np.ndarray:
@@ -240,9 +241,11 @@ def registration_information(source: np.ndarray, target: np.ndarray, xyt: np.nda
                              normals: np.ndarray | None = None) -> tuple[np.ndarray, float, float]:
     """Point-to-line information ``(3, 3)`` over ``(x, y, yaw)``, fitness and inlier RMSE at ``xyt``.
 
-    Each inlier contributes ``J^T J`` with ``J = n^T [I, dR p]`` (``n`` the target normal), so a
-    corridor gives little information along its axis: degenerate matches stay uncertain where
-    they are degenerate. Neighbouring points are not independent, so the sum is scaled to
+    The information is about a perturbation of the source pose in the *source's* frame
+    (``T_target_source · Exp(dx, dy, dyaw)``: the tangent a GTSAM between-factor's noise is in).
+    Each inlier contributes ``J^T J`` with ``J = [n^T R, n^T dR p]`` (``n`` the target normal,
+    ``R`` the source's rotation), so a corridor gives little information along its axis, as the
+    source sees it: degenerate matches stay uncertain where they are degenerate. Neighbouring points are not independent, so the sum is scaled to
     ``effective_points`` observations at the inlier residual variance. ``normals`` ``(M, 2)``
     of the target (from :func:`target_normals`) can be passed to share them between calls.
     """
@@ -257,7 +260,8 @@ def registration_information(source: np.ndarray, target: np.ndarray, xyt: np.nda
     rmse = float(np.sqrt(np.mean(d[inl] ** 2)))
     normals = (target_normals(target, tree) if normals is None else normals)[nn[inl]]
     P = moved[inl] - xyt[:2]  # rotated source points (lever arms about the source origin)
-    J = np.stack([normals[:, 0], normals[:, 1], normals[:, 1] * P[:, 0] - normals[:, 0] * P[:, 1]], axis=1)
+    along = normals @ np.array([[c, -s], [s, c]])  # R^T n: the normals in the source's axes
+    J = np.stack([along[:, 0], along[:, 1], normals[:, 1] * P[:, 0] - normals[:, 0] * P[:, 1]], axis=1)
     sigma2 = max(rmse, 0.02) ** 2
     scale = min(1.0, effective_points / len(J))
     return scale * (J.T @ J) / sigma2, fitness, rmse

@@ -19,7 +19,7 @@ from scipy.ndimage import distance_transform_edt
 @dataclass
 class BatchMatch:
     """Per scan ``(P, ...)``: pose ``xyt`` ``(P, 3)`` in the cloud's frame, point-to-line
-    ``information`` ``(P, 3, 3)`` over ``(x, y, yaw)``, ``fitness`` ``(P,)`` (share of the scan's
+    ``information`` ``(P, 3, 3)`` over ``(x, y, yaw)`` of that pose perturbed in the scan's own frame, ``fitness`` ``(P,)`` (share of the scan's
     points within the inlier distance of the cloud) and ``inlier_rmse`` ``(P,)`` [m] (point-to-line,
     of the inliers on line-like cloud points; inf without any)."""
 
@@ -130,6 +130,11 @@ def match_scans(cloud: np.ndarray, normals: np.ndarray, scans: list[np.ndarray],
     rmse = np.where(used > 0, np.sqrt(np.bincount(owner[k], r**2, minlength=P) / np.maximum(used, 1)), np.inf)
     sigma2 = np.maximum(rmse, 0.02) ** 2
     scale = np.minimum(1.0, effective_points / np.maximum(used, 1))
-    out_info = H * (scale / sigma2)[:, None, None]
+    # the Gauss-Newton steps move the scan in the cloud's axes; its information is about the scan
+    # pose perturbed in the scan's own frame (a Pose2 between-factor's tangent): A^T H A, A = diag(R, 1)
+    A = np.zeros((P, 3, 3))
+    c, s = np.cos(xyt[:, 2]), np.sin(xyt[:, 2])
+    A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1], A[:, 2, 2] = c, -s, s, c, 1.0
+    out_info = np.swapaxes(A, 1, 2) @ H @ A * (scale / sigma2)[:, None, None]
     out_info[used < 3] = np.eye(3) * 1e-6
     return BatchMatch(xyt, out_info, fitness, rmse)
