@@ -245,8 +245,9 @@ def registration_information(source: np.ndarray, target: np.ndarray, xyt: np.nda
     (``T_target_source · Exp(dx, dy, dyaw)``: the tangent a GTSAM between-factor's noise is in).
     Each inlier contributes ``J^T J`` with ``J = [n^T R, n^T dR p]`` (``n`` the target normal,
     ``R`` the source's rotation), so a corridor gives little information along its axis, as the
-    source sees it: degenerate matches stay uncertain where they are degenerate. Neighbouring points are not independent, so the sum is scaled to
-    ``effective_points`` observations at the inlier residual variance. ``normals`` ``(M, 2)``
+    source sees it: degenerate matches stay uncertain where they are degenerate. Neighbouring
+    points are not independent, so the sum is scaled to ``effective_points`` observations at the
+    inlier residual variance. ``normals`` ``(M, 2)``
     of the target (from :func:`target_normals`) can be passed to share them between calls.
     """
     tree = tree or cKDTree(target)

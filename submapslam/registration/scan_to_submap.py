@@ -19,9 +19,10 @@ from scipy.ndimage import distance_transform_edt
 @dataclass
 class BatchMatch:
     """Per scan ``(P, ...)``: pose ``xyt`` ``(P, 3)`` in the cloud's frame, point-to-line
-    ``information`` ``(P, 3, 3)`` over ``(x, y, yaw)`` of that pose perturbed in the scan's own frame, ``fitness`` ``(P,)`` (share of the scan's
-    points within the inlier distance of the cloud) and ``inlier_rmse`` ``(P,)`` [m] (point-to-line,
-    of the inliers on line-like cloud points; inf without any)."""
+    ``information`` ``(P, 3, 3)`` over ``(x, y, yaw)`` of that pose perturbed in the scan's own
+    frame, ``fitness`` ``(P,)`` (share of the scan's points within the inlier distance of the
+    cloud) and ``inlier_rmse`` ``(P,)`` [m] (point-to-line, of the inliers on line-like cloud
+    points; inf without any)."""
 
     xyt: np.ndarray
     information: np.ndarray
@@ -133,8 +134,8 @@ def match_scans(cloud: np.ndarray, normals: np.ndarray, scans: list[np.ndarray],
     # the Gauss-Newton steps move the scan in the cloud's axes; its information is about the scan
     # pose perturbed in the scan's own frame (a Pose2 between-factor's tangent): A^T H A, A = diag(R, 1)
     A = np.zeros((P, 3, 3))
-    c, s = np.cos(xyt[:, 2]), np.sin(xyt[:, 2])
-    A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1], A[:, 2, 2] = c, -s, s, c, 1.0
+    cos_t, sin_t = np.cos(xyt[:, 2]), np.sin(xyt[:, 2])
+    A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1], A[:, 2, 2] = cos_t, -sin_t, sin_t, cos_t, 1.0
     out_info = np.swapaxes(A, 1, 2) @ H @ A * (scale / sigma2)[:, None, None]
     out_info[used < 3] = np.eye(3) * 1e-6
     return BatchMatch(xyt, out_info, fitness, rmse)
