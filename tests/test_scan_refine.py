@@ -104,6 +104,7 @@ def test_a_scan_in_a_corridor_is_uncertain_along_the_corridor_in_its_own_frame()
     x = np.arange(-10.0, 10.0, 0.05)
     cloud = np.vstack([np.c_[x, np.full_like(x, -1.5)], np.c_[x, np.full_like(x, 1.5)]])
     pose = np.array([[0.3, 0.2, np.pi / 2]])  # the scan in the cloud's frame
+    # the cloud's points (as poses with yaw 0) in the scan's frame, the 12 m of corridor around it
     scan = _between(pose, np.c_[cloud, np.zeros(len(cloud))])[np.abs(cloud[:, 0] - 0.3) < 6, :2]
     res = match_scans(cloud, line_normals(cloud, cKDTree(cloud)), [scan], pose)
     info = res.information[0]
