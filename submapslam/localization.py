@@ -331,17 +331,15 @@ class Localizer:
             r = np.einsum("ij,ij->i", moved[ok] - self._line_pts[i[ok]], n)
             w = 1.0 / (1.0 + (r / (self.inlier / 4)) ** 2)
             return limited_by_the_map(planar_match_information(scan[ok, :2], n @ T[:2, :2], r, w), True)
-        from .geometry import adjoint
-        from .registration.spatial import SpatialCloud, information_matrix, registration_fit
+        from .registration.spatial import SpatialCloud, registration_fit, source_pose_information
 
         src = SpatialCloud(scan, self.voxel)
         fitness, rmse = registration_fit(src, self._cloud, T, self.inlier)
         if round(fitness * len(src.points)) < 20:
             return np.zeros((6, 6))
-        world = information_matrix(src, self._cloud, T, self.inlier)
+        body = source_pose_information(src, self._cloud, T, self.inlier)  # about the scan pose, its own frame
         var = max(rmse**2, (self.voxel / 4) ** 2)
-        A = adjoint(T)  # information_matrix perturbs in the map (world) frame: I_body = Ad(T)^T I_world Ad(T)
-        return limited_by_the_map(A.T @ world @ A / (var * REGISTRATION_INFLATION), False)
+        return limited_by_the_map(body / (var * REGISTRATION_INFLATION), False)
 
     def _bearing_bins(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         nb = self._n_bins

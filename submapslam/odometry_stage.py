@@ -18,6 +18,7 @@ import os
 import pickle
 import queue
 import struct
+import subprocess
 import sys
 import threading
 from collections import deque
@@ -173,8 +174,6 @@ class OdometryProcess:
     """
 
     def __init__(self, config: OdometryConfig, planar: bool) -> None:
-        import subprocess
-
         self.voxel_size, self.frame_voxel = odometry_voxels(config, planar)
         package_root = str(Path(__file__).resolve().parent.parent)
         env = dict(os.environ, PYTHONPATH=os.pathsep.join(
@@ -227,7 +226,7 @@ class OdometryProcess:
             self._inbox.put(None)  # every later call sees the end too
             try:
                 code = self._process.wait(timeout=10.0)
-            except Exception:  # noqa: BLE001 - its output broke while it runs: it is stopped
+            except subprocess.TimeoutExpired:  # its output broke while it runs: it is stopped
                 self._process.kill()
                 code = self._process.wait()
             raise SubmapSlamError(f"the odometry process ended unexpectedly (exit code {code})")

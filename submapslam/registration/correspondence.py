@@ -7,7 +7,7 @@ good initial guess and decides whether the two submaps really show the same plac
   (:mod:`.planar`); the 3D point-to-plane / GICP systems are singular on planar data;
 * 3D submaps: FPFH features + a seeded RANSAC (:func:`.spatial.feature_ransac`) when there is no
   usable guess, then generalized ICP (small_gicp); information from the point-to-point
-  correspondences (:func:`.spatial.information_matrix`); for tests that are not a refinement, the
+  correspondences (:func:`.spatial.source_pose_information`); for tests that are not a refinement, the
   agreement of the structure (non-ground points, :func:`.spatial.structure_agreement`).
 
 Gates: fitness (source points with a target neighbour within the inlier distance), inlier
@@ -23,14 +23,14 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..geometry import adjoint, matrix_to_se2
+from ..geometry import matrix_to_se2
 from .planar import match_planar, planar_cloud
 from .spatial import (
     SpatialCloud,
     feature_ransac,
     gicp,
-    information_matrix,
     registration_fit,
+    source_pose_information,
     structure_agreement,
 )
 
@@ -198,10 +198,7 @@ def _spatial(source: SpatialCloud, target: SpatialCloud, initial_guess, yaw_hint
     overlap = min(fitness, back)
 
     def information() -> np.ndarray:
-        # information_matrix perturbs the target's frame (about its origin); GTSAM's between-factor
-        # perturbs the source pose in its own frame: I_source = Ad(T)^T I_target Ad(T)
-        A = adjoint(result)
-        info = A.T @ information_matrix(source, target, result, inlier) @ A
+        info = source_pose_information(source, target, result, inlier)
         info = info / max(rmse, 0.02) ** 2 if np.isfinite(rmse) else np.eye(6) * 1e-6
         return 0.5 * (info + info.T) + np.eye(6) * 1e-6
 

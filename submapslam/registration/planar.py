@@ -247,8 +247,8 @@ def registration_information(source: np.ndarray, target: np.ndarray, xyt: np.nda
     ``R`` the source's rotation), so a corridor gives little information along its axis, as the
     source sees it: degenerate matches stay uncertain where they are degenerate. Neighbouring
     points are not independent, so the sum is scaled to ``effective_points`` observations at the
-    inlier residual variance. ``normals`` ``(M, 2)``
-    of the target (from :func:`target_normals`) can be passed to share them between calls.
+    inlier residual variance. ``normals`` ``(M, 2)`` of the target (from :func:`target_normals`)
+    can be passed to share them between calls.
     """
     tree = tree or cKDTree(target)
     c, s = np.cos(xyt[2]), np.sin(xyt[2])

@@ -6,7 +6,8 @@
 * :func:`gicp` — generalized ICP of two prepared clouds (small_gicp);
 * :func:`registration_fit` — fitness and inlier RMSE of an alignment, as open3d's
   ``evaluate_registration`` defines them; :func:`information_matrix` — its
-  ``get_information_matrix_from_point_clouds``;
+  ``get_information_matrix_from_point_clouds`` (a target-frame perturbation), and
+  :func:`source_pose_information` — the same about the source pose, as a pose graph takes it;
 * :class:`SubmapClouds` — the prepared clouds of recently used submaps (bounded LRU);
 * :func:`structure_agreement` — overlap and point-to-plane RMSE of the walls, poles and cars;
 * :func:`feature_ransac` — a global alignment from FPFH correspondences, repeatable run to run.
@@ -20,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..geometry import adjoint
 from .fpfh import fpfh_features
 
 _NEIGHBOURS = 20  # nearest points behind each normal and GICP covariance
@@ -146,6 +148,15 @@ def information_matrix(source: SpatialCloud, target: SpatialCloud, T: np.ndarray
                   np.stack([-z, zero, x, zero, one, zero], axis=1),
                   np.stack([y, -x, zero, zero, zero, one], axis=1)], axis=1)  # (M, 3, 6)
     return np.einsum("mki,mkj->ij", G, G)
+
+
+def source_pose_information(source: SpatialCloud, target: SpatialCloud, T: np.ndarray, max_distance: float
+                            ) -> np.ndarray:
+    """:func:`information_matrix` about ``T_target_source · Exp(xi)`` instead: the source pose
+    perturbed in its own frame (GTSAM's between-factor tangent, a pose's own frame),
+    ``Ad(T)^T I_target Ad(T)``, ``(6, 6)`` in (rx, ry, rz, tx, ty, tz), unit measurement variance."""
+    A = adjoint(T)
+    return A.T @ information_matrix(source, target, T, max_distance) @ A
 
 
 def structure_agreement(source: SpatialCloud, target: SpatialCloud, T_target_source: np.ndarray,
