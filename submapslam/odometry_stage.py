@@ -37,6 +37,10 @@ log = logging.getLogger(__name__)
 Known = tuple[np.ndarray, np.ndarray | None] | None  # a resumed run's (T_odom_base, xyt or None)
 
 
+#: [s] how long a child whose answers stopped coming may take to end before it is stopped
+_END_WAIT_S = 10.0
+
+
 @dataclass
 class Registered:
     """One registered scan.
@@ -225,7 +229,7 @@ class OdometryProcess:
         if answer is None:
             self._inbox.put(None)  # every later call sees the end too
             try:
-                code = self._process.wait(timeout=10.0)
+                code = self._process.wait(timeout=_END_WAIT_S)
             except subprocess.TimeoutExpired:  # its output broke while it runs: it is stopped
                 self._process.kill()
                 code = self._process.wait()

@@ -81,6 +81,28 @@ def test_a_dead_child_is_one_clear_error(outdoor_log):
         child.close()
 
 
+def test_a_child_whose_answers_break_while_it_runs_is_stopped_with_one_clear_error(outdoor_log, monkeypatch):
+    """The answer stream breaks but the child lives on (waiting for scans): the caller gets the
+    same one-line error after a short wait, and the child is stopped, not left running."""
+    import submapslam.odometry_stage as stage
+
+    def broken(stream):
+        raise EOFError("the stream broke")
+
+    monkeypatch.setattr(stage, "_END_WAIT_S", 0.5)
+    monkeypatch.setattr(stage, "_receive", broken)  # the reader's stream breaks; the child itself runs on
+    scan = next(iter(open_log(outdoor_log)))
+    child = OdometryProcess(OdometryConfig(), False)
+    try:
+        assert child._process.poll() is None
+        child.submit(scan)
+        with pytest.raises(SubmapSlamError, match="odometry process ended unexpectedly"):
+            child.result()
+        assert child._process.poll() is not None
+    finally:
+        child.close()
+
+
 def test_planar_child_reports_the_same_poses_and_checks():
     """A planar run in a child process: the same refined poses as in this process, and the
     odometry checks (summary.json's ``odometry_checks``) come back when the child ends."""
