@@ -28,6 +28,7 @@ from .uncertainty import (
     OdometryNoise,
     TiltChangeSpread,
     TiltDrift,
+    first_cloud_covariance,
     measured_vote_variance,
     odometry_information,
     world_up_covariance,
@@ -117,6 +118,8 @@ class GraphBuilder:
         self._up_vote_ids: list[int] = []  # the submaps those votes came from
         self._up_from_ground: int | None = None  # the submap whose ground normal is the world's up (ground source)
         self._world_up_sigma: float | None = None  # [rad] per tilt axis, once finish() gave it to the covariances
+        self._first_cloud: tuple[int, np.ndarray] | None = None  # (first submap id, (K,) its scans' path [m])
+        self._first_cloud_sigma: np.ndarray | None = None  # (6,) once finish() gave it to the covariances
         self._waiting_for_up: list[tuple[int, np.ndarray, float, str]] = []  # (id, up in anchor, sigma, kind) waiting
         self._submaps_without_walls = 0  # 3D: submaps seen before the level priors' source was chosen
         # the walls' vertical: spinning LiDARs only. A narrow-field sensor's odometry holds its tilt to
@@ -174,6 +177,8 @@ class GraphBuilder:
                 vertical = self._wall_vertical(submap, up)
         with self._time("optimisation"):
             if previous is None:
+                steps = np.linalg.norm(np.diff(np.asarray(submap.T_anchor_scans)[:, :3, 3], axis=0), axis=1)
+                self._first_cloud = (submap.id, np.concatenate([[0.0], np.cumsum(steps)]))
                 self.graph.add_node(submap.id, submap.T_odom_anchor, PRIOR_INFORMATION)
             else:
                 self.graph.add_node(submap.id, self.graph.pose(previous.id) @ T_prev_k)
@@ -329,6 +334,18 @@ class GraphBuilder:
         self._world_up_sigma = float(np.sqrt(np.trace(cov) / 2.0))
         return cov
 
+    def _first_cloud_error(self, noise: OdometryNoise, jitter: np.ndarray | None,
+                           refit_scans: int) -> tuple[int, np.ndarray] | None:
+        """``(first node, (6, 6))``: where the first submap's cloud sits relative to the first scan
+        under the run's measured ``noise`` (:func:`~submapslam.uncertainty.first_cloud_covariance`)."""
+        if self._first_cloud is None:
+            return None
+        node, travelled = self._first_cloud
+        cov = first_cloud_covariance(travelled, noise.covariance_per_metre(),
+                                     np.zeros(6) if jitter is None else jitter, refit_scans)
+        self._first_cloud_sigma = np.sqrt(np.diag(cov))
+        return node, cov
+
     def world_up_summary(self) -> dict:
         """What ``summary.json``'s ``covariance_model`` says of the world up the level priors share:
         its sigma per tilt axis [deg] in the reported covariances, and where it came from."""
@@ -336,6 +353,15 @@ class GraphBuilder:
             return {}
         source = "ground" if self._up_from_ground is not None else "walls"
         return {"world_up": {"from": source, "sigma_deg": round(float(np.rad2deg(self._world_up_sigma)), 4)}}
+
+    def first_cloud_summary(self) -> dict:
+        """What ``summary.json``'s ``covariance_model`` says of where the first submap's cloud sits
+        relative to the first scan (:meth:`_first_cloud_error`): sigma per axis [deg, m]."""
+        if self._first_cloud_sigma is None:
+            return {}
+        names = ("roll_deg", "pitch_deg", "yaw_deg", "x_m", "y_m", "z_m")
+        sigma = [np.rad2deg(v) if n.endswith("_deg") else v for n, v in zip(names, self._first_cloud_sigma)]
+        return {"first_cloud_sigma": {n: round(float(v), 5) for n, v in zip(names, sigma)}}
 
     def tilt_change_summary(self) -> dict:
         """``summary.json``'s ``ground_tilt_change``: pairs, their spread and the sigma in use
@@ -399,8 +425,15 @@ class GraphBuilder:
                 self.graph.update(extra_iterations=2)
 
     # ------------------------------------------------------------------ finishing
-    def finish(self) -> tuple[dict[tuple[int, int], str], dict[int, np.ndarray]]:
+    def finish(self, jitter: np.ndarray | None = None,
+               refit_scans: int = 0) -> tuple[dict[tuple[int, int], str], dict[int, np.ndarray]]:
         """Batch pass, final check and covariances.
+
+        ``jitter`` ``(6,)``: the scans' own odometry noise
+        (:func:`~submapslam.uncertainty.scan_jitter_variance`), ``refit_scans``: how many scans the
+        first was registered again against (0: none); with them the reported covariances count where
+        the first submap's cloud sits relative to the first scan
+        (:func:`~submapslam.uncertainty.first_cloud_covariance`).
 
         Returns ``({(i, j): why} of loop edges the solution rejected, {node: (6, 6) covariance}``);
         the graph keeps only the loops it did not reject. The covariances are the graph's marginals,
@@ -430,7 +463,8 @@ class GraphBuilder:
             if self.config.covariance_scale is None and noise.variance_per_metre() is not None:
                 try:
                     covs = self.graph.estimator_covariances(noise.factor_covariance,
-                                                            up_covariance=self._world_up_covariance(noise))
+                                                            up_covariance=self._world_up_covariance(noise),
+                                                            first_cloud=self._first_cloud_error(noise, jitter, refit_scans))
                     self.covariance_model = noise
                 except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:  # a singular system: the marginals
                     log.warning("the estimate's covariances could not be computed (%s); reporting the graph's "

@@ -503,8 +503,10 @@ class SubmapSLAM:
         if self._worker is not None:
             self._worker.shutdown()
             self._worker = None
+        jitter = scan_jitter_variance(np.array(self._odom_poses), np.asarray(self.timestamps))
+        refit = self.odometry_config.startup_refit_scans if self._start_frame.correction is not None else 0
         try:
-            reasons, covs = self._graph_builder.finish()
+            reasons, covs = self._graph_builder.finish(jitter, refit)
         except (OptimisationError, RuntimeError) as exc:  # the estimate so far is kept, without covariances
             log.warning("the final optimisation failed: %s", exc)
             failure = failure or f"the final optimisation failed: {exc}"
@@ -550,8 +552,8 @@ class SubmapSLAM:
                                           covariance_scale(backend, self.planar))),
             covariance_model=({"kind": "measured odometry noise", **noise.summary(),
                                **self._graph_builder.world_up_summary(),
-                               "scan_jitter_variance": [float(v) for v in
-                                                        scan_jitter_variance(np.array(self._odom_poses), timestamps)]}
+                               **self._graph_builder.first_cloud_summary(),
+                               "scan_jitter_variance": [float(v) for v in jitter]}
                               if noise is not None else
                               {"kind": "graph marginals scaled per axis",
                                "scale": [float(v) for v in covariance_scale(backend, self.planar)]}),

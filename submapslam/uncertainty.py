@@ -297,6 +297,54 @@ def world_up_covariance(up: np.ndarray, distances: list[float], vote_variance: f
     return (vote_variance / n + shared) * (np.eye(3) - np.outer(u, u))
 
 
+def rank_correlation(samples: np.ndarray) -> np.ndarray:
+    """``(d, d)`` correlation of the columns of ``samples`` ``(n, d)``, robust: Spearman's rank
+    correlation taken to a normal's (``2 sin(pi rho / 6)``), made positive semi-definite. A column
+    that never varies (a planar run's roll, pitch, z) is uncorrelated with the rest."""
+    x = np.asarray(samples, dtype=np.float64)
+    n, d = x.shape
+    out = np.eye(d)
+    live = np.flatnonzero(np.ptp(x, axis=0) > 0.0) if n >= 3 else np.zeros(0, dtype=int)
+    if len(live) < 2:
+        return out
+    ranks = np.argsort(np.argsort(x[:, live], axis=0, kind="stable"), axis=0).astype(np.float64)
+    r = 2.0 * np.sin(np.pi * np.corrcoef(ranks.T) / 6.0)
+    w, v = np.linalg.eigh(r)
+    r = (v * np.maximum(w, 1e-3)) @ v.T
+    sd = np.sqrt(np.diag(r))
+    out[np.ix_(live, live)] = r / np.outer(sd, sd)
+    return out
+
+
+def first_cloud_covariance(travelled: np.ndarray, per_metre: np.ndarray, jitter: np.ndarray,
+                           refit_scans: int = 0) -> np.ndarray:
+    """``(6, 6)`` covariance [rad^2, m^2] (GTSAM order, the first anchor's frame) of where
+    the first submap's cloud sits relative to the first scan, the pose every output is relative to.
+
+    Every edge into the first anchor registers against its cloud, not its first scan, so the whole
+    estimate sits where that cloud is; the cloud is built from scans the odometry placed with a
+    random walk of ``per_metre`` (covariance ``(6, 6)`` or variances ``(6,)`` per m) along the path (each scan's
+    ``travelled`` ``(K,)`` [m] from the first), plus each scan's own ``jitter`` ``(6,)``. A
+    registration sees about the mean of its scans' errors. With ``refit_scans`` > 0 the first scan
+    was registered again against the ``refit_scans`` after it (:class:`~submapslam.start_frame.StartFrame`),
+    so it sits at their mean error instead of at zero. For a walk over ``L`` metres without the
+    refit this is ``variance * L / 3``.
+    """
+    s = np.asarray(travelled, dtype=np.float64).reshape(-1)
+    k = len(s)
+    if k < 2:
+        return np.zeros((6, 6))
+    weights = np.full(k - 1, 1.0 / k)  # scans 1..K-1; the first contributes where it sits
+    n = min(int(refit_scans), k - 1)
+    if n > 0:  # the first scan (and so the frame) at the mean error of scans 1..n
+        weights[:n] -= (1.0 - 1.0 / k) / n
+    walk = float(weights @ np.minimum.outer(s[1:], s[1:]) @ weights)
+    own = float(weights @ weights)
+    rate = np.asarray(per_metre, dtype=np.float64)
+    rate = np.diag(rate) if rate.ndim == 1 else rate
+    return rate * walk + np.diag(np.asarray(jitter, dtype=np.float64)) * own
+
+
 class OdometryNoise:
     """The run's own odometry noise per axis, from the registrations between consecutive submaps,
     and the noise of every factor of the graph that follows from it (2D and 3D runs; a planar run's
@@ -306,7 +354,9 @@ class OdometryNoise:
     the ``(6,)`` correction that registration makes to the odometry's relative pose (GTSAM order,
     [rad, m]) samples the odometry's error over the edge. Per axis the robust variance per metre is
     the median of ``c^2 / distance`` over chi-square(1)'s median (0.455), times
-    :data:`ODOMETRY_NOISE_FACTOR` squared (the part of the error the registration shares). The graph
+    :data:`ODOMETRY_NOISE_FACTOR` squared (the part of the error the registration shares); the axes
+    keep their correlation over an edge (:func:`rank_correlation` of ``c / sqrt(distance)``, the
+    edges within 4 robust sigmas on every axis: a heading error comes with a lateral one). The graph
     weighs its edges with a drift model sized for any 16-ring town (one rotation sigma of 0.2 deg and
     more for all three axes), ten to a hundred times looser in yaw than what a run achieves; the
     covariances a run reports are those of its estimate under this measured noise
@@ -324,18 +374,31 @@ class OdometryNoise:
         self.edges = len(ids)
         self.median_distance = float(np.median(list(self.distances.values()))) if ids else 1.0
         self._variance: np.ndarray | None = None  # (6,) per metre, once min_edges edges were measured
+        self._correlation = np.eye(6)  # between the axes' errors over one edge
         if len(ids) >= min_edges:
             c = np.array([np.asarray(corrections[k], dtype=np.float64) for k in ids])
             d = np.array([self.distances[k] for k in ids])
             self._variance = factor**2 * np.median(c**2 / d[:, None], axis=0) / 0.455
+            per_root_metre = c / np.sqrt(d)[:, None]
+            spread = np.sqrt(np.median(per_root_metre**2, axis=0) / 0.455)
+            usual = np.all(np.abs(per_root_metre) <= 4.0 * spread, axis=1)  # registrations gone wrong left out
+            self._correlation = rank_correlation(per_root_metre[usual])
 
     def variance_per_metre(self) -> np.ndarray | None:
         """``(6,)`` variance per metre [rad^2/m, m^2/m] of the odometry, GTSAM order, or None."""
         return self._variance
 
+    def covariance_per_metre(self) -> np.ndarray | None:
+        """``(6, 6)`` covariance per metre of the odometry (GTSAM order): the axes' variances with
+        their correlation over an edge (:func:`rank_correlation`), or None."""
+        if self._variance is None:
+            return None
+        sd = np.sqrt(self._variance)
+        return self._correlation * np.outer(sd, sd)
+
     def edge_covariance(self, distance: float) -> np.ndarray:
         """``(6, 6)`` covariance of the odometry over ``distance`` [m] (at least 1 m)."""
-        return np.diag(self._variance * max(float(distance), 1.0))
+        return self.covariance_per_metre() * max(float(distance), 1.0)
 
     def factor_covariance(self, kind: str, i: int, j: int, stated: np.ndarray) -> np.ndarray:
         """The covariance of one factor's measurement as this run's noise says it is: an odometry
@@ -372,6 +435,7 @@ class OdometryNoise:
                                       "x_m": round(float(sig[3]), 4), "y_m": round(float(sig[4]), 4),
                                       "z_m": round(float(sig[5]), 4)}
             out["variance_per_m"] = [float(v) for v in self._variance]
+            out["correlation"] = [[round(float(v), 4) for v in row] for row in self._correlation]
         return out
 
 
@@ -449,6 +513,9 @@ def scan_covariances(result) -> np.ndarray | None:
     scale = covariance_scale(backend, result.planar)
     model = getattr(result, "covariance_model", None) or {}
     measured = model.get("variance_per_m")
+    if measured is not None:  # with the axes' correlation over an edge when the run measured it
+        sd = np.sqrt(np.asarray(measured, dtype=np.float64))
+        measured = np.asarray(model.get("correlation", np.eye(6)), dtype=np.float64) * np.outer(sd, sd)
     jitter = 2.0 * np.asarray(model.get("scan_jitter_variance") or np.zeros(6), dtype=np.float64)
     bridged = bool(result.planar and getattr(result, "scan_refinement", None))
     out = np.full((len(result.poses), 6, 6), np.nan)
@@ -463,7 +530,7 @@ def scan_covariances(result) -> np.ndarray | None:
                 continue
             if measured is not None:
                 walk = dist * (travelled[-1] - dist) / travelled[-1] if tied else max(float(dist), 1.0)
-                rel = np.diag(np.asarray(measured, dtype=np.float64) * walk + jitter)
+                rel = measured * walk + np.diag(jitter)
             else:
                 rel = calibrate(within_submap_covariance(T, float(dist), result.planar, backend), scale)
             out[s] = A @ covs[k] @ A.T + rel

@@ -94,6 +94,29 @@ def test_odometry_noise_recovers_the_true_noise_from_the_corrections():
     assert noise.factor_covariance("odometry (gave way)", 4, 5, stated) is stated
 
 
+def test_odometry_noise_keeps_how_an_edges_heading_and_lateral_errors_go_together():
+    """A heading error over an edge comes with a lateral one (the planar worlds' corrections: yaw
+    and y correlated -0.75 to -0.87); the measured noise keeps that correlation, robustly, and a
+    planar run's roll, pitch and z (never corrected) stay uncorrelated with anything."""
+    rng = np.random.default_rng(1)
+    dist = {k: float(d) for k, d in enumerate(rng.uniform(4.0, 6.0, 300), start=1)}
+    sd = np.array([0.0, 0.0, 2.5e-4, 2e-3, 1.8e-3, 0.0])  # per sqrt(metre)
+    cov = np.diag(sd**2)
+    cov[2, 4] = cov[4, 2] = -0.8 * sd[2] * sd[4]
+    corr = {k: rng.multivariate_normal(np.zeros(6), cov * d) for k, d in dist.items()}
+    corr.update({k: np.array([0.0, 0.0, 0.05, 0.3, 0.3, 0.0]) for k in range(1, 16)})  # a few gone wrong
+    noise = OdometryNoise(corr, dist)
+    per_m = noise.covariance_per_metre()
+    rho = per_m[2, 4] / np.sqrt(per_m[2, 2] * per_m[4, 4])
+    assert -0.9 < rho < -0.7, rho
+    assert abs(per_m[2, 3] / np.sqrt(per_m[2, 2] * per_m[3, 3])) < 0.15
+    np.testing.assert_allclose(per_m[[0, 1, 5]], 0.0)  # planar: nothing measured, nothing correlated
+    assert np.linalg.eigvalsh(noise.edge_covariance(5.0)).min() > -1e-15
+    np.testing.assert_allclose(np.diag(per_m), noise.variance_per_metre())
+    summary = noise.summary()
+    assert summary["correlation"][2][4] == round(rho, 4) or abs(summary["correlation"][2][4] - rho) < 1e-3
+
+
 def test_pose_difference_is_rotation_vector_then_translation():
     T = _step(2.0, 0.1)
     T[2, 3] = -1.0
@@ -298,3 +321,38 @@ def test_a_votes_variance_is_what_the_runs_priors_miss_the_estimate_by():
     residuals[:10] = np.deg2rad(5.0)  # a few walls far off plumb do not set it
     np.testing.assert_allclose(measured_vote_variance(residuals, stated=1e-4), np.deg2rad(0.15) ** 2, rtol=0.15)
     assert measured_vote_variance(residuals[:7], stated=1e-4) == 1e-4  # too few priors: the stated noise
+
+
+def test_the_first_clouds_error_moves_the_whole_estimate_about_the_first_scan():
+    """Every edge into the first anchor registers against its cloud, so an error of that cloud
+    relative to the first scan moves all other anchors rigidly about the first: in each anchor's
+    frame the yaw itself and, for a planar graph, the lever arm times the yaw in translation."""
+    from submapslam.geometry import adjoint, inverse
+
+    info = np.diag(1.0 / np.array([0.01, 0.01, 0.02, 0.1, 0.1, 0.05]) ** 2)
+    g = _graph(6, info, loop=True)  # node 0 -> 5 closes a loop: two edges share the cloud
+    same = lambda kind, i, j, stated: stated  # noqa: E731
+    plain = g.estimator_covariances(same)
+    cloud = np.diag([0.0, 0.0, np.deg2rad(0.05) ** 2, 1e-6, 4e-6, 0.0])
+    moved = g.estimator_covariances(same, first_cloud=(0, cloud))
+    np.testing.assert_allclose(moved[0], plain[0], atol=1e-12)  # the first anchor is the first scan
+    for k in (1, 3, 5):
+        A = adjoint(inverse(g.pose(k)))  # node 0's frame to node k's
+        np.testing.assert_allclose(moved[k] - plain[k], A @ cloud @ A.T, rtol=1e-3, atol=1e-12)
+    assert moved[5][4, 4] - plain[5][4, 4] > 100 * cloud[4, 4]  # 40 m from the first scan: the lever arm
+
+
+def test_the_first_clouds_error_is_the_mean_of_its_scans_walk_and_the_refit_takes_most_of_it():
+    from submapslam.uncertainty import first_cloud_covariance
+
+    travelled = np.linspace(0.0, 6.0, 601)  # a 6 m submap, a scan every centimetre
+    rate, jitter = np.array([0.0, 0.0, 1e-7, 1e-5, 1e-5, 0.0]), np.full(6, 1e-6)
+    free = np.diag(first_cloud_covariance(travelled, rate, jitter))
+    np.testing.assert_allclose(free[[2, 3, 4]], rate[[2, 3, 4]] * 6.0 / 3.0, rtol=0.01)  # a walk's mean: L / 3
+    assert free[0] < 1e-8 and free[5] < 1e-8  # a planar walk leaves roll, pitch and z alone but for the jitter
+    refit = np.diag(first_cloud_covariance(travelled, rate, np.zeros(6), refit_scans=200))  # the first 2 m
+    # the first scan at the mean of the walk over [0, 2] m: (L + a)/3 - 2 (a^2/3 + (L - a) a / 2) / L
+    np.testing.assert_allclose(refit[2], 1e-7 * (8.0 / 3.0 - 2.0 * (4.0 / 3.0 + 4.0) / 6.0), rtol=0.02)
+    whole = np.diag(first_cloud_covariance(travelled, rate, jitter, refit_scans=600))
+    np.testing.assert_allclose(whole, 0.0, atol=1e-18)  # the first scan refit on the whole cloud sits at its mean
+    assert not first_cloud_covariance(np.zeros(1), rate, jitter).any()  # a one-scan cloud is the scan

@@ -195,7 +195,7 @@ def _ground_submap(k: int, step: float, up: np.ndarray):
     z = -1.7 - (up[0] * g[:, 0] + up[1] * g[:, 1]) / up[2]
     T = np.eye(4)
     T[0, 3] = k * step
-    return SimpleNamespace(id=k, T_odom_anchor=T, points=np.c_[g, z], distance=step)
+    return SimpleNamespace(id=k, T_odom_anchor=T, points=np.c_[g, z], distance=step, T_anchor_scans=np.eye(4)[None])
 
 
 def test_tilt_change_priors_take_the_runs_own_spread_and_stop_bending_a_good_odometry():

@@ -541,7 +541,8 @@ class PoseGraph:
 
     def estimator_covariances(self, true_covariance: Callable[[str, int, int, np.ndarray], np.ndarray],
                               keys: Iterable[int] | None = None, batch: int = 128,
-                              up_covariance: np.ndarray | None = None) -> dict[int, np.ndarray]:
+                              up_covariance: np.ndarray | None = None,
+                              first_cloud: tuple[int, np.ndarray] | None = None) -> dict[int, np.ndarray]:
         """``(6, 6)`` covariances (GTSAM order, node frame) of the current estimate of nodes ``keys``
         (default: all) when each factor's measurement error has the covariance
         ``true_covariance(kind, i, j, stated)`` (:meth:`factor_kind`; ``stated``: the covariance
@@ -556,6 +557,11 @@ class PoseGraph:
         ``up_covariance`` ``(3, 3)`` [rad^2]: the error the attitude priors (:meth:`add_attitude`)
         share, a small rotation (world frame) of the one world up they all hold the nodes to. It
         tilts the whole estimate alike: ``G Sigma_up G^T`` is added, ``G = H^-1 J^T W (de/du)``.
+
+        ``first_cloud`` ``(node, (6, 6))``: the error (node frame, GTSAM order) of the cloud that
+        ``node``'s edges register against, relative to the node's pose
+        (:func:`~submapslam.uncertainty.first_cloud_covariance`). Every odometry and loop edge of
+        the node shares it as if the node had moved; added the same way, ``G = H^-1 J^T W A_node``.
         """
         from scipy.sparse import coo_matrix
         from scipy.sparse.linalg import splu
@@ -565,6 +571,7 @@ class PoseGraph:
         col = {k: 6 * n for n, k in enumerate(nodes)}
         rows_h, cols_h, vals_h, rows_m, cols_m, vals_m = [], [], [], [], [], []
         shared_rows, shared_vals = [], []  # J^T W de/du of the attitude priors, (6, 3) per factor
+        cloud_rows, cloud_vals = [], []  # J^T W de/dc of the edges into first_cloud's node, (6, 6) per factor
         for idx in self._active_factors():
             factor = self._relaxed.get(idx, self._graph.at(idx))
             kind, i, j = self.factor_kind(idx)
@@ -586,6 +593,10 @@ class PoseGraph:
                 # the up turned by u in the world is the node turned by -u there: R -> Exp(-u) R = R Exp(-R^T u)
                 R_node = self._estimate.atPose3(linear.keys()[0]).rotation().matrix()
                 shared_vals.append(A.T @ (-A[:, :3] @ R_node.T))
+            if first_cloud is not None and kind.startswith(("odometry", "loop")) and first_cloud[0] in (i, j):
+                at = [int(k) for k in linear.keys()].index(first_cloud[0])
+                cloud_rows.append(idx_cols)
+                cloud_vals.append(A.T @ A[:, 6 * at:6 * at + 6])
             for target_rows, target_cols, target_vals, block in ((rows_h, cols_h, vals_h, A.T @ A),
                                                                  (rows_m, cols_m, vals_m, A.T @ R @ A)):
                 target_rows.append(np.repeat(idx_cols, len(idx_cols)))
@@ -601,6 +612,12 @@ class PoseGraph:
             for r, v in zip(shared_rows, shared_vals):
                 g[r] += v
             tilt = lu.solve(g)
+        moved = None  # (n, 6): the estimate's error per unit error of the first cloud
+        if cloud_rows:
+            g = np.zeros((n, 6))
+            for r, v in zip(cloud_rows, cloud_vals):
+                g[r] += v
+            moved = lu.solve(g)
         wanted = list(nodes if keys is None else keys)
         out: dict[int, np.ndarray] = {}
         for start in range(0, len(wanted), batch):
@@ -615,6 +632,9 @@ class PoseGraph:
                 if tilt is not None:
                     G = tilt[col[k]:col[k] + 6]
                     block = block + G @ up_covariance @ G.T
+                if moved is not None:
+                    G = moved[col[k]:col[k] + 6]
+                    block = block + G @ first_cloud[1] @ G.T
                 out[k] = 0.5 * (block + block.T)
         return out
 
