@@ -43,7 +43,8 @@ def _road_submap(k: int, T_odom_anchor: np.ndarray, step: float):
     """A fake submap ``k`` at ``T_odom_anchor`` (4, 4): a 30 x 30 m ground patch 1.7 m below the
     anchor, level in the anchor's own frame (the vehicle pitches with the road)."""
     g = np.stack(np.meshgrid(np.linspace(-15, 15, 31), np.linspace(-15, 15, 31)), -1).reshape(-1, 2)
-    return SimpleNamespace(id=k, T_odom_anchor=T_odom_anchor, points=np.c_[g, np.full(len(g), -1.7)], distance=step)
+    return SimpleNamespace(id=k, T_odom_anchor=T_odom_anchor, points=np.c_[g, np.full(len(g), -1.7)], distance=step,
+                           T_anchor_scans=np.eye(4)[None])
 
 
 def _drive(grades_deg: list[float], step: float = 12.0, bias_deg: float = 0.0) -> tuple[list, list]:
