@@ -606,18 +606,19 @@ class PoseGraph:
         H = coo_matrix((np.concatenate(vals_h), (np.concatenate(rows_h), np.concatenate(cols_h))), shape=(n, n)).tocsc()
         M = coo_matrix((np.concatenate(vals_m), (np.concatenate(rows_m), np.concatenate(cols_m))), shape=(n, n)).tocsr()
         lu = splu(H)
-        tilt = None  # (n, 3): the estimate's error per unit rotation of the world up
-        if shared_rows:
-            g = np.zeros((n, 3))
-            for r, v in zip(shared_rows, shared_vals):
+
+        def response(rows: list[np.ndarray], vals: list[np.ndarray], width: int) -> np.ndarray | None:
+            """``(n, width)``: the estimate's error per unit of a shared error, ``H^-1 J^T W (de/du)``,
+            from each factor's ``J^T W de/du`` block (None: no factor shares it)."""
+            if not rows:
+                return None
+            g = np.zeros((n, width))
+            for r, v in zip(rows, vals):
                 g[r] += v
-            tilt = lu.solve(g)
-        moved = None  # (n, 6): the estimate's error per unit error of the first cloud
-        if cloud_rows:
-            g = np.zeros((n, 6))
-            for r, v in zip(cloud_rows, cloud_vals):
-                g[r] += v
-            moved = lu.solve(g)
+            return lu.solve(g)
+
+        tilt = response(shared_rows, shared_vals, 3)  # per unit rotation of the world up
+        moved = response(cloud_rows, cloud_vals, 6)  # per unit error of the first cloud
         wanted = list(nodes if keys is None else keys)
         out: dict[int, np.ndarray] = {}
         for start in range(0, len(wanted), batch):
