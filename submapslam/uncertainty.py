@@ -324,7 +324,7 @@ def first_cloud_covariance(travelled: np.ndarray, per_metre: np.ndarray, jitter:
     Every edge into the first anchor registers against its cloud, not its first scan, so the whole
     estimate sits where that cloud is; the cloud is built from scans the odometry placed with a
     random walk of ``per_metre`` (covariance ``(6, 6)`` or variances ``(6,)`` per m) along the path (each scan's
-    ``travelled`` ``(K,)`` [m] from the first), plus each scan's own ``jitter`` ``(6,)``. A
+    ``travelled`` ``(K,)`` [m] from the first, nondecreasing), plus each scan's own ``jitter`` ``(6,)``. A
     registration sees about the mean of its scans' errors. With ``refit_scans`` > 0 the first scan
     was registered again against the ``refit_scans`` after it (:class:`~submapslam.start_frame.StartFrame`),
     so it sits at their mean error instead of at zero. For a walk over ``L`` metres without the
@@ -338,7 +338,11 @@ def first_cloud_covariance(travelled: np.ndarray, per_metre: np.ndarray, jitter:
     n = min(int(refit_scans), k - 1)
     if n > 0:  # the first scan (and so the frame) at the mean error of scans 1..n
         weights[:n] -= (1.0 - 1.0 / k) / n
-    walk = float(weights @ np.minimum.outer(s[1:], s[1:]) @ weights)
+    # w^T min(s_i, s_j) w over scans 1..K-1 without the K x K matrix (a robot standing still for
+    # minutes fills one submap with thousands of scans): s nondecreasing, min(s_i, s_j) is s_0
+    # plus the steps up to the earlier of the two, so each step counts the square of the weights after it
+    tail = np.cumsum(weights[::-1])[::-1]
+    walk = float(s[0] * tail[0] ** 2 + np.diff(s) @ tail**2)
     own = float(weights @ weights)
     rate = np.asarray(per_metre, dtype=np.float64)
     rate = np.diag(rate) if rate.ndim == 1 else rate
