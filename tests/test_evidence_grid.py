@@ -126,3 +126,41 @@ def test_probabilities_consumed_in_place_equal_the_copy():
     assert np.array_equal(consumed, copy)
     assert np.allclose(copy, 1.0 / (1.0 + np.exp(-logodds)))
     assert (copy[logodds > 0] > 0.5).all() and (copy[logodds < 0] < 0.5).all()
+
+
+def test_a_scans_rays_traced_in_parts_give_the_grid_traced_at_once(monkeypatch):
+    """A 3D scan's rays go in parts above RAY_POINTS_AT_ONCE (its temporaries were 60-250 MB at
+    once): every cell still counts once per scan, with the sensor inside the grid and with part
+    of the scan beyond its edge."""
+    import submapslam.mapping.evidence_grid as evidence_grid
+
+    params = GridParams(resolution=0.05, free_scan_stride=1)
+    people = [(2.0, 0.0, 0.25), None, (-1.0, 1.5, 0.3)]
+    poses = [(0.0, 0.0), (1.0, 0.5), (-3.0, 2.0)]
+
+    def traced(origin, shape):
+        grid = EvidenceGrid(np.array(origin), shape, params)
+        for xy, person in zip(poses, people):
+            grid.integrate_scan(se2_to_matrix(*xy, 0.3), room_scan(xy, person), no_returns=None)
+        return grid
+
+    for origin, shape in (((-6.0, -6.0), (240, 240)), ((-6.0, -2.0), (240, 160))):  # the room inside, part outside
+        at_once = traced(origin, shape)
+        monkeypatch.setattr(evidence_grid, "RAY_POINTS_AT_ONCE", 700)  # a few dozen rays a part
+        in_parts = traced(origin, shape)
+        monkeypatch.undo()
+        assert (at_once.logodds < 0).sum() > 1000  # free space was carved
+        np.testing.assert_array_equal(in_parts.logodds, at_once.logodds)
+        np.testing.assert_array_equal(in_parts.free_run, at_once.free_run)
+
+
+def test_fused_evidence_stays_within_its_bounds_where_submaps_add_up():
+    """Fusing clips the cells a submap touched (not the whole grid): walls seen by many submaps
+    saturate at l_max, space seen free by many at l_min, and untouched cells stay 0."""
+    params = GridParams(resolution=0.05, free_scan_stride=1, recent_free_observations=0)
+    g = EvidenceGrid(np.array([-8.0, -8.0]), (320, 320), params)
+    for _ in range(12):
+        fuse_submap_grids(g, local([(0.0, 0.0), (1.0, 0.5), (-1.0, -0.5)] * 4, None, params), np.eye(4))
+    assert g.logodds.max() == params.l_max
+    assert g.logodds.min() == params.l_min
+    assert g.logodds[0, 0] == 0.0  # beyond the room: never touched
