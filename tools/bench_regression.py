@@ -3,7 +3,7 @@ scans beside each run: rerun it whenever the data path changes.
 
 Usage:
     python tools/bench_regression.py [--data ../shared/data] [--work DIR] [--out DIR] [--json FILE]
-        [--only real2d real3d synthetic terrain sensors3d] [--terrain-scans 600] [--no-peers]
+        [--only real2d real3d synthetic terrain paths sensors3d] [--terrain-scans 600] [--no-peers]
 
 Rows, each run in a child process (wall time and its own peak RSS from ``wait4``):
 
@@ -16,6 +16,8 @@ Rows, each run in a child process (wall time and its own peak RSS from ``wait4``
   scanners (``bench_synthetic.SCANNERS``), 2 laps, seed 0, written under WORK;
 * **terrain**: terrain cities along the KITTI 00, 05 and 08 paths (16 rings, the first
   ``--terrain-scans`` scans; ``bench_terrain.generate`` writes them under WORK once);
+* **paths**: the same along every other KITTI path (01 highway, 02, 03, 04, 06, 07, 09, 10):
+  worlds no default was chosen on, the first ``--terrain-scans`` scans of each;
 * **sensors3d**: the same terrain with other 3D sensors: 64 rings along KITTI 05, and the
   Livox-like pattern with irregular keyframes along KITTI 00 (``--terrain-scans`` scans each).
 
@@ -39,8 +41,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tools"))
 sys.path.insert(0, str(REPO))
 
-GROUPS = ("real2d", "real3d", "synthetic", "terrain", "sensors3d")
+GROUPS = ("real2d", "real3d", "synthetic", "terrain", "paths", "sensors3d")
 TERRAIN_PATHS = ("00", "05", "08")
+#: the other KITTI paths, for the terrain worlds no default was tuned on
+OTHER_PATHS = ("01", "02", "03", "04", "06", "07", "09", "10")
 #: other 3D sensors on the terrain worlds: (KITTI path, bench_terrain's RINGS, the row's kind)
 OTHER_SENSORS = (("05", "64", "synthetic 3D, 64 rings"), ("00", "livox", "synthetic 3D, Livox-like keyframes"))
 
@@ -151,11 +155,12 @@ def synthetic_rows(work: Path, out: Path, peers: bool) -> list[dict]:
     return rows
 
 
-def terrain_rows(work: Path, out: Path, scans: int, peers: bool) -> list[dict]:
+def terrain_rows(work: Path, out: Path, scans: int, peers: bool, paths: tuple[str, ...] = TERRAIN_PATHS,
+                 kind: str = "synthetic 3D, 16 rings") -> list[dict]:
     from bench_terrain import generate
 
-    return [run_and_evaluate(f"terrain {seq}", "synthetic 3D, 16 rings", generate(f"{seq}:16:{scans}", work), out,
-                             peers) for seq in TERRAIN_PATHS]
+    return [run_and_evaluate(f"terrain {seq}", kind, generate(f"{seq}:16:{scans}", work), out, peers)
+            for seq in paths]
 
 
 def sensor_rows(work: Path, out: Path, scans: int, peers: bool) -> list[dict]:
@@ -214,6 +219,9 @@ def main(argv: list[str] | None = None) -> int:
                 added = synthetic_rows(work, out, peers)
             elif group == "terrain":
                 added = terrain_rows(work, out, args.terrain_scans, peers)
+            elif group == "paths":
+                added = terrain_rows(work, out, args.terrain_scans, peers, OTHER_PATHS,
+                                     "synthetic 3D, 16 rings, other paths")
             else:
                 added = sensor_rows(work, out, args.terrain_scans, peers)
             print("\n".join(markdown(added).splitlines()[2:]), flush=True)
