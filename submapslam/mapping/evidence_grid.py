@@ -70,7 +70,7 @@ class EvidenceGrid:
         r, c, inside = self.cells(hits)
         hit_idx = r[inside] * width + c[inside]
         # ``a[idx] = a[idx] + v`` adds v once per distinct index even when idx repeats: each cell
-        # counts once per scan without sorting or full-grid masks
+        # counts once per scan without sorting (a scan traced in parts gathers them in a mask)
         if carve_free:
             origin = T_grid_sensor[:2, 3]
             vec = hits - origin
