@@ -37,6 +37,10 @@ def compact_points(points: np.ndarray, float16_reach: float = 256.0) -> np.ndarr
     return points.astype(np.float32)
 
 
+#: scans a 3D submap holds at least before its travel cuts it (``submaps.min_scans``)
+MIN_SCANS_3D = 10
+
+
 @dataclass
 class Submap:
     """A closed (or growing) submap.
@@ -90,6 +94,7 @@ class SubmapBuilder:
         self.planar = planar
         self.grid_points = grid_points
         self.max_distance = config.max_distance or (5.0 if planar else 12.0)
+        self.min_scans = config.min_scans or (1 if planar else MIN_SCANS_3D)
         self._next_id = 0
         self._reset(None)
 
@@ -138,7 +143,8 @@ class SubmapBuilder:
         self._buffered += len(points)
         if self._buffered > 50_000:
             self._compact()
-        if self._distance >= self.max_distance or len(self._indices) >= self.config.max_scans:
+        if (self._distance >= self.max_distance and len(self._indices) >= self.min_scans) \
+                or len(self._indices) >= self.config.max_scans:
             submap = self._close()
             self._reset((index, T_odom_scan, points, full_scan, no_returns))
             return submap
