@@ -129,7 +129,7 @@ class SubmapConfig(_Strict):
     min_scans: int | None = Field(
         None, ge=1, description="a submap cut at max_distance holds at least this many scans; None: 10 for 3D "
         "(at highway speed 12 m is 5 scans, and the graph work of a submap, its mover split, registration and "
-        "loop tests, outgrew the odometry's: terrain along KITTI 01, 37.8 -> 26.6 s at the same ATE), 1 for "
+        "loop tests, outgrew the odometry's: terrain along KITTI 01, 37.8 -> 25.8 s at the same ATE), 1 for "
         "planar logs")
     max_scans: int = Field(400, ge=1)
     voxel_size: float | None = Field(None, gt=0, description="[m]; None: odometry voxel / 2")
