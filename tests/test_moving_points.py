@@ -178,3 +178,49 @@ def test_non_ground_follows_sloped_and_bending_ground():
     bent = np.column_stack([xy, bend])
     assert non_ground(bent, 0.3).mean() > 0.02  # the plane alone: the far climb looks like obstacles
     assert non_ground(bent, 0.3, cell=5.0).mean() < 0.005
+
+
+def test_evidence_with_the_reach_cull_counts_what_each_scan_alone_counts(monkeypatch):
+    """Points beyond ``max_range`` of every scan are left out before the scans are asked
+    (``ViewStack._within_reach``): the counts stay those of asking every scan about every point,
+    with and without an ``allowed`` filter, the points near and far mixed."""
+    params = MoverParams(max_range=15.0)
+    views = ViewStack(4, params)
+    for k, x in enumerate((0.0, 4.0, 8.0, 12.0)):
+        T = np.eye(4)
+        T[0, 3] = x
+        views.add(k, T, cast(box=k % 2 == 0))
+    rng = np.random.default_rng(3)
+    points = np.concatenate([cast(box=True)[::3] + [6.0, 0.0, 0.0],  # near every scan
+                             rng.uniform([-40.0, -10.0, -1.0], [40.0, 10.0, 1.0], (4000, 3))])  # many beyond reach
+    slots = views.slots(0, 3)
+    culled = views._within_reach(points, slots)
+    assert 0 < len(culled) < len(points)
+
+    def allowed(k, idx):
+        return (idx + k) % 3 != 0
+
+    with_cull = [views.evidence(points, slots), views.evidence(points, slots, allowed)]
+    monkeypatch.setattr(ViewStack, "_within_reach", lambda self, pts, s: np.arange(len(pts)))
+    without = [views.evidence(points, slots), views.evidence(points, slots, allowed)]
+    for a, b in zip(with_cull, without):
+        for counts_a, counts_b in zip(a, b):
+            assert np.array_equal(counts_a, counts_b)
+    assert without[0][1].sum() > 0 and without[0][0].max() == 4  # free votes cast; every scan tested each point
+
+
+def test_normals_from_kept_voxel_sums_are_those_of_the_cloud():
+    from submapslam.mapping.local_normals import VoxelSums, local_normals
+
+    rng = np.random.default_rng(5)
+    ground = np.column_stack([rng.uniform(-10, 10, (5000, 2)), rng.normal(0.0, 0.01, 5000)])
+    wall = np.column_stack([rng.uniform(-10, 10, 3000), np.full(3000, 4.0), rng.uniform(0, 3, 3000)])
+    cloud = np.concatenate([ground, wall]) + [100.0, -50.0, 3.0]
+    sums = VoxelSums(cloud, 0.4)
+    for query in (cloud[::37], cloud[::5] + 0.05, np.zeros((0, 3))):
+        assert np.array_equal(local_normals(sums, query, 0.4, flatness=0.2),
+                              local_normals(cloud, query, 0.4, flatness=0.2))
+    normals = local_normals(sums, cloud[:5000:50], 0.4, flatness=0.2)
+    assert (np.abs(normals[:, 2]) > 0.99).mean() > 0.8  # the ground's normal is up (beside the wall: none)
+    with pytest.raises(ValueError):
+        local_normals(sums, cloud[:10], 0.2)

@@ -17,11 +17,11 @@ _CUBE = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1
 _OFFSETS = voxel_keys(_CUBE + 0.5, 1.0) - voxel_keys(np.full((1, 3), 0.5), 1.0)
 
 
-def local_normals(cloud: np.ndarray, query: np.ndarray, voxel: float, min_points: int = 5,
+def local_normals(cloud: np.ndarray | VoxelSums, query: np.ndarray, voxel: float, min_points: int = 5,
                   flatness: float = 1.0) -> np.ndarray:
     """``(Q, 3)`` unit normals at the ``query`` points ``(Q, 3)``: the least-variance direction
-    (PCA) of the ``cloud`` points ``(N, 3)`` in the query's ``voxel`` [m] cell and its 26
-    neighbours (a block 3 voxels wide). Zero where that block holds fewer than ``min_points``
+    (PCA) of the ``cloud`` points ``(N, 3)`` (or their :class:`VoxelSums` at ``voxel``, for a cloud
+    asked again) in the query's ``voxel`` [m] cell and its 26 neighbours (a block 3 voxels wide). Zero where that block holds fewer than ``min_points``
     or is no surface: its spread along the normal is more than ``flatness`` x its spread along
     the next direction (a pole, a blur of a car that moved while the points were taken), or the
     query lies more than ``voxel / 4`` off that surface (a car's sill above the road beside it).
@@ -62,41 +62,66 @@ def local_covariances(cloud: np.ndarray, query: np.ndarray, voxel: float,
     return mean[cell_of], cov[cell_of], ok[cell_of]
 
 
-def _block_moments(cloud: np.ndarray, cells: np.ndarray, voxel: float,
+_PAIRS = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]  # the second moments kept per voxel
+
+
+class VoxelSums:
+    """Per occupied ``voxel`` [m] cell of one cloud ``(N, 3)``: its key (sorted, :func:`voxel_keys`),
+    point count, and first and second moments about the cloud's lowest corner (``origin``), so
+    that the blocks around any queries are sums of 27 cells. Built once, asked many times: a cloud
+    the mover split tests again and again (:class:`~submapslam.mapping.moving_points.Placed`)."""
+
+    def __init__(self, cloud: np.ndarray, voxel: float) -> None:
+        cloud = np.asarray(cloud, dtype=np.float64).reshape(-1, 3)
+        self.voxel = float(voxel)
+        self.origin = cloud.min(axis=0) if len(cloud) else np.zeros(3)
+        self.keys, inverse = np.unique(voxel_keys(cloud, voxel), return_inverse=True)
+        n_vox = len(self.keys)
+        self.count = np.bincount(inverse, minlength=n_vox).astype(np.float64)
+
+        def centred(a: int) -> np.ndarray:  # one axis at a time: a split's 700k points are 17 MB a copy
+            return cloud[:, a] - self.origin[a]  # sums of squares near the data, not the frame's origin
+
+        self.first = np.stack([np.bincount(inverse, centred(a), n_vox) for a in range(3)], axis=1)
+        self.second = np.stack([np.bincount(inverse, centred(a) * centred(b), n_vox) for a, b in _PAIRS], axis=1)
+
+    def block_moments(self, cells: np.ndarray, min_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(mean, cov, ok)`` as :func:`local_covariances`, per voxel key of ``cells`` ``(C,)``."""
+        cov = np.zeros((len(cells), 3, 3))
+        centre = np.zeros((len(cells), 3))
+        n_vox = len(self.keys)
+        if not n_vox or not len(cells):
+            return centre, cov, np.zeros(len(cells), dtype=bool)
+        n = np.zeros(len(cells))
+        s1 = np.zeros((len(cells), 3))
+        s2 = np.zeros((len(cells), 6))
+        for off in _OFFSETS:
+            k = cells + off
+            pos = np.minimum(np.searchsorted(self.keys, k), n_vox - 1)
+            found = np.flatnonzero(self.keys[pos] == k)
+            n[found] += self.count[pos[found]]
+            s1[found] += self.first[pos[found]]
+            s2[found] += self.second[pos[found]]
+        ok = n >= min_points
+        mean = s1[ok] / n[ok, None]
+        m2 = s2[ok] / n[ok, None]
+        block = np.empty((int(ok.sum()), 3, 3))
+        for (a, b), col in zip(_PAIRS, m2.T):
+            block[:, a, b] = block[:, b, a] = col - mean[:, a] * mean[:, b]
+        cov[ok] = block
+        centre[ok] = mean + self.origin
+        return centre, cov, ok
+
+
+def _block_moments(cloud: np.ndarray | VoxelSums, cells: np.ndarray, voxel: float,
                    min_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(mean, cov, ok)`` as :func:`local_covariances`, per voxel key of ``cells`` ``(C,)``."""
+    """``(mean, cov, ok)`` as :func:`local_covariances`, per voxel key of ``cells`` ``(C,)``;
+    ``cloud``: the points, or their :class:`VoxelSums` at ``voxel``."""
+    if isinstance(cloud, VoxelSums):
+        if cloud.voxel != float(voxel):
+            raise ValueError(f"voxel sums at {cloud.voxel} m asked at {voxel} m")
+        return cloud.block_moments(cells, min_points)
     cloud = np.asarray(cloud, dtype=np.float64).reshape(-1, 3)
-    cov = np.zeros((len(cells), 3, 3))
-    centre = np.zeros((len(cells), 3))
     if not len(cloud) or not len(cells):
-        return centre, cov, np.zeros(len(cells), dtype=bool)
-    origin = cloud.min(axis=0)
-    keys, inverse = np.unique(voxel_keys(cloud, voxel), return_inverse=True)
-    n_vox = len(keys)
-    count = np.bincount(inverse, minlength=n_vox).astype(np.float64)
-
-    def centred(a: int) -> np.ndarray:  # one axis at a time: a split's 700k points are 17 MB a copy
-        return cloud[:, a] - origin[a]  # sums of squares near the data, not the frame's origin
-
-    first = np.stack([np.bincount(inverse, centred(a), n_vox) for a in range(3)], axis=1)
-    pairs = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
-    second = np.stack([np.bincount(inverse, centred(a) * centred(b), n_vox) for a, b in pairs], axis=1)
-    n = np.zeros(len(cells))
-    s1 = np.zeros((len(cells), 3))
-    s2 = np.zeros((len(cells), 6))
-    for off in _OFFSETS:
-        k = cells + off
-        pos = np.minimum(np.searchsorted(keys, k), n_vox - 1)
-        found = np.flatnonzero(keys[pos] == k)
-        n[found] += count[pos[found]]
-        s1[found] += first[pos[found]]
-        s2[found] += second[pos[found]]
-    ok = n >= min_points
-    mean = s1[ok] / n[ok, None]
-    m2 = s2[ok] / n[ok, None]
-    block = np.empty((int(ok.sum()), 3, 3))
-    for (a, b), col in zip(pairs, m2.T):
-        block[:, a, b] = block[:, b, a] = col - mean[:, a] * mean[:, b]
-    cov[ok] = block
-    centre[ok] = mean + origin
-    return centre, cov, ok
+        return np.zeros((len(cells), 3)), np.zeros((len(cells), 3, 3)), np.zeros(len(cells), dtype=bool)
+    return VoxelSums(cloud, voxel).block_moments(cells, min_points)

@@ -39,6 +39,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import hashlib
+import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -52,7 +53,7 @@ from .dynamic_removal import (
     dynamic_clusters,
     voxel_keys,
 )
-from .local_normals import local_normals
+from .local_normals import VoxelSums, local_normals
 
 
 @dataclass(frozen=True)
@@ -171,6 +172,18 @@ class ViewStack:
             free[cand] = self._decide(n_free, n_hit)
         return n_tested > 0, free
 
+    def _within_reach(self, points_world: np.ndarray, slots: np.ndarray) -> np.ndarray:
+        """Indices of the world points ``(N, 3)`` within ``max_range`` (and a millimetre) of the box
+        around the sensor positions of the scans in ``slots``: every point that one of them can
+        test, found in one pass instead of one per scan (most of a submap's points are beyond
+        reach of most scans)."""
+        if not len(slots) or not len(points_world):
+            return np.zeros(0, dtype=np.int64)
+        T = self.T_sensor_world[slots]
+        origins = -np.einsum("kji,kj->ki", T[:, :3, :3], T[:, :3, 3])  # sensor positions (world frame)
+        gap = np.maximum(np.maximum(origins.min(axis=0) - points_world, points_world - origins.max(axis=0)), 0.0)
+        return np.flatnonzero(np.einsum("ij,ij->i", gap, gap) < (self.params.max_range + 1e-3) ** 2)
+
     def _decide(self, n_free: np.ndarray, n_hit: np.ndarray) -> np.ndarray:
         return (n_free >= self.params.min_views) & (n_free > self.params.hit_weight * n_hit)
 
@@ -195,16 +208,23 @@ class ViewStack:
         reach = np.sqrt(2.0) * p.tolerance + p.voxel / 4
 
         every = np.arange(n)
+        in_reach = self._within_reach(points_world, slots)  # a superset of the points any of the scans may test
+        reach_mask = None
+        if len(in_reach) < n:
+            reach_mask = np.zeros(n, dtype=bool)
+            reach_mask[in_reach] = True
         for k in slots:
             if allowed is None:  # every point (no copies of them)
-                cand, candidates = every, points_world
                 tested += 1
+                cand = every if reach_mask is None else in_reach
             else:
                 cand = np.flatnonzero(allowed(k, every))
-                candidates = points_world[cand]
                 tested[cand] += 1
+                if reach_mask is not None:
+                    cand = cand[reach_mask[cand]]
             if not len(cand):
                 continue
+            candidates = points_world if len(cand) == n else points_world[cand]
             T = self.T_sensor_world[k]
             image = self.images[k]
             cand = cand[image.facing(T, candidates)]  # no beam of this scan passes the others
@@ -357,12 +377,15 @@ class Placed:
     points in the world frame, ``world`` ``(T,)`` its tested points there (transformed on their
     own, as :func:`clusters_moved` always did); ``clusters``: ``(keys, inverse, labels)`` of those
     points' voxels (sorted unique :func:`voxel_keys`, each point's voxel, each voxel's
-    26-connected cluster), built on first use by :func:`clusters_moved`."""
+    26-connected cluster), built on first use by :func:`clusters_moved`; ``sums``: the
+    :class:`~submapslam.mapping.local_normals.VoxelSums` of ``cloud`` the incidence margin's
+    normals come from, built on first use by :func:`scan_votes`."""
 
     test: np.ndarray
     cloud: np.ndarray
     world: np.ndarray
     clusters: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    sums: VoxelSums | None = None
 
 
 def place(points_sensor: np.ndarray, T_world_sensor: np.ndarray, params: MoverParams) -> Placed:
@@ -398,7 +421,12 @@ def scan_votes(points_sensor: np.ndarray, T_world_sensor: np.ndarray, views: Vie
     world = cloud[test]
 
     def normals_of(idx: np.ndarray) -> np.ndarray:  # the surface each point lies on
-        return local_normals(cloud, world[idx], params.voxel, flatness=params.flatness)
+        surfaces = cloud
+        if placed is not None:  # tested again by the next submaps: its voxel sums are kept with it
+            if placed.sums is None or placed.sums.voxel != params.voxel:
+                placed.sums = VoxelSums(cloud, params.voxel)
+            surfaces = placed.sums
+        return local_normals(surfaces, world[idx], params.voxel, flatness=params.flatness)
 
     out[test] = views.seen_through(world, slots, normals_of=normals_of)[1]
     if params.floor_cell > 0 and out.any():  # near the floor: no vote (still a member of its cluster)
@@ -535,6 +563,7 @@ class SubmapMovers:
         self.views = ViewStack(max_views, params)
         self._occupied: tuple[int, np.ndarray] | None = None  # (first scan, voxel keys) of the newest submap
         self._scans: list[tuple[int, np.ndarray, np.ndarray]] = []  # (scan index, T_odom_sensor, thinned points)
+        self._lock = threading.Lock()  # the caches above, for tests of several clouds side by side
 
     def add(self, index: int, T_odom_sensor: np.ndarray, points_down: np.ndarray, scan_points: np.ndarray) -> None:
         """File one registered scan (sensor frame; ``scan_points`` all of it, for its range image)."""
@@ -619,26 +648,30 @@ class SubmapMovers:
         submaps' tests of the same cloud (the last ``placed_kept``; a cloud that lost points is new)."""
         points = np.ascontiguousarray(points, dtype=np.float64)
         key = hashlib.blake2b(points.tobytes() + T_odom_anchor.tobytes(), digest_size=16).digest()
-        placed = self._kept.pop(key, None)
+        with self._lock:
+            placed = self._kept.pop(key, None)
         if placed is None:
             placed = place(points, T_odom_anchor, self.params)
-        self._kept[key] = placed
-        while len(self._kept) > self.placed_kept:
-            self._kept.pop(next(iter(self._kept)))
+        with self._lock:
+            self._kept[key] = placed
+            while len(self._kept) > self.placed_kept:
+                self._kept.pop(next(iter(self._kept)))
         return placed
 
     def _seen_again(self, members: list, first: int, points_odom: np.ndarray) -> np.ndarray:
         """``(M,)`` bool: points ``(M, 3)`` (odometry frame) in or beside (26 neighbours) a voxel that
         ``protect_min_scans`` scans of the submap starting at scan ``first`` (``members``) had a point in."""
-        if self._occupied is None or self._occupied[0] != first:
-            keys = [np.unique(voxel_keys(transform_points(T, np.asarray(pts, dtype=np.float64)), self.params.voxel))
-                    for index, T, pts in members if index > first and len(pts)]
-            occupied = np.zeros(0, dtype=np.int64)
-            if keys:  # hit by protect_min_scans of its scans: not a mover passing through
-                occupied, scans = np.unique(np.concatenate(keys), return_counts=True)
-                occupied = occupied[scans >= self.params.protect_min_scans]
-            self._occupied = (first, occupied)
-        occupied = self._occupied[1]
+        with self._lock:  # the tests of one submap's earlier submaps share it (and may run side by side)
+            if self._occupied is None or self._occupied[0] != first:
+                keys = [np.unique(voxel_keys(transform_points(T, np.asarray(pts, dtype=np.float64)),
+                                             self.params.voxel))
+                        for index, T, pts in members if index > first and len(pts)]
+                occupied = np.zeros(0, dtype=np.int64)
+                if keys:  # hit by protect_min_scans of its scans: not a mover passing through
+                    occupied, scans = np.unique(np.concatenate(keys), return_counts=True)
+                    occupied = occupied[scans >= self.params.protect_min_scans]
+                self._occupied = (first, occupied)
+            occupied = self._occupied[1]
         out = np.zeros(len(points_odom), dtype=bool)
         if not len(occupied):
             return out
