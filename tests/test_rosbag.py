@@ -368,7 +368,9 @@ def test_run_on_a_bag_matches_the_cloud_folder_run(small_rectangle, tmp_path):
         np.testing.assert_allclose(outs[name].timestamps, ref.timestamps, atol=1e-6)
     # PointCloud2 carries the folder's float32 points exactly (and z = 0 makes it planar)
     assert np.abs(outs["cloud"].poses[:, :3, 3] - ref.poses[:, :3, 3]).max() < 1e-3
-    np.testing.assert_allclose(outs["cloud"].poses[:, :3, :3], ref.poses[:, :3, :3], atol=1e-6)
+    # rotations to 1e-4 (0.006 deg): on one CPU's numeric kernels the two runs part by 1.1e-5 in
+    # the matrices' entries, as the positions' 1e-3 m above allows
+    np.testing.assert_allclose(outs["cloud"].poses[:, :3, :3], ref.poses[:, :3, :3], atol=1e-4)
     # LaserScan re-derives points from float32 ranges/angles (~1e-6 m); scan matching turns that
     # into millimetres (4 mm measured; how much depends on the CPU's floating point), so this run
     # is held to 2 cm
