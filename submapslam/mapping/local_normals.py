@@ -21,10 +21,11 @@ def local_normals(cloud: np.ndarray | VoxelSums, query: np.ndarray, voxel: float
                   flatness: float = 1.0) -> np.ndarray:
     """``(Q, 3)`` unit normals at the ``query`` points ``(Q, 3)``: the least-variance direction
     (PCA) of the ``cloud`` points ``(N, 3)`` (or their :class:`VoxelSums` at ``voxel``, for a cloud
-    asked again) in the query's ``voxel`` [m] cell and its 26 neighbours (a block 3 voxels wide). Zero where that block holds fewer than ``min_points``
-    or is no surface: its spread along the normal is more than ``flatness`` x its spread along
-    the next direction (a pole, a blur of a car that moved while the points were taken), or the
-    query lies more than ``voxel / 4`` off that surface (a car's sill above the road beside it).
+    asked again) in the query's ``voxel`` [m] cell and its 26 neighbours (a block 3 voxels wide).
+    Zero where that block holds fewer than ``min_points`` or is no surface: its spread along the
+    normal is more than ``flatness`` x its spread along the next direction (a pole, a blur of a car
+    that moved while the points were taken), or the query lies more than ``voxel / 4`` off that
+    surface (a car's sill above the road beside it).
 
     The block's statistics and its eigen decomposition are computed once per distinct query
     cell (a submap's points share cells by the dozen); only the off-surface test is per point."""

@@ -39,7 +39,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import hashlib
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -563,7 +562,6 @@ class SubmapMovers:
         self.views = ViewStack(max_views, params)
         self._occupied: tuple[int, np.ndarray] | None = None  # (first scan, voxel keys) of the newest submap
         self._scans: list[tuple[int, np.ndarray, np.ndarray]] = []  # (scan index, T_odom_sensor, thinned points)
-        self._lock = threading.Lock()  # the caches above, for tests of several clouds side by side
 
     def add(self, index: int, T_odom_sensor: np.ndarray, points_down: np.ndarray, scan_points: np.ndarray) -> None:
         """File one registered scan (sensor frame; ``scan_points`` all of it, for its range image)."""
@@ -648,30 +646,26 @@ class SubmapMovers:
         submaps' tests of the same cloud (the last ``placed_kept``; a cloud that lost points is new)."""
         points = np.ascontiguousarray(points, dtype=np.float64)
         key = hashlib.blake2b(points.tobytes() + T_odom_anchor.tobytes(), digest_size=16).digest()
-        with self._lock:
-            placed = self._kept.pop(key, None)
+        placed = self._kept.pop(key, None)
         if placed is None:
             placed = place(points, T_odom_anchor, self.params)
-        with self._lock:
-            self._kept[key] = placed
-            while len(self._kept) > self.placed_kept:
-                self._kept.pop(next(iter(self._kept)))
+        self._kept[key] = placed
+        while len(self._kept) > self.placed_kept:
+            self._kept.pop(next(iter(self._kept)))
         return placed
 
     def _seen_again(self, members: list, first: int, points_odom: np.ndarray) -> np.ndarray:
         """``(M,)`` bool: points ``(M, 3)`` (odometry frame) in or beside (26 neighbours) a voxel that
         ``protect_min_scans`` scans of the submap starting at scan ``first`` (``members``) had a point in."""
-        with self._lock:  # the tests of one submap's earlier submaps share it (and may run side by side)
-            if self._occupied is None or self._occupied[0] != first:
-                keys = [np.unique(voxel_keys(transform_points(T, np.asarray(pts, dtype=np.float64)),
-                                             self.params.voxel))
-                        for index, T, pts in members if index > first and len(pts)]
-                occupied = np.zeros(0, dtype=np.int64)
-                if keys:  # hit by protect_min_scans of its scans: not a mover passing through
-                    occupied, scans = np.unique(np.concatenate(keys), return_counts=True)
-                    occupied = occupied[scans >= self.params.protect_min_scans]
-                self._occupied = (first, occupied)
-            occupied = self._occupied[1]
+        if self._occupied is None or self._occupied[0] != first:
+            keys = [np.unique(voxel_keys(transform_points(T, np.asarray(pts, dtype=np.float64)), self.params.voxel))
+                    for index, T, pts in members if index > first and len(pts)]
+            occupied = np.zeros(0, dtype=np.int64)
+            if keys:  # hit by protect_min_scans of its scans: not a mover passing through
+                occupied, scans = np.unique(np.concatenate(keys), return_counts=True)
+                occupied = occupied[scans >= self.params.protect_min_scans]
+            self._occupied = (first, occupied)
+        occupied = self._occupied[1]
         out = np.zeros(len(points_odom), dtype=bool)
         if not len(occupied):
             return out
