@@ -118,11 +118,7 @@ def _block_moments(cloud: np.ndarray | VoxelSums, cells: np.ndarray, voxel: floa
                    min_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(mean, cov, ok)`` as :func:`local_covariances`, per voxel key of ``cells`` ``(C,)``;
     ``cloud``: the points, or their :class:`VoxelSums` at ``voxel``."""
-    if isinstance(cloud, VoxelSums):
-        if cloud.voxel != float(voxel):
-            raise ValueError(f"voxel sums at {cloud.voxel} m asked at {voxel} m")
-        return cloud.block_moments(cells, min_points)
-    cloud = np.asarray(cloud, dtype=np.float64).reshape(-1, 3)
-    if not len(cloud) or not len(cells):
-        return np.zeros((len(cells), 3)), np.zeros((len(cells), 3, 3)), np.zeros(len(cells), dtype=bool)
-    return VoxelSums(cloud, voxel).block_moments(cells, min_points)
+    sums = cloud if isinstance(cloud, VoxelSums) else VoxelSums(cloud, voxel)
+    if sums.voxel != float(voxel):
+        raise ValueError(f"voxel sums at {sums.voxel} m asked at {voxel} m")
+    return sums.block_moments(cells, min_points)

@@ -215,7 +215,7 @@ class ViewStack:
         for k in slots:
             if allowed is None:  # every point (no copies of them)
                 tested += 1
-                cand = every if reach_mask is None else in_reach
+                cand = in_reach  # every point when all are within reach
             else:
                 cand = np.flatnonzero(allowed(k, every))
                 tested[cand] += 1
