@@ -173,7 +173,8 @@ def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo]
     ``ground_tilt_change_sigma_deg`` (a single run measures that sigma from its own odometry,
     :class:`~submapslam.uncertainty.TiltChangeSpread`; a merge does not yet). The level priors
     come from the walls' vertical (``wall_vertical_sigma_deg``; spinning LiDARs) when any submap of
-    the merge has one, else from the ground planes. ``ground_ups``: each submap's ``(ground normal, walls'
+    the merge has one (a submap without walls: its ground plane), else from the ground planes; the
+    up they hold the anchors to is agreed as a single run agrees it (:func:`_world_up`). ``ground_ups``: each submap's ``(ground normal, walls'
     vertical)`` in its anchor frame (either None), filled in here where missing and kept by the
     caller (a submap's points never change; the merge optimises many times)."""
     sigma = config.backend.ground_attitude_sigma_deg
@@ -194,10 +195,9 @@ def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo]
                             else submap_vertical(result.submap_points[k], up, result.map_voxel_size))
                 ground_ups[k] = (up, vertical)
     walls = walls_sigma is not None and any(ground_ups[k][1] is not None for s in sessions for k in s.submaps)
-    level_sigma = np.deg2rad(walls_sigma if walls else sigma) if sigma is not None else None
-    map_up = None
+    map_up = _world_up(result, [k for s in sessions if s.placed for k in s.submaps], ground_ups, walls)
     for s in sessions:
-        own_up = None
+        own_up = None if s.placed else _world_up(result, list(s.submaps), ground_ups, walls)
         up_before = None
         for k in s.submaps:
             up, vertical = ground_ups[k]
@@ -205,17 +205,27 @@ def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo]
                 T_guess = inverse(result.submap_poses[k - 1]) @ result.submap_poses[k]
                 graph.add_relative_attitude(k - 1, k, up_before, up, T_guess, np.deg2rad(change))
             up_before = up
-            level = vertical if walls else up
-            if level is None or level_sigma is None:
+            target = map_up if s.placed else own_up
+            if sigma is None or target is None:
                 continue
-            world = result.submap_poses[k][:3, :3] @ level
-            if s.placed:
-                map_up = world if map_up is None else map_up
-                target = map_up
-            else:
-                own_up = world if own_up is None else own_up
-                target = own_up
-            graph.add_attitude(k, level, target, level_sigma, kind=WALL_VERTICAL_PRIOR if walls else GROUND_ATTITUDE_PRIOR)
+            if walls and vertical is not None:
+                graph.add_attitude(k, vertical, target, np.deg2rad(walls_sigma), kind=WALL_VERTICAL_PRIOR)
+            elif up is not None:  # no walls here (or none in the merge): its ground plane, as a single run does
+                graph.add_attitude(k, up, target, np.deg2rad(sigma), kind=GROUND_ATTITUDE_PRIOR)
+
+
+def _world_up(result: SlamResult, ids: list[int], ground_ups: dict[int, tuple], walls: bool) -> np.ndarray | None:
+    """``(3,)`` the up (map frame) that the level priors of the submaps ``ids`` (in order) hold them
+    to, by a single run's rule (:class:`~submapslam.graph_builder.GraphBuilder`): the consensus of
+    the first :data:`~submapslam.graph_builder.WORLD_UP_VOTES` walls' verticals (``walls``), else
+    the first ground normal, each turned into the map frame by its anchor; None when there is none."""
+    from ..graph_builder import WORLD_UP_VOTES, consensus_up
+
+    which = 1 if walls else 0
+    votes = [result.submap_poses[k][:3, :3] @ ground_ups[k][which] for k in ids if ground_ups[k][which] is not None]
+    if not votes:
+        return None
+    return consensus_up(votes[:WORLD_UP_VOTES]) if walls else votes[0]
 
 
 def _optimise(result: SlamResult, sessions: list[SessionInfo], config: PipelineConfig,
