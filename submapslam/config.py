@@ -50,9 +50,10 @@ class OdometryConfig(_Strict):
     max_range: float = Field(80.0, gt=0, description="drop points farther than this [m]")
     min_range: float = Field(0.3, ge=0, description="drop points closer than this [m]")
     max_points_per_voxel: int | None = Field(
-        None, ge=1, description="points kept per map voxel; None: 20 for planar logs, 1 for 3D (dense scans: "
-        "one point per 0.8 m voxel still gives ICP its neighbours; on the 3.7 km KITTI-00 city drive 1.7x "
-        "faster than 3 points and less drift, 9.1 m odometry ATE against 14.4)"
+        None, ge=1, description="points kept per map voxel; None: 20 for planar logs, 3 for 3D (with the local "
+        "map's scans entering movers_delay scans late, 3 points drift less than 1 on the terrain drives: ATE "
+        "along KITTI 08 0.144 -> 0.100 m, with 64 rings 0.134 -> 0.079 m, for about 15 % more odometry time; "
+        "BENCHMARKS.md)"
     )
     deskew: bool | None = Field(
         None, description="correct each scan's motion during the sweep from its per-point times (a PLY/PCD "
@@ -74,11 +75,13 @@ class OdometryConfig(_Strict):
         "step), and that pose, refined, is kept when it puts clearly more of the scan on the previous scan's "
         "points. Wheels miss part of a fast turn, registration from them stays near them, and once a scan is off "
         "the map of the last scans holds its error (FR079 at a third of its scan rate: ATE 1.48 -> 0.10 m)")
-    startup_refit_scans: int = Field(
-        20, ge=0, description="2D lasers: once this many scans follow the first, the first is registered again "
-        "against all of them (point-to-line) and the run's frame re-based on it. Registered against a map of one "
-        "scan, the first scans carry a shared heading error (0.05-0.08 deg on the rooms world), which every pose "
-        "of the run inherits; 0: never")
+    startup_refit_scans: int | None = Field(
+        None, ge=0, description="once this many scans follow the first, the first is registered again against "
+        "them and the run's frame re-based on it; None: 20 for 2D lasers, 30 for 3D LiDARs; 0: never. Registered "
+        "against a map of one scan, the first scans carry a shared error that every pose of the run inherits: "
+        "2D, a heading error of 0.05-0.08 deg on the rooms world (point-to-line against all of them); 3D, tilts "
+        "of up to 1.4 deg a scan on a 16-ring LiDAR at the steep start of a terrain drive (GICP against the scans "
+        "registered after the young local map: young_map_scans + movers_delay)")
     young_map_scans: int = Field(
         3, ge=0, description="3D spinning LiDARs (KISS-ICP registration): while the local map holds fewer than this "
         "many scans, a scan registers without its ground band (its lowest ground_band_m): a map of one scan has its "

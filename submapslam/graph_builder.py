@@ -334,15 +334,17 @@ class GraphBuilder:
         self._world_up_sigma = float(np.sqrt(np.trace(cov) / 2.0))
         return cov
 
-    def _first_cloud_error(self, noise: OdometryNoise, jitter: np.ndarray | None,
-                           refit_scans: int) -> tuple[int, np.ndarray] | None:
+    def _first_cloud_error(self, noise: OdometryNoise, jitter: np.ndarray | None, refit_scans: range | None,
+                           start_path: np.ndarray | None) -> tuple[int, np.ndarray] | None:
         """``(first node, (6, 6))``: where the first submap's cloud sits relative to the first scan
-        under the run's measured ``noise`` (:func:`~submapslam.uncertainty.first_cloud_covariance`)."""
+        under the run's measured ``noise`` (:func:`~submapslam.uncertainty.first_cloud_covariance`;
+        ``start_path``: the path [m] of the run's first scans, when it reaches past the cloud's)."""
         if self._first_cloud is None:
             return None
         node, travelled = self._first_cloud
-        cov = first_cloud_covariance(travelled, noise.covariance_per_metre(),
-                                     np.zeros(6) if jitter is None else jitter, refit_scans)
+        path = start_path if start_path is not None and len(start_path) > len(travelled) else travelled
+        cov = first_cloud_covariance(path, noise.covariance_per_metre(), np.zeros(6) if jitter is None else jitter,
+                                     refit_scans, cloud_scans=len(travelled))
         self._first_cloud_sigma = np.sqrt(np.diag(cov))
         return node, cov
 
@@ -425,14 +427,15 @@ class GraphBuilder:
                 self.graph.update(extra_iterations=2)
 
     # ------------------------------------------------------------------ finishing
-    def finish(self, jitter: np.ndarray | None = None,
-               refit_scans: int = 0) -> tuple[dict[tuple[int, int], str], dict[int, np.ndarray]]:
+    def finish(self, jitter: np.ndarray | None = None, refit_scans: range | None = None,
+               start_path: np.ndarray | None = None) -> tuple[dict[tuple[int, int], str], dict[int, np.ndarray]]:
         """Batch pass, final check and covariances.
 
         ``jitter`` ``(6,)``: the scans' own odometry noise
-        (:func:`~submapslam.uncertainty.scan_jitter_variance`), ``refit_scans``: how many scans the
-        first was registered again against (0: none); with them the reported covariances count where
-        the first submap's cloud sits relative to the first scan
+        (:func:`~submapslam.uncertainty.scan_jitter_variance`), ``refit_scans``: the scans the
+        first was registered again against (None: none; ``start_path`` ``(M,)`` [m]: the path of the
+        run's first scans from the first, covering them); with them the reported covariances count
+        where the first submap's cloud sits relative to the first scan
         (:func:`~submapslam.uncertainty.first_cloud_covariance`).
 
         Returns ``({(i, j): why} of loop edges the solution rejected, {node: (6, 6) covariance}``);
@@ -462,9 +465,10 @@ class GraphBuilder:
             noise = OdometryNoise(self.odometry_correction, self.edge_distance)
             if self.config.covariance_scale is None and noise.variance_per_metre() is not None:
                 try:
+                    first_cloud = self._first_cloud_error(noise, jitter, refit_scans, start_path)
                     covs = self.graph.estimator_covariances(noise.factor_covariance,
                                                             up_covariance=self._world_up_covariance(noise),
-                                                            first_cloud=self._first_cloud_error(noise, jitter, refit_scans))
+                                                            first_cloud=first_cloud)
                     self.covariance_model = noise
                 except (RuntimeError, ValueError, np.linalg.LinAlgError) as exc:  # a singular system: the marginals
                     log.warning("the estimate's covariances could not be computed (%s); reporting the graph's "

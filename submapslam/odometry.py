@@ -79,6 +79,16 @@ def above_ground_band(points: np.ndarray, band_m: float) -> np.ndarray:
     return above if len(above) >= MIN_POINTS_ABOVE_GROUND else points
 
 
+def young_scans(config: OdometryConfig) -> int:
+    """3D: how many scans after the first register against a local map of fewer than
+    ``young_map_scans`` scans: those, and the ``movers_delay`` scans each waits before it enters
+    the map (KISS-ICP registration; voxelised GICP has no young map)."""
+    if config.registration == "voxel_gicp":
+        return 0
+    delayed = config.movers_delay if (config.drop_movers or config.movers_delay > 0) else 0
+    return delayed + config.young_map_scans
+
+
 class Odometry:
     """Incremental odometry: ``register(scan) -> T_odomframe_base`` of that scan.
 
@@ -100,7 +110,7 @@ class Odometry:
         kiss.data.min_range = config.min_range
         kiss.data.deskew = False  # this preprocessor only crops; _deskewing corrects the motion when asked
         kiss.mapping.voxel_size, self.frame_voxel = odometry_voxels(config, planar)
-        kiss.mapping.max_points_per_voxel = config.max_points_per_voxel or (20 if planar else 1)
+        kiss.mapping.max_points_per_voxel = config.max_points_per_voxel or (20 if planar else 3)
         kiss.registration.max_num_iterations = config.max_iterations
         kiss.registration.convergence_criterion = config.convergence_criterion or (1e-4 if planar else 3e-3)
         kiss.registration.max_num_threads = 1

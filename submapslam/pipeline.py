@@ -12,6 +12,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable
 from contextlib import contextmanager
+from functools import partial
 
 import numpy as np
 
@@ -21,7 +22,7 @@ from .errors import InputError, OptimisationError, SubmapSlamError
 from .geometry import blend_poses_many, inverse
 from .graph_builder import GraphBuilder
 from .observer import RunObserver, notify_closed_submap
-from .odometry import resolve_registration
+from .odometry import resolve_registration, young_scans
 from .odometry_stage import InlineOdometry, OdometryProcess, Registered, start_odometry
 from .process_stats import (
     combined_peak_mb,
@@ -32,7 +33,7 @@ from .process_stats import (
 )
 from .result import LoopRecord, SlamResult
 from .scan import LoopHint, Scan
-from .start_frame import StartFrame
+from .start_frame import StartFrame, spatial_start_correction
 from .submaps import Submap, SubmapBuilder
 from .uncertainty import calibrate, covariance_scale, scan_jitter_variance
 
@@ -113,7 +114,7 @@ class SubmapSLAM:
         # or extends the graph, so every graph operation happens in the same order as inline
         self._worker = None
         self._pending = None
-        # planar: the first scans held until the first is registered again (odometry.startup_refit_scans)
+        # the first scans held until the first is registered again (odometry.startup_refit_scans)
         self._start_frame = StartFrame(0)
 
     # ------------------------------------------------------------------ streaming
@@ -174,6 +175,14 @@ class SubmapSLAM:
         for held_scan, held in self._start_frame.add(scan, registered):
             self._take(held_scan, held)
 
+    def _start_refit(self) -> tuple[int, int]:
+        """``(scans, skip)``: the run's first scan is registered again once ``scans`` follow it,
+        against those after the first ``skip`` (``odometry.startup_refit_scans``; 3D: after the
+        scans the young local map placed, :func:`~submapslam.odometry.young_scans`)."""
+        cfg = self.odometry_config
+        scans = cfg.startup_refit_scans if cfg.startup_refit_scans is not None else (20 if self.planar else 30)
+        return scans, 0 if self.planar else min(young_scans(cfg), max(scans - 1, 0))
+
     def _take(self, scan: Scan, registered: Registered) -> None:
         """Add a registered scan (pose in the run's frame) to the trajectory, submaps, graph and loops."""
         T_odom_base, frame = registered.pose, registered.frame
@@ -204,8 +213,10 @@ class SubmapSLAM:
         replaying_start = self._replay is not None and self._replay.known_pose(0) is not None
         if replaying_start:  # a resumed run's poses are in the frame its first run settled
             self._start_frame = StartFrame.settled(self._replay.run_frame)
-        elif self.planar:
-            self._start_frame = StartFrame(self.odometry_config.startup_refit_scans)
+        else:
+            scans, skip = self._start_refit()
+            refit = None if self.planar else partial(spatial_start_correction, voxel=self._odometry.frame_voxel)
+            self._start_frame = StartFrame(scans, refit, skip)
         voxel = cfg.submaps.voxel_size or self._odometry.voxel_size / 2.0
         # 3D: a submap at the odometry's thinning voxel or coarser is the same when fused from the
         # thinned scans, with ~5x fewer points to transform and voxelise
@@ -404,9 +415,9 @@ class SubmapSLAM:
         call: the cheap streaming read, O(K), that never waits for the graph work running beside.
 
         Each pose is the scan's odometry corrected by the newest optimised submap anchor known
-        when it is read (the live estimate a robot acts on). A planar run's first scans come
-        together once its frame is settled (:class:`~submapslam.start_frame.StartFrame`: the first
-        21 at the 21st scan, ``odometry.startup_refit_scans``). Earlier poses are not revised here:
+        when it is read (the live estimate a robot acts on). A run's first scans come together
+        once its frame is settled (:class:`~submapslam.start_frame.StartFrame`: a planar run's
+        first 21 at the 21st scan, a 3D run's first 31 at the 31st, ``odometry.startup_refit_scans``). Earlier poses are not revised here:
         :meth:`trajectory` gives every scan's current, smoothed estimate (O(all scans), after
         waiting for the graph work); :meth:`finish` the final one.
         """
@@ -504,9 +515,12 @@ class SubmapSLAM:
             self._worker.shutdown()
             self._worker = None
         jitter = scan_jitter_variance(np.array(self._odom_poses), np.asarray(self.timestamps))
-        refit = self.odometry_config.startup_refit_scans if self._start_frame.correction is not None else 0
+        scans, skip = self._start_refit()
+        refit = range(1 + skip, 1 + scans) if self._start_frame.correction is not None else None
+        start = np.array(self._odom_poses[:1 + scans]).reshape(-1, 4, 4)[:, :3, 3]
+        start_path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(start, axis=0), axis=1))])
         try:
-            reasons, covs = self._graph_builder.finish(jitter, refit)
+            reasons, covs = self._graph_builder.finish(jitter, refit, start_path)
         except (OptimisationError, RuntimeError) as exc:  # the estimate so far is kept, without covariances
             log.warning("the final optimisation failed: %s", exc)
             failure = failure or f"the final optimisation failed: {exc}"

@@ -317,32 +317,34 @@ def rank_correlation(samples: np.ndarray) -> np.ndarray:
 
 
 def first_cloud_covariance(travelled: np.ndarray, per_metre: np.ndarray, jitter: np.ndarray,
-                           refit_scans: int = 0) -> np.ndarray:
+                           refit_scans: range | None = None, cloud_scans: int | None = None) -> np.ndarray:
     """``(6, 6)`` covariance [rad^2, m^2] (GTSAM order, the first anchor's frame) of where
     the first submap's cloud sits relative to the first scan, the pose every output is relative to.
 
     Every edge into the first anchor registers against its cloud, not its first scan, so the whole
-    estimate sits where that cloud is; the cloud is built from scans the odometry placed with a
-    random walk of ``per_metre`` (covariance ``(6, 6)`` or variances ``(6,)`` per m) along the path (each scan's
-    ``travelled`` ``(K,)`` [m] from the first, nondecreasing), plus each scan's own ``jitter`` ``(6,)``. A
-    registration sees about the mean of its scans' errors. With ``refit_scans`` > 0 the first scan
-    was registered again against the ``refit_scans`` after it (:class:`~submapslam.start_frame.StartFrame`),
-    so it sits at their mean error instead of at zero. For a walk over ``L`` metres without the
+    estimate sits where that cloud is; the cloud is built from the first ``cloud_scans`` scans
+    (default: all of ``travelled``), which the odometry placed with a random walk of ``per_metre``
+    (covariance ``(6, 6)`` or variances ``(6,)`` per m) along the path (``travelled`` ``(M,)`` [m]:
+    each scan's path from the first, nondecreasing), plus each scan's own ``jitter`` ``(6,)``. A
+    registration sees about the mean of its scans' errors. ``refit_scans``: the scans (indices
+    below ``M``) the first was registered again against (:class:`~submapslam.start_frame.StartFrame`):
+    the frame sits at their mean error, and every scan of the cloud but the first moves by it. For a walk over ``L`` metres without the
     refit this is ``variance * L / 3``.
     """
     s = np.asarray(travelled, dtype=np.float64).reshape(-1)
-    k = len(s)
+    k = len(s) if cloud_scans is None else min(int(cloud_scans), len(s))
     if k < 2:
         return np.zeros((6, 6))
-    weights = np.full(k - 1, 1.0 / k)  # scans 1..K-1; the first contributes where it sits
-    n = min(int(refit_scans), k - 1)
-    if n > 0:  # the first scan (and so the frame) at the mean error of scans 1..n
-        weights[:n] -= (1.0 - 1.0 / k) / n
-    # w^T min(s_i, s_j) w over scans 1..K-1 without the K x K matrix (a robot standing still for
+    weights = np.zeros(len(s) - 1)  # scans 1..M-1; the first contributes where it sits
+    weights[:k - 1] = 1.0 / k
+    refit = [i for i in (refit_scans or ()) if 0 < i < len(s)]
+    if refit:  # the frame at the mean error of the refit scans: every scan of the cloud but the first moves by it
+        weights[np.array(refit) - 1] -= (1.0 - 1.0 / k) / len(refit)
+    # w^T min(s_i, s_j) w over scans 1..M-1 without the M x M matrix (a robot standing still for
     # minutes fills one submap with thousands of scans): s nondecreasing, min(s_i, s_j) is s_0
     # plus the steps up to the earlier of the two, so each step counts the square of the weights after it
     tail = np.cumsum(weights[::-1])[::-1]
-    walk = float(s[0] * tail[0] ** 2 + np.diff(s) @ tail**2)
+    walk = float(s[0] * tail[0] ** 2 + np.diff(s) @ tail**2) if len(tail) else 0.0
     own = float(weights @ weights)
     rate = np.asarray(per_metre, dtype=np.float64)
     rate = np.diag(rate) if rate.ndim == 1 else rate

@@ -141,14 +141,13 @@ def test_a_3d_run_reports_its_estimates_covariance_and_it_fits_the_truth(tmp_pat
     were not fitted on), the seed whose first submap's walls are 4.3 deg off the vertical:
     - the level priors take the up the first three walled submaps agree on, so the anchors' pitch
       stays within a degree (it was 4.2 deg off all along, z 1 m off after 120 m);
-    - the anchors' errors against the truth fit the reported covariances within a factor of 4 in
-      yaw, x and y, where the graph's own marginals are 10-100x too loose in yaw and y; no tilt or
-      plane axis is more than 7x overconfident, z not more than 10x. This seed's z is the worst axis
-      and moves with the registration that measures the odometry's noise (3.6 once, 6.0 with
-      open3d's GICP, 6.4 with small_gicp's; seeds 311-313 3.8-8.9) and with the level priors' model
-      (7.9 with the shared world up and the priors' stated noise): the bound is this seed's, not a
-      calibration claim. This path's steep start tilts the odometry's first scans, and the votes
-      for the world's up with them, which no measured noise of the run says (BENCHMARKS.md);
+    - the anchors' errors against the truth fit the reported covariances: no axis more than 4x
+      overconfident (z, the worst, was 7.7 with one point per odometry voxel and 19 with three,
+      before the start's refit took the young map's tilt out of the first scan: 2.3), yaw and x
+      within a factor of 4, where the graph's own marginals are 20-500x too loose in yaw, x and y.
+      This seed's lateral error stays under 6 cm over 160 m: y is 12x underconfident here (over 20
+      seeds of this path it is overconfident, BENCHMARKS.md), the graph's own marginals 250x. The
+      bounds are this seed's, not a calibration claim (the Monte Carlo benchmark makes that);
     - ``summary.json`` says how uncertain the world's up was taken to be;
     - the estimate and the loop decisions are those of the graph's own marginals."""
     from datasets_synth.city import generate_kitti_drive
@@ -180,11 +179,11 @@ def test_a_3d_run_reports_its_estimates_covariance_and_it_fits_the_truth(tmp_pat
         return (err**2 / np.einsum("kii->ki", np.asarray(covs)[1:])).mean(axis=0)
 
     ours, graphs = z2(res.submap_covariances), z2(raw.submap_covariances)
-    assert np.all(ours[2:5] > 0.25) and np.all(ours[2:5] < 4.0), ours
-    assert np.all(ours[:5] < 7.0) and ours[5] < 10.0, ours
+    assert np.all(ours < 4.0) and np.all(ours[2:4] > 0.25), ours
+    assert ours[4] > 10 * graphs[4], (ours, graphs)
     up = res.covariance_model["world_up"]
     assert up["from"] == "walls" and 0.02 < up["sigma_deg"] < 0.5, up
-    assert graphs[2] < 0.1 and graphs[4] < 0.1, graphs  # what the graph's own marginals say of yaw and y
+    assert np.all(graphs[2:5] < 0.1), graphs  # what the graph's own marginals say of yaw, x and y
 
 
 def test_scan_jitter_is_measured_from_the_odometrys_own_steps():
@@ -350,9 +349,9 @@ def test_the_first_clouds_error_is_the_mean_of_its_scans_walk_and_the_refit_take
     free = np.diag(first_cloud_covariance(travelled, rate, jitter))
     np.testing.assert_allclose(free[[2, 3, 4]], rate[[2, 3, 4]] * 6.0 / 3.0, rtol=0.01)  # a walk's mean: L / 3
     assert free[0] < 1e-8 and free[5] < 1e-8  # a planar walk leaves roll, pitch and z alone but for the jitter
-    refit = np.diag(first_cloud_covariance(travelled, rate, np.zeros(6), refit_scans=200))  # the first 2 m
+    refit = np.diag(first_cloud_covariance(travelled, rate, np.zeros(6), refit_scans=range(1, 201)))  # the first 2 m
     # the first scan at the mean of the walk over [0, 2] m: (L + a)/3 - 2 (a^2/3 + (L - a) a / 2) / L
     np.testing.assert_allclose(refit[2], 1e-7 * (8.0 / 3.0 - 2.0 * (4.0 / 3.0 + 4.0) / 6.0), rtol=0.02)
-    whole = np.diag(first_cloud_covariance(travelled, rate, jitter, refit_scans=600))
+    whole = np.diag(first_cloud_covariance(travelled, rate, jitter, refit_scans=range(1, 601)))
     np.testing.assert_allclose(whole, 0.0, atol=1e-18)  # the first scan refit on the whole cloud sits at its mean
     assert not first_cloud_covariance(np.zeros(1), rate, jitter).any()  # a one-scan cloud is the scan

@@ -268,9 +268,9 @@ def test_new_poses_streams_each_scan_once_without_waiting(small_log):
     settle = slam._settle
     slam._settle = lambda: (waited.append(1), settle())[1]
     stamps, got = [], []
-    held = slam.config.odometry.startup_refit_scans  # a planar run's first scans come once its frame is settled
     for k, scan in enumerate(open_log(small_log)):
         slam.process_scan(scan)
+        held = slam._start_refit()[0]  # the run's first scans come once its frame is settled
         before = len(waited)
         t, T = slam.new_poses()
         assert len(waited) == before  # never waits for the graph work
