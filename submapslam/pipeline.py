@@ -417,7 +417,8 @@ class SubmapSLAM:
         Each pose is the scan's odometry corrected by the newest optimised submap anchor known
         when it is read (the live estimate a robot acts on). A run's first scans come together
         once its frame is settled (:class:`~submapslam.start_frame.StartFrame`: a planar run's
-        first 21 at the 21st scan, a 3D run's first 31 at the 31st, ``odometry.startup_refit_scans``). Earlier poses are not revised here:
+        first 21 at the 21st scan, a 3D run's first 31 at the 31st,
+        ``odometry.startup_refit_scans``). Earlier poses are not revised here:
         :meth:`trajectory` gives every scan's current, smoothed estimate (O(all scans), after
         waiting for the graph work); :meth:`finish` the final one.
         """

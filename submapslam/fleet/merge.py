@@ -174,9 +174,9 @@ def _add_ground_attitudes(graph, result: SlamResult, sessions: list[SessionInfo]
     :class:`~submapslam.uncertainty.TiltChangeSpread`; a merge does not yet). The level priors
     come from the walls' vertical (``wall_vertical_sigma_deg``; spinning LiDARs) when any submap of
     the merge has one (a submap without walls: its ground plane), else from the ground planes; the
-    up they hold the anchors to is agreed as a single run agrees it (:func:`_world_up`). ``ground_ups``: each submap's ``(ground normal, walls'
-    vertical)`` in its anchor frame (either None), filled in here where missing and kept by the
-    caller (a submap's points never change; the merge optimises many times)."""
+    up they hold the anchors to is agreed as a single run agrees it (:func:`_world_up`).
+    ``ground_ups``: each submap's ``(ground normal, walls' vertical)`` in its anchor frame (either
+    None), filled in here where missing and kept by the caller (a submap's points never change; the merge optimises many times)."""
     sigma = config.backend.ground_attitude_sigma_deg
     change = config.backend.ground_tilt_change_sigma_deg
     if result.planar or (sigma is None and change is None):
