@@ -516,10 +516,12 @@ class SubmapSLAM:
             self._worker.shutdown()
             self._worker = None
         jitter = scan_jitter_variance(np.array(self._odom_poses), np.asarray(self.timestamps))
-        scans, skip = self._start_refit()
-        refit = range(1 + skip, 1 + scans) if self._start_frame.correction is not None else None
-        start = np.array(self._odom_poses[:1 + scans]).reshape(-1, 4, 4)[:, :3, 3]
-        start_path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(start, axis=0), axis=1))])
+        refit = start_path = None
+        if self._start_frame.correction is not None:  # the covariances count where the re-based frame sits
+            scans, skip = self._start_refit()
+            refit = range(1 + skip, 1 + scans)
+            start = np.array(self._odom_poses[:1 + scans]).reshape(-1, 4, 4)[:, :3, 3]
+            start_path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(start, axis=0), axis=1))])
         try:
             reasons, covs = self._graph_builder.finish(jitter, refit, start_path)
         except (OptimisationError, RuntimeError) as exc:  # the estimate so far is kept, without covariances

@@ -20,7 +20,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .geometry import inverse, matrix_to_se2, se2_to_matrix
+from .geometry import inverse, matrix_to_se2, rotation_angle, se2_to_matrix, transform_points
 from .odometry_stage import Registered
 from .registration.point_to_line import refit_first_scan
 from .scan import Scan
@@ -118,7 +118,7 @@ def spatial_start_correction(first: Registered, later: list[Registered], voxel: 
 
     if len(first.frame_down) < 50:
         return None
-    world = np.vstack([r.frame_down @ r.pose[:3, :3].T + r.pose[:3, 3] for r in later])
+    world = np.vstack([transform_points(r.pose, r.frame_down) for r in later])
     scan, target = SpatialCloud(first.frame_down, voxel), SpatialCloud(world, voxel)
     refit = gicp(scan, target, first.pose, max_distance=4.0 * voxel)
     if registration_fit(scan, target, refit, voxel)[0] < registration_fit(scan, target, first.pose, voxel)[0]:
@@ -131,7 +131,7 @@ def _believed(correction: np.ndarray, max_shift: float, max_turn: float) -> np.n
     """``correction`` ``(4, 4)``, or None when it moves the frame more than ``max_shift`` [m] or
     turns it more than ``max_turn`` [rad]."""
     shift = float(np.linalg.norm(correction[:3, 3]))
-    turn = float(np.arccos(np.clip((np.trace(correction[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))
+    turn = rotation_angle(correction[:3, :3])
     if shift > max_shift or turn > max_turn:
         log.debug("first scan registered again %.3f m, %.3f deg away: not believed, the run keeps the "
                   "odometry's frame", shift, np.degrees(turn))

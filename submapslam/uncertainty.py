@@ -328,8 +328,8 @@ def first_cloud_covariance(travelled: np.ndarray, per_metre: np.ndarray, jitter:
     each scan's path from the first, nondecreasing), plus each scan's own ``jitter`` ``(6,)``. A
     registration sees about the mean of its scans' errors. ``refit_scans``: the scans (indices
     below ``M``) the first was registered again against (:class:`~submapslam.start_frame.StartFrame`):
-    the frame sits at their mean error, and every scan of the cloud but the first moves by it. For a walk over ``L`` metres without the
-    refit this is ``variance * L / 3``.
+    the frame sits at their mean error, and every scan of the cloud but the first moves by it. For
+    a walk over ``L`` metres without the refit this is ``variance * L / 3``.
     """
     s = np.asarray(travelled, dtype=np.float64).reshape(-1)
     k = len(s) if cloud_scans is None else min(int(cloud_scans), len(s))
@@ -344,7 +344,7 @@ def first_cloud_covariance(travelled: np.ndarray, per_metre: np.ndarray, jitter:
     # minutes fills one submap with thousands of scans): s nondecreasing, min(s_i, s_j) is s_0
     # plus the steps up to the earlier of the two, so each step counts the square of the weights after it
     tail = np.cumsum(weights[::-1])[::-1]
-    walk = float(s[0] * tail[0] ** 2 + np.diff(s) @ tail**2) if len(tail) else 0.0
+    walk = float(s[0] * tail[0] ** 2 + np.diff(s) @ tail**2)
     own = float(weights @ weights)
     rate = np.asarray(per_metre, dtype=np.float64)
     rate = np.diag(rate) if rate.ndim == 1 else rate

@@ -310,5 +310,4 @@ def test_a_3d_run_frame_is_rebased_on_the_first_scan_registered_against_the_sett
         return np.degrees(np.linalg.norm(e[:, :3], axis=1)).mean(), np.linalg.norm(e[:, 3:], axis=1).mean()
 
     (turn_off, shift_off), (turn_on, shift_on) = errors(off), errors(on)
-    print(turn_off, shift_off, turn_on, shift_on)
     assert turn_on < 0.5 * turn_off and shift_on < 0.5 * shift_off, (turn_on, turn_off, shift_on, shift_off)
