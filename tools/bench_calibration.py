@@ -299,6 +299,8 @@ def main(argv: list[str] | None = None) -> int:
     from datasets_synth import generate
     from datasets_synth.city import generate_kitti_drive
 
+    if args.workdir:
+        Path(args.workdir).mkdir(parents=True, exist_ok=True)  # a new folder is fine: only temporary logs go there
     keep: dict = {"workdir": args.workdir, "args": {k: str(v) for k, v in vars(args).items()}}
     header = ["| run | samples | per axis mean (e/sigma)^2 (share <= 3.84) | x-y NEES [95 % band] (share in 95 % bound) "
               "| full NEES [95 % band] (share in bound) |", "|---|---|---|---|---|"]
