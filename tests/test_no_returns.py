@@ -63,13 +63,14 @@ def test_max_range_beams_are_free_space_not_walls(tmp_path):
     world = np.vstack([transform_points(T, p) for T, p in zip(result.submap_poses, result.submap_points)])
     assert world[:, 0].min() > -2.5 and world[:, 0].max() < 8.5 and np.abs(world[:, 1]).max() < 4.5  # the room only
     grid, _ = build_global_grid(result)
-    height, width = grid.logodds.shape
+    logodds = grid.dense_logodds()
+    height, width = logodds.shape
     assert width * grid.params.resolution < 25.0 and height * grid.params.resolution < 25.0  # the room's size
     # beyond the doorway (world x > 8): free where the grid reaches, never occupied
     r, c, inside = grid.cells(np.array([[8.6, 0.0], [9.0, 0.3]]))
-    assert inside.all() and np.all(grid.logodds[r, c] < 0)
+    assert inside.all() and np.all(logodds[r, c] < 0)
     # the walls are still walls, and nothing occupied lies beyond the doorway
-    occupied = np.argwhere(grid.logodds > grid.params.occupied_threshold)
+    occupied = np.argwhere(logodds > grid.params.occupied_threshold)
     xy = grid.origin + (occupied[:, ::-1] + 0.5) * grid.params.resolution
     assert len(xy) > 100 and xy[:, 0].max() < 8.6
 
@@ -87,9 +88,9 @@ def test_local_grids_made_from_jobs_carve_the_no_returns_as_the_grid_does(tmp_pa
     assert any(job[3] for job in jobs)
     here, _ = build_global_grid(result, params)
     made, _ = build_global_grid(result, params, local_grids=[job_grid(job, params) for job in jobs])
-    assert np.array_equal(made.logodds, here.logodds)
+    assert np.array_equal(made.dense_logodds(), here.dense_logodds())
     without, _ = build_global_grid(result, params, local_grids=[local_grid(p, s, params) for _, p, s, _ in jobs])
-    assert not np.array_equal(without.logodds, here.logodds)  # the no-returns' free space is there to lose
+    assert not np.array_equal(without.dense_logodds(), here.dense_logodds())  # the no-returns' free space is there to lose
 
 
 def test_a_saved_map_keeps_the_no_returns_and_gives_the_same_grid(tmp_path):
@@ -105,6 +106,6 @@ def test_a_saved_map_keeps_the_no_returns_and_gives_the_same_grid(tmp_path):
     assert sum(len(e) for s in loaded.submap_scan_no_returns for e in s) > 500
     here, _ = build_global_grid(result)
     again, _ = build_global_grid(loaded)
-    assert np.array_equal(again.logodds, here.logodds)
+    assert np.array_equal(again.dense_logodds(), here.dense_logodds())
     save_map(load_map(tmp_path / "out" / "map"), tmp_path / "copy")  # and saved again, the same bytes
     assert (tmp_path / "copy" / "submaps.npz").read_bytes() == (tmp_path / "out" / "map" / "submaps.npz").read_bytes()

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -17,14 +19,29 @@ def grid_image(prob: np.ndarray, occupied_thresh: float = 0.65, free_thresh: flo
     return img[::-1]
 
 
-def write_pgm_yaml(stem: str | Path, prob: np.ndarray, origin_xy: np.ndarray, resolution: float) -> tuple[Path, Path]:
-    """Write ``stem.pgm`` (binary P5) and ``stem.yaml``; return both paths."""
+class ProbabilityBands(Protocol):
+    """A grid too large to hold its probabilities at once (:class:`~submapslam.mapping.tiled_grid.TiledLogOdds`)."""
+
+    shape: tuple[int, int]
+
+    def probability_bands(self) -> Iterator[tuple[int, np.ndarray]]:
+        """``(first row, (rows, cols) probabilities)`` bands, highest rows first."""
+
+
+def write_pgm_yaml(stem: str | Path, prob: np.ndarray | ProbabilityBands, origin_xy: np.ndarray,
+                   resolution: float) -> tuple[Path, Path]:
+    """Write ``stem.pgm`` (binary P5) and ``stem.yaml``; return both paths. ``prob``: the
+    ``(rows, cols)`` probability grid (row 0 = lowest y), or a grid that hands it out in bands of
+    rows (written one band at a time: no image of the whole grid in memory)."""
     stem = Path(stem)
-    img = grid_image(prob)
     pgm = stem.with_suffix(".pgm")
     with open(pgm, "wb") as fh:
-        fh.write(f"P5\n{img.shape[1]} {img.shape[0]}\n255\n".encode())
-        fh.write(img.tobytes())
+        fh.write(f"P5\n{prob.shape[1]} {prob.shape[0]}\n255\n".encode())
+        if isinstance(prob, np.ndarray):
+            fh.write(grid_image(prob).tobytes())
+        else:
+            for _, band in prob.probability_bands():
+                fh.write(grid_image(band).tobytes())
     yaml_path = stem.with_suffix(".yaml")
     yaml_path.write_text(
         f"image: {pgm.name}\nresolution: {resolution}\n"

@@ -64,10 +64,10 @@ def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs,
     if covariances is not None:
         paths["poses_cov.txt"] = out / "poses_cov.txt"
         write_tum_cov(paths["poses_cov.txt"], Trajectory(result.timestamps, result.poses), covariances)
-    if maps.occupancy is not None:
+    if maps.grid is not None:
         from .grid import write_pgm_yaml
 
-        paths["map.pgm"], paths["map.yaml"] = write_pgm_yaml(out / "map", maps.occupancy, maps.origin, maps.resolution)
+        paths["map.pgm"], paths["map.yaml"] = write_pgm_yaml(out / "map", maps.grid, maps.origin, maps.resolution)
     # written last: the run's real wall time and the process's true peak include the maps and the writing
     summary = result.summary()
     writing = time.perf_counter() - t_start

@@ -13,6 +13,7 @@ import numpy as np
 
 from ..config import GridParams
 from ..geometry import transform_points
+from .tiled_grid import TiledLogOdds
 
 #: ray points (cells along one scan's rays) traced at once: above this a scan's rays go in parts
 RAY_POINTS_AT_ONCE = 250_000
@@ -34,6 +35,23 @@ class EvidenceGrid:
             if track_free_runs and params.recent_free_observations else None
         self._is_hit: np.ndarray | None = None  # scratch masks reused by integrate_scan
         self._is_free: np.ndarray | None = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(rows, cols)`` cells."""
+        return self.logodds.shape
+
+    def read(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Log-odds of cells ``(rows, cols)`` (the interface :class:`~.tiled_grid.TiledLogOdds` shares)."""
+        return self.logodds[rows, cols]
+
+    def write(self, rows: np.ndarray, cols: np.ndarray, values: np.ndarray) -> None:
+        """Set cells ``(rows, cols)`` to ``values`` (the last of repeated cells wins)."""
+        self.logodds[rows, cols] = values
+
+    def add(self, rows: np.ndarray, cols: np.ndarray, values: np.ndarray) -> None:
+        """Add ``values`` to cells ``(rows, cols)``, repeated cells once per occurrence."""
+        np.add.at(self.logodds, (rows, cols), values)
 
     @classmethod
     def covering(cls, points_xy: np.ndarray, params: GridParams, margin: float = 1.0,
@@ -196,11 +214,11 @@ class EvidenceGrid:
         return np.reciprocal(prob, out=prob)
 
 
-def fuse_submap_grids(global_grid: EvidenceGrid, local: EvidenceGrid, T_global_local: np.ndarray,
+def fuse_submap_grids(global_grid: EvidenceGrid | TiledLogOdds, local: EvidenceGrid, T_global_local: np.ndarray,
                       cleared_mask: np.ndarray | None = None, mark_where: np.ndarray | None = None) -> int:
-    """Fuse a local grid into the global grid; return how many occupied cells were cleared (and
-    set them in ``cleared_mask``, a bool array of the global grid's shape, when given; only
-    those also set in ``mark_where`` when that is given).
+    """Fuse a local grid into the global grid (dense, or :class:`~.tiled_grid.TiledLogOdds`);
+    return how many occupied cells were cleared (and set them in ``cleared_mask``, a bool array of
+    the global grid's shape, when given; only those also set in ``mark_where`` when that is given).
 
     Local cells are mapped through ``T_global_local`` by their centres. Confidently free local
     cells reset occupied global cells to the local (free) value; cells the local grid saw free
@@ -223,21 +241,21 @@ def fuse_submap_grids(global_grid: EvidenceGrid, local: EvidenceGrid, T_global_l
     values = local.logodds[rows, cols][inside]
     confident_free = neighbourhood_max[rows, cols][inside] < p.free_confidence
     r, c = r[inside], c[inside]
-    g = global_grid.logodds
+    g = global_grid
     recent = np.zeros(len(r), dtype=bool)
     if local.free_run is not None and p.recent_free_observations:
         # the cell and its neighbours: a wall cell a grazing ray crossed after its last hit stays
         runs = minimum_filter(local.free_run, size=3)
         recent = runs[rows, cols][inside] >= p.recent_free_observations
-    clear = (confident_free | recent) & (g[r, c] > p.occupied_threshold)
-    g[r[clear], c[clear]] = values[clear]
+    clear = (confident_free | recent) & (g.read(r, c) > p.occupied_threshold)
+    g.write(r[clear], c[clear], values[clear])
     if cleared_mask is not None:
         mark = clear if mark_where is None else clear & mark_where[r, c]
         cleared_mask[r[mark], c[mark]] = True
     rest = ~clear
-    np.add.at(g, (r[rest], c[rest]), values[rest])
-    g[r[recent], c[recent]] = np.minimum(g[r[recent], c[recent]], p.free_confidence)  # free now, whatever the sum
+    g.add(r[rest], c[rest], values[rest])
+    g.write(r[recent], c[recent], np.minimum(g.read(r[recent], c[recent]), p.free_confidence))  # free now, whatever the sum
     # only the cells this fuse touched can have left [l_min, l_max] (the rest were clipped before):
     # clipping the whole city-sized grid after every submap cost 1 s of a 3.7 km drive's fusion (13 M cells)
-    g[r, c] = np.clip(g[r, c], p.l_min, p.l_max)
+    g.write(r, c, np.clip(g.read(r, c), p.l_min, p.l_max))
     return int(clear.sum())

@@ -12,6 +12,7 @@ import numpy as np
 from ..geometry import transform_points
 from ..result import SlamResult
 from .evidence_grid import EvidenceGrid, GridParams, fuse_submap_grids
+from .tiled_grid import TiledLogOdds
 
 LocalGridJob = tuple[int, np.ndarray, list[np.ndarray], list[np.ndarray]]
 # one submap's local grid to make elsewhere: (key, T_anchor_scans (K, 4, 4), scan points [(n_k, 3)],
@@ -73,8 +74,13 @@ def local_extent(T_anchor_scans: np.ndarray, scan_points: list[np.ndarray]) -> n
 def build_global_grid(result: SlamResult, params: GridParams | None = None,
                       session_starts: list[int] | None = None,
                       left_between_sessions: list[np.ndarray] | None = None,
-                      local_grids: Iterable[EvidenceGrid | None] | None = None) -> tuple[EvidenceGrid, int]:
+                      local_grids: Iterable[EvidenceGrid | None] | None = None
+                      ) -> tuple[EvidenceGrid | TiledLogOdds, int]:
     """Fuse every submap's local grid in time order; return the grid and cells cleared as dynamic.
+
+    The grid is a :class:`~.tiled_grid.TiledLogOdds` (tiles only where the submaps wrote: the
+    bounding box of a long drive is mostly cells no scan saw), or with ``left_between_sessions``
+    a dense :class:`EvidenceGrid` (the sessions' masks are the whole grid's shape).
 
     ``session_starts``: the first submap of each session (ascending); with it the empty list
     ``left_between_sessions`` receives the grid-shaped bool mask of the cells a session cleared
@@ -101,9 +107,10 @@ def build_global_grid(result: SlamResult, params: GridParams | None = None,
         corners.append(transform_points(T_world_anchor, box)[:, :2])
     if not corners:
         raise ValueError("no scans to build a grid from")
-    global_grid = EvidenceGrid.covering(np.vstack(corners), params, margin=1.5, track_free_runs=False)
     starts = set(session_starts or []) - {0}
     track = left_between_sessions is not None
+    global_grid = (EvidenceGrid.covering(np.vstack(corners), params, margin=1.5, track_free_runs=False) if track
+                   else TiledLogOdds.covering(np.vstack(corners), params, margin=1.5))
     left = np.zeros(global_grid.logodds.shape, dtype=bool) if track else None
     occupied_at_start = None  # while a later session fuses: what was occupied when it began
     cleared = 0
@@ -322,16 +329,18 @@ def fused_map(result: SlamResult, voxel: float | None = None) -> np.ndarray:
 class MapOutputs:
     """The maps of a run, built from its result (what ``write_results`` writes).
 
-    ``points``: ``(M, 3)`` float32 fused cloud in the world frame; ``occupancy``: ``(rows, cols)``
-    occupancy probabilities of the global grid (None when the run has no grid), with the
-    grid's ``origin`` ``(2,)`` [m] and ``resolution`` [m]; ``cleared_cells``: occupied cells later
+    ``points``: ``(M, 3)`` float32 fused cloud in the world frame; ``grid``: the global grid's
+    occupancy (None when the run has no grid): a :class:`~.tiled_grid.TiledLogOdds`, whose
+    probabilities a writer takes a band of rows at a time, or the ``(rows, cols)`` float32
+    probabilities themselves (a map of several 3D sessions); :attr:`occupancy` is them, dense, with
+    the grid's ``origin`` ``(2,)`` [m] and ``resolution`` [m]; ``cleared_cells``: occupied cells later
     submaps saw free (what moved); ``seconds``: wall time spent building them;
     ``dynamic_points``: ``(D, 3)`` float32 world cloud of what the run found moving (3D runs with
     ``mapping.split_movers``), else None; it shares no voxel with ``points``.
     """
 
     points: np.ndarray
-    occupancy: np.ndarray | None = None
+    grid: TiledLogOdds | np.ndarray | None = None
     origin: np.ndarray | None = None
     resolution: float = 0.0
     cleared_cells: int = 0
@@ -340,6 +349,12 @@ class MapOutputs:
     vacated_points: int = 0  # of ``points``, moved to ``dynamic_points`` where the grid saw something leave
     moved_points_in_map: int = 0  # split off a submap where another submap's point keeps the voxel in ``points``
     left_points: int = 0  # of the fused map, voxels more submaps (near their paths) saw move than kept
+
+    @property
+    def occupancy(self) -> np.ndarray | None:
+        """``(rows, cols)`` float32 occupancy probabilities of the whole grid, row 0 = lowest y
+        (dense: a tiled grid's are made on each call), or None without a grid."""
+        return self.grid.probabilities() if isinstance(self.grid, TiledLogOdds) else self.grid
 
 
 def build_map_outputs(result: SlamResult, session_starts: list[int] | None = None,
@@ -392,7 +407,8 @@ def build_map_outputs(result: SlamResult, session_starts: list[int] | None = Non
                 gone = out.points[in_vacated]
                 out.points, map_keys = out.points[~in_vacated], map_keys[~in_vacated]
             out.vacated_points = int(in_vacated.sum())
-        out.occupancy, out.origin, out.resolution = grid.probabilities(consume=True), grid.origin, grid.params.resolution
+        out.grid = grid if isinstance(grid, TiledLogOdds) else grid.probabilities(consume=True)
+        out.origin, out.resolution = grid.origin, grid.params.resolution
     if moved is not None and vacate:
         moved, out.moved_points_in_map = _not_held(moved, moved_keys, map_keys)
     parts = [c for c in (moved, gone) if c is not None]
