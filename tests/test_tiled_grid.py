@@ -54,14 +54,16 @@ def test_tiled_grid_bands_write_the_dense_grids_pgm(tmp_path):
     assert read_pgm(pgm_tiled).shape == dense.shape
 
 
-def test_tiles_grow_as_cells_are_written_and_keep_what_they_held():
+def test_tiles_grow_as_cells_are_indexed_and_keep_what_they_held():
     params = GridParams(resolution=0.1)
     grid = TiledLogOdds(np.zeros(2), (1000, 1000), params, tile=16)
     rows, cols = np.array([0, 15, 16, 999]), np.array([0, 15, 16, 999])
-    grid.add(rows, cols, np.array([1.0, 2.0, 3.0, 4.0], dtype=np.float32))
+    at = grid.cell_index(rows, cols)  # allocates: values() after it
+    np.add.at(grid.values(), at, np.array([1.0, 2.0, 3.0, 4.0], dtype=np.float32))
     assert grid.tiles == 3  # (0, 0) and (15, 15) share a tile
     for k in range(200):  # many more tiles: the store grows, earlier values stay
-        grid.write(np.array([k * 5]), np.array([500]), np.array([0.5], dtype=np.float32))
+        at = grid.cell_index(np.array([k * 5]), np.array([500]))
+        grid.values()[at] = 0.5
     np.testing.assert_array_equal(grid.read(rows, cols), [1.0, 2.0, 3.0, 4.0])
-    grid.add(np.array([16, 16]), np.array([16, 16]), np.array([1.0, 1.0], dtype=np.float32))  # repeated: both count
-    assert grid.read(np.array([16]), np.array([16]))[0] == 5.0
+    assert grid.read(np.array([995]), np.array([500]))[0] == 0.5
+    assert grid.read(np.array([3]), np.array([900]))[0] == 0.0 and grid.tiles == 3 + 63  # rows 0-995 of column 500

@@ -22,8 +22,8 @@ TILE_CELLS = 64
 
 class TiledLogOdds:
     """Log-odds over ``shape`` ``(rows, cols)`` cells from ``origin_xy`` [m], in tiles of
-    ``tile`` x ``tile`` cells allocated as cells are written (:meth:`write`, :meth:`add`,
-    :meth:`reserve`). The read/write interface is :class:`EvidenceGrid`'s, so
+    ``tile`` x ``tile`` cells allocated as cells are indexed for writing (:meth:`cell_index`,
+    :meth:`reserve`). :meth:`cell_index` and :meth:`values` are :class:`EvidenceGrid`'s too, so
     :func:`~submapslam.mapping.evidence_grid.fuse_submap_grids` fuses into either."""
 
     def __init__(self, origin_xy: np.ndarray, shape: tuple[int, int], params: GridParams,
@@ -59,8 +59,9 @@ class TiledLogOdds:
     def reserve(self, rows: np.ndarray, cols: np.ndarray) -> None:
         """Allocate the tiles holding cells ``(rows, cols)`` (inside the grid) that have none yet."""
         t = self.tile
-        keys = np.unique(np.asarray(rows, dtype=np.int64) // t * self._slot.shape[1] + np.asarray(cols, dtype=np.int64) // t)
-        missing = keys[self._slot.ravel()[keys] < 0]
+        wanted = np.zeros(self._slot.size, dtype=bool)
+        wanted[np.asarray(rows, dtype=np.int64) // t * self._slot.shape[1] + np.asarray(cols, dtype=np.int64) // t] = True
+        missing = np.flatnonzero(wanted & (self._slot.ravel() < 0))
         if not len(missing):
             return
         needed = self._used + len(missing)
@@ -71,30 +72,27 @@ class TiledLogOdds:
         self._slot.ravel()[missing] = np.arange(self._used, needed, dtype=np.int32)
         self._used = needed
 
-    def _where(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(slot, row in tile, column in tile)`` of cells (slot -1: no tile)."""
+    def cell_index(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Index of cells ``(rows, cols)`` into :meth:`values`, their tiles allocated first
+        (the interface :class:`~submapslam.mapping.evidence_grid.EvidenceGrid` shares)."""
+        self.reserve(rows, cols)
         t = self.tile
-        return self._slot[rows // t, cols // t], rows % t, cols % t
+        slot = self._slot[rows // t, cols // t].astype(np.int64)
+        return (slot * t + rows % t) * t + cols % t
+
+    def values(self) -> np.ndarray:
+        """The tiles' log-odds as one flat float32 view, indexed by :meth:`cell_index` (valid
+        until the next allocation)."""
+        return self._tiles.reshape(-1)
 
     def read(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        """Log-odds (float32) of cells ``(rows, cols)``; 0 in cells no tile holds."""
-        slot, r, c = self._where(rows, cols)
+        """Log-odds (float32) of cells ``(rows, cols)``; 0 in cells no tile holds (nothing allocated)."""
+        t = self.tile
+        slot = self._slot[rows // t, cols // t]
         out = np.zeros(len(slot), dtype=np.float32)
         held = slot >= 0
-        out[held] = self._tiles[slot[held], r[held], c[held]]
+        out[held] = self._tiles[slot[held], rows[held] % t, cols[held] % t]
         return out
-
-    def write(self, rows: np.ndarray, cols: np.ndarray, values: np.ndarray) -> None:
-        """Set cells ``(rows, cols)`` to ``values`` (the last of repeated cells wins, as numpy's assignment)."""
-        self.reserve(rows, cols)
-        slot, r, c = self._where(rows, cols)
-        self._tiles[slot, r, c] = values
-
-    def add(self, rows: np.ndarray, cols: np.ndarray, values: np.ndarray) -> None:
-        """Add ``values`` to cells ``(rows, cols)``, repeated cells once per occurrence (``np.add.at``)."""
-        self.reserve(rows, cols)
-        slot, r, c = self._where(rows, cols)
-        np.add.at(self._tiles, (slot, r, c), values)
 
     def logodds_rows(self, start: int, stop: int) -> np.ndarray:
         """Dense ``(stop - start, cols)`` float32 log-odds of rows ``start..stop-1``."""
