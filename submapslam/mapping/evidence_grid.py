@@ -9,14 +9,36 @@ walls, which every submap sees occupied, stay. Planar (x, y) only.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from ..config import GridParams
 from ..geometry import transform_points
-from .tiled_grid import TiledLogOdds
+
+if TYPE_CHECKING:
+    from .tiled_grid import TiledLogOdds
 
 #: ray points (cells along one scan's rays) traced at once: above this a scan's rays go in parts
 RAY_POINTS_AT_ONCE = 250_000
+
+
+def box_covering(points_xy: np.ndarray, resolution: float, margin: float) -> tuple[np.ndarray, tuple[int, int]]:
+    """``(origin (2,) [m], (rows, cols))`` of a grid of ``resolution`` [m] cells covering
+    ``(N, 2)`` points [m] plus ``margin`` [m]."""
+    lo = points_xy.min(axis=0) - margin
+    hi = points_xy.max(axis=0) + margin
+    shape = np.ceil((hi - lo) / resolution).astype(int) + 1
+    return lo, (int(shape[1]), int(shape[0]))
+
+
+def cells_of(xy: np.ndarray, origin: np.ndarray, resolution: float,
+             shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Row, column and inside-mask of ``(N, 2)`` points [m] in a grid of ``shape`` ``(rows, cols)``
+    cells of ``resolution`` [m] from ``origin`` [m]."""
+    rc = np.floor((xy - origin) / resolution).astype(np.int64)
+    inside = (rc[:, 0] >= 0) & (rc[:, 1] >= 0) & (rc[:, 0] < shape[1]) & (rc[:, 1] < shape[0])
+    return rc[:, 1], rc[:, 0], inside
 
 
 class EvidenceGrid:
@@ -54,16 +76,13 @@ class EvidenceGrid:
     def covering(cls, points_xy: np.ndarray, params: GridParams, margin: float = 1.0,
                  track_free_runs: bool = True) -> EvidenceGrid:
         """An empty grid covering ``(N, 2)`` points plus a margin [m]."""
-        lo = points_xy.min(axis=0) - margin
-        hi = points_xy.max(axis=0) + margin
-        shape = np.ceil((hi - lo) / params.resolution).astype(int) + 1
-        return cls(lo, (int(shape[1]), int(shape[0])), params, track_free_runs)
+        origin, shape = box_covering(points_xy, params.resolution, margin)
+        return cls(origin, shape, params, track_free_runs)
 
     def cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Row, column and inside-mask of ``(N, 2)`` points."""
-        rc = np.floor((xy - self.origin) / self.params.resolution).astype(np.int64)
-        inside = (rc[:, 0] >= 0) & (rc[:, 1] >= 0) & (rc[:, 0] < self.logodds.shape[1]) & (rc[:, 1] < self.logodds.shape[0])
-        return rc[:, 1], rc[:, 0], inside
+        return cells_of(xy, self.origin, self.params.resolution, self.logodds.shape)
+
 
     def integrate_scan(self, T_grid_sensor: np.ndarray, points: np.ndarray, carve_free: bool = True,
                        no_returns: np.ndarray | None = None) -> None:

@@ -15,6 +15,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from ..config import GridParams
+from .evidence_grid import box_covering, cells_of
 
 #: cells per side of a tile (64: 12.8 m at 0.2 m, 3.2 m at 0.05 m)
 TILE_CELLS = 64
@@ -40,10 +41,8 @@ class TiledLogOdds:
     @classmethod
     def covering(cls, points_xy: np.ndarray, params: GridParams, margin: float = 1.0) -> TiledLogOdds:
         """An empty grid covering ``(N, 2)`` points [m] plus a margin [m] (as ``EvidenceGrid.covering``)."""
-        lo = points_xy.min(axis=0) - margin
-        hi = points_xy.max(axis=0) + margin
-        shape = np.ceil((hi - lo) / params.resolution).astype(int) + 1
-        return cls(lo, (int(shape[1]), int(shape[0])), params)
+        origin, shape = box_covering(points_xy, params.resolution, margin)
+        return cls(origin, shape, params)
 
     @property
     def tiles(self) -> int:
@@ -52,9 +51,7 @@ class TiledLogOdds:
 
     def cells(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Row, column and inside-mask of ``(N, 2)`` points [m]."""
-        rc = np.floor((xy - self.origin) / self.params.resolution).astype(np.int64)
-        inside = (rc[:, 0] >= 0) & (rc[:, 1] >= 0) & (rc[:, 0] < self.shape[1]) & (rc[:, 1] < self.shape[0])
-        return rc[:, 1], rc[:, 0], inside
+        return cells_of(xy, self.origin, self.params.resolution, self.shape)
 
     def reserve(self, rows: np.ndarray, cols: np.ndarray) -> None:
         """Allocate the tiles holding cells ``(rows, cols)`` (inside the grid) that have none yet."""
