@@ -15,7 +15,7 @@ from collections.abc import Iterator
 import numpy as np
 
 from ..config import GridParams
-from .evidence_grid import box_covering, cells_of
+from .evidence_grid import box_covering, cells_of, logistic_in_place
 
 #: cells per side of a tile (64: 12.8 m at 0.2 m, 3.2 m at 0.05 m)
 TILE_CELLS = 64
@@ -23,8 +23,8 @@ TILE_CELLS = 64
 
 class TiledLogOdds:
     """Log-odds over ``shape`` ``(rows, cols)`` cells from ``origin_xy`` [m], in tiles of
-    ``tile`` x ``tile`` cells allocated as cells are indexed for writing (:meth:`cell_index`,
-    :meth:`reserve`). :meth:`cell_index` and :meth:`values` are :class:`EvidenceGrid`'s too, so
+    ``tile`` x ``tile`` cells allocated as cells are indexed for writing (:meth:`cell_index`).
+    :meth:`cell_index` and :meth:`values` are :class:`EvidenceGrid`'s too, so
     :func:`~submapslam.mapping.evidence_grid.fuse_submap_grids` fuses into either."""
 
     def __init__(self, origin_xy: np.ndarray, shape: tuple[int, int], params: GridParams,
@@ -53,11 +53,21 @@ class TiledLogOdds:
         """Row, column and inside-mask of ``(N, 2)`` points [m]."""
         return cells_of(xy, self.origin, self.params.resolution, self.shape)
 
-    def reserve(self, rows: np.ndarray, cols: np.ndarray) -> None:
-        """Allocate the tiles holding cells ``(rows, cols)`` (inside the grid) that have none yet."""
+    def cell_index(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Index of cells ``(rows, cols)`` (int64, inside the grid) into :meth:`values`, the tiles
+        they lie in allocated first (the interface :class:`~submapslam.mapping.evidence_grid.EvidenceGrid`
+        shares)."""
+        t = self.tile
+        tile_rows, tile_cols = rows // t, cols // t
+        self._allocate(tile_rows * self._slot.shape[1] + tile_cols)
+        slot = self._slot[tile_rows, tile_cols].astype(np.int64)
+        return (slot * t + rows % t) * t + cols % t
+
+    def _allocate(self, tile_keys: np.ndarray) -> None:
+        """Allocate the tiles of flat tile indices ``tile_keys`` that have none yet."""
         t = self.tile
         wanted = np.zeros(self._slot.size, dtype=bool)
-        wanted[np.asarray(rows, dtype=np.int64) // t * self._slot.shape[1] + np.asarray(cols, dtype=np.int64) // t] = True
+        wanted[tile_keys] = True
         missing = np.flatnonzero(wanted & (self._slot.ravel() < 0))
         if not len(missing):
             return
@@ -68,14 +78,6 @@ class TiledLogOdds:
             self._tiles = grown
         self._slot.ravel()[missing] = np.arange(self._used, needed, dtype=np.int32)
         self._used = needed
-
-    def cell_index(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        """Index of cells ``(rows, cols)`` into :meth:`values`, their tiles allocated first
-        (the interface :class:`~submapslam.mapping.evidence_grid.EvidenceGrid` shares)."""
-        self.reserve(rows, cols)
-        t = self.tile
-        slot = self._slot[rows // t, cols // t].astype(np.int64)
-        return (slot * t + rows % t) * t + cols % t
 
     def values(self) -> np.ndarray:
         """The tiles' log-odds as one flat float32 view, indexed by :meth:`cell_index` (valid
@@ -110,10 +112,7 @@ class TiledLogOdds:
     def probability_rows(self, start: int, stop: int) -> np.ndarray:
         """Occupancy probability (float32, the logistic of the log-odds, computed as
         ``EvidenceGrid.probabilities``) of rows ``start..stop-1``, ``(stop - start, cols)``."""
-        prob = np.negative(self.logodds_rows(start, stop))
-        np.exp(prob, out=prob)
-        prob += 1.0
-        return np.reciprocal(prob, out=prob)
+        return logistic_in_place(np.negative(self.logodds_rows(start, stop)))
 
     def probability_bands(self, band: int | None = None) -> Iterator[tuple[int, np.ndarray]]:
         """``(first row, probabilities)`` of consecutive bands of ``band`` rows (default: a tile's),
