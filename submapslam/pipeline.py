@@ -6,6 +6,7 @@ any moment) or in one call (``run(log)``). Data flows one way; nothing here writ
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -172,6 +173,10 @@ class SubmapSLAM:
         with self.timer("odometry"):  # in-process: the registration; a child process: the wait for it
             registered = self._odometry.result()
         self._registered.append((registered.pose, registered.xyt))
+        if self._observer is None:
+            # only an observer reads a scan's raw points once it is registered (``registered.frame``
+            # holds them as used): the start frame holds 31 3D scans, ~3 MB each of raw points at 64 rings
+            scan = dataclasses.replace(scan, points=_NO_POINTS, point_times=None)
         for held_scan, held in self._start_frame.add(scan, registered):
             self._take(held_scan, held)
 
@@ -226,8 +231,6 @@ class SubmapSLAM:
         from .registration.correspondence import match_voxel
 
         if not self.planar and cfg.mapping.split_movers:
-            import dataclasses
-
             from .mapping.moving_points import NARROW_SPLIT_PARAMS, SPLIT_PARAMS, SubmapMovers
 
             split = NARROW_SPLIT_PARAMS if narrow_field(self.odometry_config.registration) else SPLIT_PARAMS
@@ -780,6 +783,9 @@ class _ScanLookup:
 
 # 3D: earlier submaps whose points a new submap's scans test for what has moved away since
 _LATER_SUBMAPS = 4
+
+#: a registered scan's raw points once no one will read them
+_NO_POINTS = np.empty((0, 3))
 
 # scans registered ahead of the one being completed: keeps an odometry child process busy
 # while the main process builds submaps (a few scans: ~1 MB each, ~20 ms of registration)

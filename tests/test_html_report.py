@@ -53,9 +53,11 @@ class CountingObserver(RunObserver):
 
     def __init__(self):
         self.scans, self.submaps, self.loops, self.result = [], [], [], None
+        self.scan_points: list[int] = []
 
     def on_scan(self, index, timestamp, T_odom_base, points):
         self.scans.append((index, timestamp))
+        self.scan_points.append(len(points))
 
     def on_submap(self, submap_id, T_world_submaps, points, T_world_odom):
         self.submaps.append((submap_id, len(T_world_submaps)))
@@ -73,6 +75,7 @@ def test_the_observer_hears_every_scan_submap_and_hypothesis(reported_run):
     r = w.result
     assert [i for i, _ in w.scans] == list(range(r.n_scans))
     np.testing.assert_allclose([t for _, t in w.scans], r.timestamps)
+    assert min(w.scan_points) > 0  # each scan's raw points (a run with no observer drops them once registered)
     assert w.submaps == [(k, k + 1) for k in range(r.n_submaps)]  # in order, with every anchor so far
     assert sorted(w.loops) == sorted((lp.i, lp.j, lp.source) for lp in r.loops)
 
