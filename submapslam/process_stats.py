@@ -7,6 +7,8 @@ import functools
 import resource
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 if TYPE_CHECKING:
     from threadpoolctl import threadpool_limits
 
@@ -27,6 +29,19 @@ def peaks_by_process(main_peak_mb: float, main_peak_when_child_ended_mb: float, 
     """``summary.json``'s ``peak_memory_mb_by_process``: the figures :func:`combined_peak_mb` adds up."""
     return {"main": round(main_peak_mb, 1), "odometry": round(child_peak_mb, 1),
             "main_when_odometry_ended": round(main_peak_when_child_ended_mb, 1)}
+
+
+def memory_growth_mb_per_km(by_km: list[tuple[float, float]] | None, from_km: float = 1.0,
+                            min_span_km: float = 1.0) -> float | None:
+    """How fast the resident set grows with the distance travelled [MiB/km]: the least-squares
+    slope through the ``(km, MiB)`` samples (``summary.json``'s ``memory_mb_by_km``) taken at
+    ``from_km`` or later, past the start's imports and first submaps. None when those samples span
+    less than ``min_span_km`` (too short a drive to tell growth from the spread between samples)."""
+    samples = np.asarray(by_km if by_km is not None else [], dtype=np.float64).reshape(-1, 2)
+    samples = samples[np.isfinite(samples).all(axis=1) & (samples[:, 0] >= from_km)]
+    if len(samples) < 2 or np.ptp(samples[:, 0]) < max(min_span_km, 1e-9):
+        return None
+    return float(np.polyfit(samples[:, 0], samples[:, 1], 1)[0])
 
 
 def current_memory_mb() -> float:

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .config import PipelineConfig
-from .process_stats import peaks_by_process
+from .process_stats import memory_growth_mb_per_km, peaks_by_process
 
 
 @dataclass
@@ -211,6 +211,7 @@ class SlamResult:
 
     def summary(self) -> dict:
         """Figures for ``summary.json``."""
+        growth = memory_growth_mb_per_km(self.memory_mb_by_km)
         return {
             "source": self.source,
             "scans": self.n_scans,
@@ -229,6 +230,7 @@ class SlamResult:
             "peak_memory_mb_by_process": peaks_by_process(self.main_peak_memory_mb, self.peak_while_odometry_mb,
                                                           self.odometry_peak_memory_mb),
             "memory_mb_by_km": [[round(km, 4), round(mb, 1)] for km, mb in self.memory_mb_by_km],
+            "memory_growth_mb_per_km": None if growth is None else round(growth, 1),
             "scans_by_wall_time_s": [[round(t, 3), n] for t, n in self.scans_by_wall_time],
             "input_error": self.input_error,
             "interrupted": self.interrupted,

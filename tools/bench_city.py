@@ -349,16 +349,12 @@ def false_closures_from_files(g2o: Path, submaps_csv: Path, gt_scan_poses: np.nd
 
 def memory_growth_per_km(pairs) -> float | None:
     """Least-squares slope [MiB/km] of ``[(km, rss_mib), ...]`` over the second half of the drive."""
+    from submapslam.process_stats import memory_growth_mb_per_km
+
     if not pairs:
         return None
-    a = np.asarray(pairs, dtype=float).reshape(-1, 2)
-    a = a[np.isfinite(a).all(axis=1)]
-    if len(a) < 2:
-        return None
-    half = a[a[:, 0] >= a[:, 0].max() / 2]
-    if len(half) < 2 or np.ptp(half[:, 0]) <= 0:
-        return None
-    return float(np.polyfit(half[:, 0], half[:, 1], 1)[0])
+    km = np.asarray(pairs, dtype=float).reshape(-1, 2)[:, 0]
+    return memory_growth_mb_per_km(pairs, from_km=float(np.nanmax(km)) / 2, min_span_km=0.0)
 
 
 # --------------------------------------------------------------------------- per tool results

@@ -189,9 +189,12 @@ def _performance(summary: dict) -> str:
         charts.append("<p>scans/s along the run: not recorded (a run made before it was written)</p>")
     memory = np.asarray(summary.get("memory_mb_by_km") or [], dtype=np.float64).reshape(-1, 2)
     if len(memory) > 1:
+        growth = summary.get("memory_growth_mb_per_km")
+        caption = (f"<figcaption>grows {growth:.1f} MiB/km from the first km on</figcaption>"
+                   if growth is not None else "")
         charts.append(hp.svg_line_chart(memory[:, 0] * 1000.0, memory[:, 1], xlabel="distance travelled [m]",
                                         ylabel="resident memory [MiB]", color="#6a3d9a",
-                                        hline=summary.get("peak_memory_mb")))
+                                        hline=summary.get("peak_memory_mb")) + caption)
     figs = "".join(f"<figure>{c}</figure>" for c in charts)
     return f'<div class="figs">{figs}</div>' + html
 
