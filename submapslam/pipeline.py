@@ -295,8 +295,9 @@ class SubmapSLAM:
     def _spill_scans(self, end: int) -> None:
         """Grid scans of the closed submaps before ``end`` to disk (:mod:`.mapping.scan_spill`):
         they are read again only by the final grid and scan refinement, and otherwise grow with the
-        log's length. The graph work of a new submap may still edit the grid scans of the
-        ``_LATER_SUBMAPS`` submaps before it (what moved leaves them), so those stay."""
+        log's length. 3D submaps' clouds too (~15 MB/km of float16), read back each time a loop
+        test or the end needs one. The graph work of a new submap may still edit the grid scans and
+        clouds of the ``_LATER_SUBMAPS`` submaps before it (what moved leaves them), so those stay."""
         if end <= self._spilled:
             return
         from .mapping.scan_spill import ScanSpill
@@ -308,6 +309,9 @@ class SubmapSLAM:
                 submap.scan_points = self._spill.put(submap.scan_points)
             if submap.scan_no_returns:
                 submap.scan_no_returns = self._spill.put(submap.scan_no_returns)
+            if not submap.planar and len(submap.points):
+                cloud = self._spill.put([submap.points])
+                submap.keep_points_elsewhere(lambda cloud=cloud: cloud[0])
         self._spilled = end
 
     def _add_submap_to_graph(self, submap: Submap, hint_pairs: list[tuple[int, int]], wheel_odometry: bool,

@@ -51,7 +51,9 @@ class Submap:
         T_odom_anchor: ``(4, 4)`` anchor pose in the odometry frame (before optimisation).
         T_anchor_scans: ``(K, 4, 4)`` scan poses in the anchor frame.
         points: ``(M, 3)`` fused, voxel-downsampled points in the anchor frame: float64 for planar
-            submaps; for 3D ones compact (:func:`compact_points`: a long drive keeps hundreds).
+            submaps; for 3D ones compact (:func:`compact_points`: a long drive keeps hundreds),
+            and once closed and out of the mover split's reach, read back from the run's spill
+            file on each access (:meth:`keep_points_elsewhere`).
         distance: path length covered [m].
         planar: 2D laser submap (all z = 0).
         scan_points: each scan's ``(n, 3)`` points in its sensor frame, kept for the evidence
@@ -75,6 +77,33 @@ class Submap:
     descriptor: np.ndarray | None = None
     dynamic_points: np.ndarray | None = None
     scan_no_returns: list[np.ndarray] = field(default_factory=list)
+
+    def keep_points_elsewhere(self, read: Callable[[], np.ndarray]) -> None:
+        """From now on ``points`` is ``read()`` (the same array, e.g. read back from disk each
+        time), until ``points`` is set again."""
+        self.__dict__["_read_points"] = read
+        self.__dict__["_points"] = None  # after the reader is set: a concurrent reader sees one of the two
+
+    def __getstate__(self) -> dict:
+        """Pickled with its points (a reader of a file need not survive the trip)."""
+        state = dict(self.__dict__)
+        state["_points"], state["_read_points"] = self.points, None
+        return state
+
+
+def _submap_points(submap: Submap) -> np.ndarray:
+    points = submap.__dict__["_points"]
+    return points if points is not None else submap.__dict__["_read_points"]()
+
+
+def _set_submap_points(submap: Submap, points: np.ndarray) -> None:
+    submap.__dict__["_points"] = points
+    submap.__dict__["_read_points"] = None
+
+
+# ``points`` behind a property: the dataclass's __init__ and replace() go through it, and
+# :meth:`Submap.keep_points_elsewhere` can hand the array to a store
+Submap.points = property(_submap_points, _set_submap_points)  # type: ignore[assignment]
 
 
 class SubmapBuilder:
