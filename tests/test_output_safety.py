@@ -181,7 +181,13 @@ def test_interrupt_writes_a_complete_valid_result(tmp_path_factory, signum):
     proc = subprocess.Popen([sys.executable, "-m", "submapslam", "run", str(log), "--out", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     _wait_for_signal_handler(proc, signal.SIGTERM)
-    time.sleep(3.0)
+    # the first checkpoint (20 submaps) says scans were processed, however loaded the machine
+    # (a fixed 3 s once ended before the first scan beside a busy suite)
+    checkpoint = out.with_name(f".{out.name}.checkpoint")
+    deadline = time.monotonic() + 240.0
+    while not checkpoint.exists() and time.monotonic() < deadline:
+        assert proc.poll() is None, proc.communicate()
+        time.sleep(0.1)
     proc.send_signal(signum)
     stdout, stderr = proc.communicate(timeout=300)
     assert proc.returncode == 130, stdout + stderr
