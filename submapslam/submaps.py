@@ -92,11 +92,13 @@ class Submap:
 
 
 def _submap_points(submap: Submap) -> np.ndarray:
+    """``Submap.points``: the array held, else what the reader given to ``keep_points_elsewhere`` reads."""
     points = submap.__dict__["_points"]
     return points if points is not None else submap.__dict__["_read_points"]()
 
 
 def _set_submap_points(submap: Submap, points: np.ndarray) -> None:
+    """``submap.points = points``: held in memory (a reader set before is forgotten)."""
     submap.__dict__["_points"] = points
     submap.__dict__["_read_points"] = None
 
