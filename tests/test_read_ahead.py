@@ -18,12 +18,13 @@ def _scans(count: int, points: int, produced: list[int]):
         yield Scan(index=k, timestamp=float(k), points=np.zeros((points, 3)))
 
 
-def _wait_until_still(produced: list[int], seconds: float = 0.3) -> None:
-    """Let the reader thread run until it blocks (its count stops moving)."""
-    last = -1
-    while len(produced) != last:
-        last = len(produced)
-        time.sleep(seconds)
+def _wait_for(produced: list[int], count: int, timeout: float = 30.0) -> None:
+    """Let the reader thread read ``count`` scans (however loaded the machine), then a little more
+    time to read past them if it would."""
+    deadline = time.monotonic() + timeout
+    while len(produced) < count and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.3)
 
 
 def test_the_same_scans_in_order():
@@ -36,7 +37,7 @@ def test_small_scans_are_read_depth_ahead():
     produced: list[int] = []
     with ReadAhead(_scans(30, 10, produced), depth=4) as scans:
         next(scans)
-        _wait_until_still(produced)
+        _wait_for(produced, 1 + 4)
         assert len(produced) >= 1 + 4  # the queue is full: the budget does not hold small scans back
 
 
@@ -45,7 +46,7 @@ def test_large_scans_are_held_ahead_only_within_the_byte_budget():
     scan_bytes = 1000 * 3 * 8
     with ReadAhead(_scans(30, 1000, produced), depth=8, max_bytes=2 * scan_bytes) as scans:
         next(scans)
-        _wait_until_still(produced)
+        _wait_for(produced, 1 + 2 + 1)
         # taken 1, queued 2 (the budget), 1 read and waiting for room; 8 queued without the budget
         assert len(produced) == 1 + 2 + 1
         assert [s.index for s in scans] == list(range(1, 30))
