@@ -172,7 +172,7 @@ def run_log(
         from .io.output_folder import staged_folder
         from .io.provenance import input_provenance, write_provenance
         from .io.results import write_results
-        from .mapping.global_map import build_map_outputs
+        from .mapping.global_map import build_map_outputs, grid_process_wanted
         from .process_stats import release_free_memory
 
         with staged_folder(out_dir, "run", overwrite=overwrite, inputs=inputs) as staging:
@@ -180,7 +180,7 @@ def run_log(
 
             def fuse() -> MapOutputs:
                 release_free_memory()  # the run's freed temporaries out of the map fusion's peak
-                return build_map_outputs(result)
+                return build_map_outputs(result, grid_process=grid_process_wanted(result.config))
 
             if save_map:  # OUT/map/: what `run --map OUT` extends (io/map_store.py)
                 from .fleet import session_map_from_result, session_names

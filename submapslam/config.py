@@ -317,6 +317,10 @@ class MappingConfig(_Strict):
         "per hit and per ray, clearing of what moved); the cell size is grid_resolution / grid_resolution_3d "
         "and, for 3D LiDAR, the free range grid_max_free_range_3d")
     write_grid: bool = True
+    grid_process: bool | None = Field(
+        None, description="make every other submap's local grid of the final occupancy grid in a child "
+        "process while this one makes the rest (the same grid to the bit, sooner: the end's ray tracing on "
+        "two cores); None: when the process may use more than one core and the run has at least 8 submaps")
     write_pcd: bool = Field(False, description="also write map.pcd (and map_dynamic.pcd): the fused cloud as "
                             "binary PCD, for PCL-based tools (ROS pcl_ros, Autoware, NDT localisers)")
     split_movers: bool = Field(

@@ -14,19 +14,16 @@ returned, :meth:`close` at the end.
 from __future__ import annotations
 
 import logging
-import os
-import pickle
-import queue
-import struct
 import subprocess
-import sys
-import threading
 from collections import deque
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
+from .child_process import ChildProcess, child_streams, usable_cores
+from .child_process import own_peak_kib as _own_peak_kib
+from .child_process import receive as _receive
+from .child_process import send as _send
 from .config import OdometryConfig
 from .errors import SubmapSlamError
 from .odometry import Odometry, odometry_voxels
@@ -81,42 +78,6 @@ class InlineOdometry:
         self._pending.clear()
 
 
-def _send(stream, message: object) -> None:
-    """One message: its pickled length (8 bytes, little-endian), then the pickle."""
-    data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
-    stream.write(struct.pack("<Q", len(data)))
-    stream.write(data)
-    stream.flush()
-
-
-def _receive(stream) -> object:
-    """One message, or raise EOFError when the other side has closed the pipe."""
-    head = stream.read(8)
-    if len(head) < 8:
-        raise EOFError
-    size = struct.unpack("<Q", head)[0]
-    data = stream.read(size)
-    if len(data) < size:
-        raise EOFError
-    return pickle.loads(data)
-
-
-def _own_peak_kib() -> int:
-    """This process's peak resident set [KiB]: ``VmHWM``, the high-water mark of its own memory
-    image. (``ru_maxrss`` of a child started by fork + exec also counts the parent's image it
-    was forked from, hundreds of MiB it never used.)"""
-    import resource
-
-    try:
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1])
-    except (OSError, ValueError, IndexError):
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-
-
 def _exact_float32(values: np.ndarray | None) -> np.ndarray | None:
     """``values`` as float32 when that loses nothing (scans read from float32 files: half the
     bytes to send), else as they are."""
@@ -146,8 +107,7 @@ def _serve() -> None:
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it finishes the scans in flight
     single_threaded_blas(load_scipy=False)
-    inbox, outbox = sys.stdin.buffer, os.fdopen(os.dup(1), "wb")
-    os.dup2(2, 1)
+    inbox, outbox = child_streams()
     try:
         config, planar = _receive(inbox)
         odometry = Odometry(OdometryConfig(**config), planar)
@@ -179,42 +139,16 @@ class OdometryProcess:
 
     def __init__(self, config: OdometryConfig, planar: bool) -> None:
         self.voxel_size, self.frame_voxel = odometry_voxels(config, planar)
-        package_root = str(Path(__file__).resolve().parent.parent)
-        env = dict(os.environ, PYTHONPATH=os.pathsep.join(
-            [package_root, *filter(None, [os.environ.get("PYTHONPATH")])]))
-        self._process = subprocess.Popen([sys.executable, "-m", "submapslam.odometry_stage"], stdin=subprocess.PIPE,
-                                         stdout=subprocess.PIPE, env=env)
-        self._outbox: queue.Queue = queue.Queue()
-        self._writer = threading.Thread(target=self._feed, name="odometry-feeder", daemon=True)
-        self._writer.start()
-        self._inbox: queue.Queue = queue.Queue()  # the child's answers, in order; None once it has ended
-        self._reader = threading.Thread(target=self._drain, name="odometry-reader", daemon=True)
-        self._reader.start()
-        self._outbox.put((config.model_dump(), planar))
+        self._child = ChildProcess("submapslam.odometry_stage", "odometry")
+        self._process = self._child.process
+        self._child.put((config.model_dump(), planar))
         self._in_flight = 0
         self._submitted: deque[np.ndarray] = deque()  # the points of the scans in flight
         self.peak_memory_mb = 0.0  # the child's peak resident set [MiB], known after close()
         self._checks: dict = {}  # the child's Odometry.checks(), known after close()
 
-    def _feed(self) -> None:
-        try:
-            while True:
-                message = self._outbox.get()
-                _send(self._process.stdin, message)
-                if message is None:
-                    break
-        except (BrokenPipeError, OSError, ValueError):  # the child has ended: result() says so
-            pass
-
-    def _drain(self) -> None:
-        try:
-            while True:
-                self._inbox.put(_receive(self._process.stdout))
-        except Exception:  # noqa: BLE001 - the child has ended (or its output broke): result() says so
-            self._inbox.put(None)
-
     def submit(self, scan: Scan, known: Known = None) -> None:
-        self._outbox.put((_exact_float32(scan.points), _exact_float32(scan.point_times), scan.odometry, known,
+        self._child.put((_exact_float32(scan.points), _exact_float32(scan.point_times), scan.odometry, known,
                           float(scan.timestamp)))
         self._submitted.append(scan.points)
         self._in_flight += 1
@@ -222,12 +156,11 @@ class OdometryProcess:
     @property
     def ready(self) -> int:
         """Scans the child has answered that :meth:`result` has not yet taken."""
-        return self._inbox.qsize()
+        return self._child.waiting
 
     def _answer(self) -> tuple[str, object]:
-        answer = self._inbox.get()
+        answer = self._child.get()  # None once the child has ended, for every later call too
         if answer is None:
-            self._inbox.put(None)  # every later call sees the end too
             try:
                 code = self._process.wait(timeout=_END_WAIT_S)
             except subprocess.TimeoutExpired:  # its output broke while it runs: it is stopped
@@ -256,7 +189,7 @@ class OdometryProcess:
         """Stop the child (scans still in flight are dropped) and record its peak memory and
         checks."""
         if self._process.poll() is None:
-            self._outbox.put(None)
+            self._child.put(None)
             try:
                 while True:
                     kind, value = self._answer()
@@ -266,28 +199,9 @@ class OdometryProcess:
                         break
             except SubmapSlamError:
                 pass
-            try:
-                self._process.wait(timeout=10.0)
-            except Exception:  # noqa: BLE001 - a child that does not end is stopped
-                self._process.kill()
-                self._process.wait()
-        self._writer.join(timeout=1.0)
-        self._reader.join(timeout=1.0)
-        for stream in (self._process.stdin, self._process.stdout):
-            try:
-                stream.close()
-            except OSError:
-                pass
+        self._child.close()  # waits for the child (a child that does not end is stopped)
         self._in_flight = 0
         self._submitted.clear()
-
-
-def usable_cores() -> int:
-    """How many CPU cores this process may run on (its affinity mask where the OS has one)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
 
 
 def start_odometry(config: OdometryConfig, planar: bool) -> InlineOdometry | OdometryProcess:

@@ -91,6 +91,12 @@ def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs,
     peaks = (peak_memory_mb(), result.peak_while_odometry_mb, result.odometry_peak_memory_mb)
     summary["peak_memory_mb"] = round(combined_peak_mb(*peaks), 1)
     summary["peak_memory_mb_by_process"] = peaks_by_process(*peaks)
+    if maps.grid_process is not None:  # the map fusion's child (mapping.grid_process), beside this process
+        beside = maps.grid_process
+        summary["peak_memory_mb"] = round(max(summary["peak_memory_mb"],
+                                              beside["main_mb_while_child"] + beside["peak_mb"]), 1)
+        summary["peak_memory_mb_by_process"].update(
+            grids=beside["peak_mb"], main_while_grids=beside["main_mb_while_child"])
     paths["summary.json"].write_text(json.dumps(summary, indent=2) + "\n")
     return paths
 

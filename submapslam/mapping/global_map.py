@@ -6,17 +6,36 @@ from __future__ import annotations
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
+from functools import partial
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..child_process import usable_cores
 from ..geometry import transform_points
 from ..result import SlamResult
 from .evidence_grid import EvidenceGrid, GridParams, fuse_submap_grids
 from .tiled_grid import TiledLogOdds
 
+if TYPE_CHECKING:
+    from ..config import PipelineConfig
+    from .grid_process import GridsBeside
+
 LocalGridJob = tuple[int, np.ndarray, list[np.ndarray], list[np.ndarray]]
 # one submap's local grid to make elsewhere: (key, T_anchor_scans (K, 4, 4), scan points [(n_k, 3)],
 # per scan the ends of its beams that returned nothing [(m_k, 3)], empty when the log has none)
+
+
+#: a run's map fusion makes half its local grids in a child process (``grid_process``) only from
+#: this many submaps on: below it the child's start-up (~0.5 s) outweighs what it takes off
+MIN_SUBMAPS_BESIDE = 8
+
+
+def grid_process_wanted(config: PipelineConfig) -> bool:
+    """Whether a run's map fusion makes half its local grids in a child process
+    (``mapping.grid_process``; None: when this process may use more than one core)."""
+    wanted = config.mapping.grid_process
+    return usable_cores() > 1 if wanted is None else bool(wanted)
 
 
 def local_grid_jobs(result: SlamResult, ids: Iterable[int]) -> list[LocalGridJob]:
@@ -74,8 +93,8 @@ def local_extent(T_anchor_scans: np.ndarray, scan_points: list[np.ndarray]) -> n
 def build_global_grid(result: SlamResult, params: GridParams | None = None,
                       session_starts: list[int] | None = None,
                       left_between_sessions: list[np.ndarray] | None = None,
-                      local_grids: Iterable[EvidenceGrid | None] | None = None
-                      ) -> tuple[EvidenceGrid | TiledLogOdds, int]:
+                      local_grids: Iterable[EvidenceGrid | None] | None = None,
+                      beside: GridsBeside | None = None) -> tuple[EvidenceGrid | TiledLogOdds, int]:
     """Fuse every submap's local grid in time order; return the grid and cells cleared as dynamic.
 
     The grid is a :class:`~.tiled_grid.TiledLogOdds` (tiles only where the submaps wrote: the
@@ -87,7 +106,8 @@ def build_global_grid(result: SlamResult, params: GridParams | None = None,
     that were occupied when it began (what an earlier session saw and a later one saw gone; not
     what a session saw come and go itself). ``local_grids``: every submap's :func:`local_grid`
     at ``params``, in submap order, made elsewhere (``batch`` on Ray: ahead, on idle cores);
-    None: made here.
+    None: made here, or half of them by ``beside`` (:class:`~.grid_process.GridsBeside`, at
+    ``params``) in a child process.
 
     Two passes over the submaps: the first finds the extent, the second builds each local grid
     and fuses it at once, so memory holds the global grid and one local grid, not all of them
@@ -120,7 +140,12 @@ def build_global_grid(result: SlamResult, params: GridParams | None = None,
         if track and k in starts:
             occupied_at_start = global_grid.logodds > params.occupied_threshold
         no_returns = result.no_returns_of(k)
-        grid = next(made) if made is not None else local_grid(poses, points, params, no_returns, extents[k])
+        if made is not None:
+            grid = next(made)
+        elif beside is not None:
+            grid = beside.take(k, partial(local_grid, poses, points, params, no_returns, extents[k]))
+        else:
+            grid = local_grid(poses, points, params, no_returns, extents[k])
         if grid is not None:
             cleared += fuse_submap_grids(global_grid, grid, T_world_anchor,
                                          left if occupied_at_start is not None else None, occupied_at_start)
@@ -349,6 +374,9 @@ class MapOutputs:
     vacated_points: int = 0  # of ``points``, moved to ``dynamic_points`` where the grid saw something leave
     moved_points_in_map: int = 0  # split off a submap where another submap's point keeps the voxel in ``points``
     left_points: int = 0  # of the fused map, voxels more submaps (near their paths) saw move than kept
+    #: when a child process made half the local grids: its peak [MiB], how many it made, and this
+    #: process's largest resident set [MiB] while it ran (sampled as each grid was taken); else None
+    grid_process: dict | None = None
 
     @property
     def occupancy(self) -> np.ndarray | None:
@@ -358,14 +386,16 @@ class MapOutputs:
 
 
 def build_map_outputs(result: SlamResult, session_starts: list[int] | None = None,
-                      local_grids: Iterable[EvidenceGrid | None] | None = None) -> MapOutputs:
+                      local_grids: Iterable[EvidenceGrid | None] | None = None,
+                      grid_process: bool = False) -> MapOutputs:
     """Fuse the map cloud and, when the run keeps grid scans, the occupancy grid.
 
     ``session_starts`` (a map of several sessions: each one's first submap; 3D, with a grid): the
     cloud's points where the grid saw something leave between sessions
     (:func:`points_in_vacated_cells`) go to the dynamic cloud — a car parked in one session and
     gone in a later one. ``local_grids``: the submaps' local grids made elsewhere
-    (:func:`build_global_grid`).
+    (:func:`build_global_grid`); ``grid_process``: half of them made in a child process while
+    this one makes the cloud and the other half (:class:`~.grid_process.GridsBeside`).
 
     A map voxel leaves the map (``left_points``) when at least as many submaps took it out as
     moved, near their own paths, as kept it (``mapping.moved_verdict_range``, :func:`voxels_left`).
@@ -373,6 +403,29 @@ def build_map_outputs(result: SlamResult, session_starts: list[int] | None = Non
     (more submaps kept a point in that voxel, or the split's verdict came from farther out) is not
     reported as moved (``moved_points_in_map``)."""
     t0 = time.perf_counter()
+    grid_scans = result.config.mapping.write_grid and any(len(p) for scans in result.submap_scan_points for p in scans)
+    beside = None
+    if grid_process and grid_scans and local_grids is None and len(result.submap_poses) >= MIN_SUBMAPS_BESIDE:
+        from .grid_process import GridsBeside
+
+        # started first: the child makes its first grids while this process fuses the cloud
+        beside = GridsBeside(len(result.submap_poses), lambda k: local_grid_jobs(result, [k])[0], grid_params(result))
+    try:
+        out = _build_map_outputs(result, session_starts, local_grids, beside, grid_scans)
+    finally:
+        if beside is not None:
+            beside.close()
+    if beside is not None:
+        out.grid_process = {"peak_mb": round(beside.child_peak_mb, 1), "grids": beside.made_beside,
+                            "main_mb_while_child": round(beside.main_mb_while_child, 1)}
+    out.seconds = time.perf_counter() - t0
+    return out
+
+
+def _build_map_outputs(result: SlamResult, session_starts: list[int] | None,
+                       local_grids: Iterable[EvidenceGrid | None] | None, beside: GridsBeside | None,
+                       grid_scans: bool) -> MapOutputs:
+    """:func:`build_map_outputs`'s work (``grid_scans``: the run kept scans for a grid)."""
     voxel = result.map_voxel_size
     points, map_keys = fuse_clouds(zip(result.submap_poses, result.submap_points), voxel, with_keys=True)
     out = MapOutputs(points=points)
@@ -386,7 +439,6 @@ def build_map_outputs(result: SlamResult, session_starts: list[int] | None = Non
             stays = ~in_voxels(map_keys, voxels_left(result, voxel, reach))
             out.left_points = int((~stays).sum())
             out.points, map_keys = out.points[stays], map_keys[stays]
-    grid_scans = result.config.mapping.write_grid and any(len(p) for scans in result.submap_scan_points for p in scans)
     vacate = grid_scans and bool(session_starts) and len(session_starts) > 1 and not result.planar
     if not vacate:  # the map's voxels are final: their keys need not stay beside the grid
         if moved is not None:
@@ -397,7 +449,7 @@ def build_map_outputs(result: SlamResult, session_starts: list[int] | None = Non
         left: list[np.ndarray] = []
         grid, out.cleared_cells = build_global_grid(result, session_starts=session_starts if vacate else None,
                                                     left_between_sessions=left if vacate else None,
-                                                    local_grids=local_grids)
+                                                    local_grids=local_grids, beside=beside)
         if vacate:
             mapping = result.config.mapping
             vacated = vacated_cells(left[0], grid.logodds)
@@ -413,5 +465,4 @@ def build_map_outputs(result: SlamResult, session_starts: list[int] | None = Non
         moved, out.moved_points_in_map = _not_held(moved, moved_keys, map_keys)
     parts = [c for c in (moved, gone) if c is not None]
     out.dynamic_points = np.vstack(parts) if parts else None
-    out.seconds = time.perf_counter() - t0
     return out
