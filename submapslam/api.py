@@ -180,7 +180,7 @@ def run_log(
 
             def fuse() -> MapOutputs:
                 release_free_memory()  # the run's freed temporaries out of the map fusion's peak
-                return build_map_outputs(result, grid_process=grid_process_wanted(result.config))
+                return build_map_outputs(result, grid_process=grid_process_wanted(result))
 
             if save_map:  # OUT/map/: what `run --map OUT` extends (io/map_store.py)
                 from .fleet import session_map_from_result, session_names

@@ -318,9 +318,11 @@ class MappingConfig(_Strict):
         "and, for 3D LiDAR, the free range grid_max_free_range_3d")
     write_grid: bool = True
     grid_process: bool | None = Field(
-        None, description="make every other submap's local grid of the final occupancy grid in a child "
-        "process while this one makes the rest (the same grid to the bit, sooner: the end's ray tracing on "
-        "two cores); None: when the process may use more than one core and the run has at least 8 submaps")
+        None, description="make two of every three submaps' local grids of the final occupancy grid in a "
+        "child process while this one makes the rest and fuses them (the same grid to the bit, sooner: the "
+        "end's ray tracing on two cores; the child's memory is in summary.json's peak); None: for 2D lasers "
+        "when the process may use more than one core (a 3D run's fusion is mostly its cloud: no gain "
+        "measured); either way only from 8 submaps on")
     write_pcd: bool = Field(False, description="also write map.pcd (and map_dynamic.pcd): the fused cloud as "
                             "binary PCD, for PCL-based tools (ROS pcl_ros, Autoware, NDT localisers)")
     split_movers: bool = Field(

@@ -4,8 +4,9 @@ run's end.
 Once the last scan is registered a run's second core has nothing to do, and the fusion's local
 grids (:func:`~.global_map.local_grid`: every scan's rays traced into its submap's grid) are the
 larger part of the end's work on one core (Intel: 6-9 s of ray tracing). :class:`GridsBeside`
-sends every other submap's scans to a child process (``python -m submapslam.mapping.grid_process``)
-a few submaps ahead and makes the others here; the fusion takes them in submap order. A local grid
+sends two of every three submaps' scans to a child process (``python -m
+submapslam.mapping.grid_process``) a few submaps ahead and makes the others here; the fusion
+takes them in submap order. A local grid
 is the same to the bit wherever it is made (the same code on the same scans), so the map is too.
 If the child cannot start or fails, the grids it had are made here instead.
 """
@@ -28,19 +29,23 @@ log = logging.getLogger(__name__)
 
 
 class GridsBeside:
-    """Local grids of ``n`` submaps, every other one (odd indices) made in a child process.
+    """Local grids of ``n`` submaps, all but every ``here_every``-th (``k % here_every == 0``)
+    made in a child process.
 
+    This process also fuses every grid into the global one, so the child makes the larger share:
+    on FR079 (80 submaps) the fusion here takes 1.1 s, the submaps' extents 0.4 s, all local grids
+    3.6 s; with every other grid made here, this process was the one waited for.
     ``job_of(k)``: submap ``k``'s :data:`LocalGridJob` (its scans read only when it is sent);
     ``ahead``: how many of the child's grids may be asked for before the fusion takes them (each
     waits, made, in this process's memory). :meth:`take` hands over submap ``k``'s grid;
     :meth:`close` ends the child and records its peak memory (:attr:`child_peak_mb`) and this
     process's resident set at the times it took a grid (:attr:`main_mb_while_child`)."""
 
-    def __init__(self, n: int, job_of: Callable[[int], LocalGridJob], params: GridParams, ahead: int = 4) -> None:
+    def __init__(self, n: int, job_of: Callable[[int], LocalGridJob], params: GridParams, ahead: int = 4,
+                 here_every: int = 3) -> None:
         self._job_of = job_of
-        self._n = n
+        self._for_child = iter([k for k in range(n) if k % here_every])
         self._sent: deque[int] = deque()  # submaps given to the child, in order, not yet taken
-        self._next_odd = 1
         self._ahead = max(1, ahead)
         self.child_peak_mb = 0.0
         self.main_mb_while_child = 0.0
@@ -55,11 +60,13 @@ class GridsBeside:
         self._top_up()
 
     def _top_up(self) -> None:
-        """Send the next odd submaps' jobs until ``ahead`` are with the child."""
-        while self._child is not None and len(self._sent) < self._ahead and self._next_odd < self._n:
-            self._child.put(self._job_of(self._next_odd))
-            self._sent.append(self._next_odd)
-            self._next_odd += 2
+        """Send the child's next submaps' jobs until ``ahead`` are with it."""
+        while self._child is not None and len(self._sent) < self._ahead:
+            k = next(self._for_child, None)
+            if k is None:
+                return
+            self._child.put(self._job_of(k))
+            self._sent.append(k)
 
     def take(self, k: int, make_here: Callable[[], EvidenceGrid | None]) -> EvidenceGrid | None:
         """Submap ``k``'s local grid (asked for in submap order): the child's when it was sent
