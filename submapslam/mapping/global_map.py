@@ -375,7 +375,7 @@ class MapOutputs:
     vacated_points: int = 0  # of ``points``, moved to ``dynamic_points`` where the grid saw something leave
     moved_points_in_map: int = 0  # split off a submap where another submap's point keeps the voxel in ``points``
     left_points: int = 0  # of the fused map, voxels more submaps (near their paths) saw move than kept
-    #: when a child process made half the local grids: its peak [MiB], how many it made, and this
+    #: when a child process made local grids: its peak [MiB], how many it made, and this
     #: process's largest resident set [MiB] while it ran (sampled as each grid was taken); else None
     grid_process: dict | None = None
 

@@ -109,9 +109,12 @@ class GridsBeside:
 def _serve() -> None:
     """The child: grid parameters first, then jobs until None, each answered with its local grid;
     last, its peak resident set [KiB]."""
+    import signal
+
     from ..process_stats import single_threaded_blas
     from .global_map import job_grid
 
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it still writes its results
     single_threaded_blas(load_scipy=False)  # as in the run's own process: the same grids to the bit
     inbox, outbox = child_streams()
     try:
