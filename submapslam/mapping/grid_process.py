@@ -1,14 +1,13 @@
-"""The submaps' local grids made half here and half in a child process, for the map fusion at a
-run's end.
+"""The submaps' local grids made mostly in a child process, for the map fusion at a run's end.
 
 Once the last scan is registered a run's second core has nothing to do, and the fusion's local
 grids (:func:`~.global_map.local_grid`: every scan's rays traced into its submap's grid) are the
 larger part of the end's work on one core (Intel: 6-9 s of ray tracing). :class:`GridsBeside`
 sends two of every three submaps' scans to a child process (``python -m
 submapslam.mapping.grid_process``) a few submaps ahead and makes the others here; the fusion
-takes them in submap order. A local grid
-is the same to the bit wherever it is made (the same code on the same scans), so the map is too.
-If the child cannot start or fails, the grids it had are made here instead.
+takes them in submap order. A local grid is the same to the bit wherever it is made (the same
+code on the same scans), so the map is too. If the child cannot start or fails, the grids it had
+are made here instead.
 """
 
 from __future__ import annotations
@@ -33,7 +32,7 @@ class GridsBeside:
     made in a child process.
 
     This process also fuses every grid into the global one, so the child makes the larger share:
-    on FR079 (80 submaps) the fusion here takes 1.1 s, the submaps' extents 0.4 s, all local grids
+    on FR079 (80 submaps) the fusion here takes 1.0 s, the submaps' extents 0.5 s, all local grids
     3.6 s; with every other grid made here, this process was the one waited for.
     ``job_of(k)``: submap ``k``'s :data:`LocalGridJob` (its scans read only when it is sent);
     ``ahead``: how many of the child's grids may be asked for before the fusion takes them (each
