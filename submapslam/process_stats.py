@@ -18,17 +18,25 @@ def peak_memory_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def combined_peak_mb(main_peak_mb: float, main_peak_when_child_ended_mb: float, child_peak_mb: float) -> float:
-    """Peak [MiB] of this process and a child process that ended before this process's work was
-    done: at most this process's peak when the child ended plus the child's own peak, and after
-    that, this process's peak alone."""
-    return max(main_peak_mb, main_peak_when_child_ended_mb + child_peak_mb)
+def combined_peak_mb(main_peak_mb: float, main_peak_when_child_ended_mb: float, child_peak_mb: float,
+                     *beside: tuple[float, float]) -> float:
+    """Peak [MiB] of this process and its child processes: the odometry child, which ended before
+    this process's work was done (at most this process's peak when it ended plus the child's own
+    peak, and after that, this process's peak alone), and each further child ``beside`` as
+    ``(this process's peak while it ran, its own peak)`` [MiB] (the map fusion's grid child)."""
+    pairs = [(main_peak_when_child_ended_mb, child_peak_mb), *beside]
+    return max(main_peak_mb, *(main + child for main, child in pairs))
 
 
-def peaks_by_process(main_peak_mb: float, main_peak_when_child_ended_mb: float, child_peak_mb: float) -> dict:
-    """``summary.json``'s ``peak_memory_mb_by_process``: the figures :func:`combined_peak_mb` adds up."""
-    return {"main": round(main_peak_mb, 1), "odometry": round(child_peak_mb, 1),
-            "main_when_odometry_ended": round(main_peak_when_child_ended_mb, 1)}
+def peaks_by_process(main_peak_mb: float, main_peak_when_child_ended_mb: float, child_peak_mb: float,
+                     grids: tuple[float, float] | None = None) -> dict:
+    """``summary.json``'s ``peak_memory_mb_by_process``: the figures :func:`combined_peak_mb` adds up
+    (``grids``: ``(this process's peak while the grid child ran, the child's peak)`` [MiB], when one ran)."""
+    out = {"main": round(main_peak_mb, 1), "odometry": round(child_peak_mb, 1),
+           "main_when_odometry_ended": round(main_peak_when_child_ended_mb, 1)}
+    if grids is not None:
+        out.update(grids=round(grids[1], 1), main_while_grids=round(grids[0], 1))
+    return out
 
 
 def memory_growth_mb_per_km(by_km: list[tuple[float, float]] | None, from_km: float = 1.0,

@@ -87,16 +87,14 @@ def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs,
         summary["map_left_points"] = maps.left_points
     if maps.vacated_points:
         summary["map_vacated_points"] = maps.vacated_points  # of them, where a later session saw the space empty
-    # this process's, and the odometry child's when it ran in one (process_stats.combined_peak_mb)
+    # this process's, the odometry child's when it ran in one, and the map fusion's grid child's when
+    # one ran beside this process (mapping.grid_process): process_stats.combined_peak_mb
     peaks = (peak_memory_mb(), result.peak_while_odometry_mb, result.odometry_peak_memory_mb)
-    summary["peak_memory_mb"] = round(combined_peak_mb(*peaks), 1)
-    summary["peak_memory_mb_by_process"] = peaks_by_process(*peaks)
-    if maps.grid_process is not None:  # the map fusion's child (mapping.grid_process), beside this process
-        beside = maps.grid_process
-        summary["peak_memory_mb"] = round(max(summary["peak_memory_mb"],
-                                              beside["main_mb_while_child"] + beside["peak_mb"]), 1)
-        summary["peak_memory_mb_by_process"].update(
-            grids=beside["peak_mb"], main_while_grids=beside["main_mb_while_child"])
+    grids = None
+    if maps.grid_process is not None:
+        grids = (maps.grid_process["main_mb_while_child"], maps.grid_process["peak_mb"])
+    summary["peak_memory_mb"] = round(combined_peak_mb(*peaks, *([grids] if grids is not None else [])), 1)
+    summary["peak_memory_mb_by_process"] = peaks_by_process(*peaks, grids=grids)
     paths["summary.json"].write_text(json.dumps(summary, indent=2) + "\n")
     return paths
 
