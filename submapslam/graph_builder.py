@@ -297,9 +297,9 @@ class GraphBuilder:
 
     def _test_ground_priors(self) -> None:
         """3D: unless the run showed its ground level (:class:`~submapslam.uncertainty.LevelGroundTest`:
-        not level, or too few anchors saw the ground to tell), the ground priors stay only if loop
-        closures vouch for them and do not contradict them
-        (:meth:`~submapslam.backend.pose_graph.PoseGraph.drop_ground_priors_unless_loops_agree`);
+        not level, or too few anchors saw the ground to tell), the ground priors stay only if the loop
+        closures fit better with them than without
+        (:meth:`~submapslam.backend.pose_graph.PoseGraph.drop_ground_priors_unless_loops_favour`);
         :attr:`ground_prior_test` says what was measured and decided. An untested bet is not kept
         on faith: the hand-held Livox main building, whose ground 2 of 8 anchors see, ended at
         0.0625 m with its two level priors against its odometry's 0.0483 m (BENCHMARKS.md)."""
@@ -311,7 +311,7 @@ class GraphBuilder:
         if ratio is not None:
             self.ground_prior_test["level"] = ratio <= 1.0
         if ratio is None or ratio > 1.0:
-            self.ground_prior_test.update(self.graph.drop_ground_priors_unless_loops_agree(keep_kinds={WALL_VERTICAL_PRIOR}))
+            self.ground_prior_test.update(self.graph.drop_ground_priors_unless_loops_favour(keep_kinds={WALL_VERTICAL_PRIOR}))
 
     def _world_up_covariance(self, noise: OdometryNoise) -> np.ndarray | None:
         """``(3, 3)`` [rad^2]: the error of the world up every level prior is measured against
