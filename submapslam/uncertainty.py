@@ -81,6 +81,16 @@ def odometry_information(T_i_j: np.ndarray, distance: float, planar: bool, confi
     return np.diag(1.0 / sig**2)
 
 
+def tilt_no_tighter_than_yaw(information: np.ndarray) -> np.ndarray:
+    """A 3D odometry edge's ``(6, 6)`` information (GTSAM order) with its roll and pitch variance
+    raised to its yaw variance where smaller (correlations' covariance terms kept): the edge's
+    rotation weighed by one model again, undoing :class:`TiltDrift`'s tightening."""
+    cov = np.linalg.inv(0.5 * (information + information.T))
+    for axis in (0, 1):
+        cov[axis, axis] += max(cov[2, 2] - cov[axis, axis], 0.0)
+    return np.linalg.inv(0.5 * (cov + cov.T))
+
+
 class TiltDrift:
     """How far the run's own odometry tilts (roll and pitch) between consecutive anchors,
     estimated from the run itself.

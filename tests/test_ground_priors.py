@@ -6,6 +6,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from submapslam.config import BackendConfig, OdometryConfig
 from submapslam.geometry import inverse, so3_exp
@@ -62,9 +63,10 @@ def _drive(grades_deg: list[float], step: float = 12.0, bias_deg: float = 0.0) -
     return truth, odometry
 
 
-def _run(truth, odometry, step=12.0, loops=(), tilt_deg=0.02, loop_sigma=(0.5, 0.05),
+def _run(truth, odometry, step=12.0, loops=(), tilt_deg=0.02, loop_sigma=(0.5, 0.05), edge_tilt_deg=None,
          **backend) -> tuple[GraphBuilder, float]:
-    """A GraphBuilder fed the odometry (its edges' tilt corrections ``tilt_deg``: 0.02, a good 3D odometry),
+    """A GraphBuilder fed the odometry (its edges' tilt corrections ``tilt_deg``: 0.02, a good 3D odometry;
+    their roll and pitch sigma the drift model's, or ``edge_tilt_deg`` as TiltDrift would make it),
     the road's ground under every anchor and true loop constraints ``(i, j)`` (sigma ``loop_sigma``:
     deg, m; the graph builder floors them at 0.5 deg and 5 cm, as a run's); returns it after
     ``finish`` and the largest anchor position error [m]."""
@@ -77,7 +79,8 @@ def _run(truth, odometry, step=12.0, loops=(), tilt_deg=0.02, loop_sigma=(0.5, 0
         prev = submaps[k - 1] if k else None
         info = None
         if prev is not None:
-            info = odometry_information(inverse(prev.T_odom_anchor) @ sm.T_odom_anchor, step, False, config)
+            info = odometry_information(inverse(prev.T_odom_anchor) @ sm.T_odom_anchor, step, False, config,
+                                        None if edge_tilt_deg is None else np.deg2rad(edge_tilt_deg))
         builder.add_submap(sm, prev, False, information=info, tilt=np.deg2rad([tilt_deg, -tilt_deg]) if k else None)
     info = np.diag([1 / np.deg2rad(loop_sigma[0]) ** 2] * 3 + [1 / loop_sigma[1] ** 2] * 3)
     builder.add_loops([LoopRecord(i=i, j=j, source="spatial", accepted=True, fitness=1.0, overlap=1.0, inlier_rmse=0.0,
@@ -153,6 +156,30 @@ def test_closures_that_fit_either_way_do_not_keep_priors_on_a_climbing_road():
         assert error < 0.05
         _, error_kept = _run(truth, odometry, loops=loops, ground_priors_level_test=False)
         assert error_kept > 5.0
+
+
+def test_with_every_prior_gone_the_odometry_edges_tilt_is_weighed_like_their_yaw_again():
+    """Edges whose roll and pitch TiltDrift tightened to 0.02 deg (against the model's yaw of a few
+    tenths): on the climbing road the priors leave, and with none left the edges' roll and pitch
+    variance is raised to their yaw's (a tight tilt beside a loose yaw lets loops turn headings to
+    mend heights); on level ground the priors stay and so does the tight tilt."""
+    grades = [min(5.0, 0.5 * k) if k < 20 else max(-5.0, 5.0 - 0.5 * (k - 20)) if k < 40
+              else min(0.0, -5.0 + 0.5 * (k - 40)) for k in range(52)]
+    truth, odometry = _drive(grades)
+    builder, error = _run(truth, odometry, loops=[(0, 51)], edge_tilt_deg=0.02)
+    assert builder.ground_prior_test["kept"] is False and builder.ground_prior_test["odometry_tilt_restored"] == 51
+    odometry_edges = [e for e in builder.graph.active_edges() if e.kind == "odometry"]
+    assert len(odometry_edges) == 51
+    for e in odometry_edges:
+        sd = np.sqrt(np.diag(np.linalg.inv(e.information)))
+        np.testing.assert_allclose(sd[:2], sd[2], rtol=1e-6)
+        assert sd[2] > 10 * np.deg2rad(0.02)
+    assert error < 0.05
+    level_truth, level_odometry = _drive([0.0] * 40, bias_deg=0.1)
+    kept, _ = _run(level_truth, level_odometry, tilt_deg=0.1, edge_tilt_deg=0.02)
+    assert kept.ground_prior_test["kept"] is True and "odometry_tilt_restored" not in kept.ground_prior_test
+    for e in (e for e in kept.graph.active_edges() if e.kind == "odometry"):
+        assert np.sqrt(np.linalg.inv(e.information)[0, 0]) == pytest.approx(np.deg2rad(0.02))
 
 
 def test_closures_that_contradict_the_priors_win():

@@ -362,6 +362,34 @@ class PoseGraph:
         self._estimate = without
         return out
 
+    def reweigh_edges(self, kind: str, information_of: Callable[[np.ndarray], np.ndarray]) -> int:
+        """Weigh every active edge of ``kind`` anew: the same measurement with information
+        ``information_of(information) -> (6, 6)`` (GTSAM order). The old factors leave the graph
+        the batch pass, the final check and the marginals solve; the edges (and the g2o export) carry
+        the new information. Returns how many edges were reweighed."""
+        gtsam = self._gtsam
+        self._flush_pending()
+        count = 0
+        for idx, key in list(self._factor_edges.items()):
+            e = self.edges[key]
+            if e.kind != kind or idx in self._excluded or idx in self._relaxed:
+                continue
+            e.information = np.asarray(information_of(e.information), dtype=np.float64)
+            T = np.asarray(e.T_i_j, dtype=np.float64)
+            del self._factor_edges[idx]
+            self._excluded.add(idx)
+            self._factor_edges[self._graph.size()] = key
+            self._graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(T),
+                                                     self._noise(e.information, robust=(kind == "loop"))))
+            if kind == "odometry":
+                self.odometry_steps[e.i] = (T, np.linalg.inv(0.5 * (e.information + e.information.T)))
+            count += 1
+        return count
+
+    def has_active_priors(self) -> bool:
+        """Whether any ground or level prior is still in the graph the solution uses."""
+        return any(idx not in self._excluded for idx in self._priors)
+
     def edge_chi2(self) -> dict[int, float]:
         """Whitened squared residual of every active between-edge at the current estimate.
 
