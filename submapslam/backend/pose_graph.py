@@ -365,8 +365,9 @@ class PoseGraph:
     def reweigh_edges(self, kind: str, information_of: Callable[[np.ndarray], np.ndarray]) -> int:
         """Weigh every active edge of ``kind`` anew: the same measurement with information
         ``information_of(information) -> (6, 6)`` (GTSAM order). The old factors leave the graph
-        the batch pass, the final check and the marginals solve; the edges (and the g2o export) carry
-        the new information. Returns how many edges were reweighed."""
+        that the batch pass, the final check and the marginals solve (iSAM2 keeps them: call this
+        once the incremental updates are over, as at the end of a run); the edges, and the g2o
+        export, carry the new information. Returns how many edges were reweighed."""
         gtsam = self._gtsam
         self._flush_pending()
         count = 0
