@@ -255,9 +255,10 @@ class BackendConfig(_Strict):
         True, description="3D logs: at the end of the run, test whether the ground was level (the anchors' "
         "ground normals, carried through the odometry, turn over 3 anchors by more than the odometry's own "
         "tilt sigma can: uncertainty.LevelGroundTest); if it was not, or if too few anchors saw the ground to "
-        "tell (fewer than 8 windows, e.g. a hand-held sensor indoors), the ground priors stay only when "
-        "they lower the loop closures' summed chi-square (no closure, or closures that fit as well without "
-        "them: they leave; summary.json: ground_priors). false: the priors always stay")
+        "tell (fewer than 8 windows, e.g. a hand-held sensor indoors), the ground priors stay only if the loop "
+        "closures do not speak against them: near level (ratio <= 3) they may raise the closures' summed "
+        "chi-square by 3.84, further from level or untested they must lower it; with no closure they leave "
+        "(summary.json: ground_priors). false: the priors always stay")
     ground_prior_kernel: float | None = Field(
         1.0, gt=0, description="3D logs: Cauchy kernel width [whitened units, sigmas] on the ground priors "
         "(attitude and tilt change): a prior the data contradict by many sigmas (a change of grade, a crest, "

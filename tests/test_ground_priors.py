@@ -182,6 +182,25 @@ def test_with_every_prior_gone_the_odometry_edges_tilt_is_weighed_like_their_yaw
         assert np.sqrt(np.linalg.inv(e.information)[0, 0]) == pytest.approx(np.deg2rad(0.02))
 
 
+def test_near_level_ground_lets_the_closures_go_against_the_priors_by_a_little():
+    """The allowance the closures' chi-square may rise by with the priors (summary.json
+    ground_priors.allowance): 3.84 on ground near level (the level drive whose odometry tilts 0.1
+    deg a step while its registrations see 0.02 deg: ratio 1.12), none on the climbing road
+    (ratio 4.8) nor on a run too short to test."""
+    from submapslam.graph_builder import NEAR_LEVEL_RATIO, PRIOR_CONTRADICTION_CHI2
+
+    truth, odometry = _drive([0.0] * 40, bias_deg=0.1)
+    near = _run(truth, odometry, loops=[(0, 39)])[0].ground_prior_test
+    assert near["level"] is False and near["level_ratio"] <= NEAR_LEVEL_RATIO
+    assert near["allowance"] == PRIOR_CONTRADICTION_CHI2 and near["kept"] is True
+    grades = [min(5.0, 0.5 * k) if k < 20 else max(-5.0, 5.0 - 0.5 * (k - 20)) if k < 40
+              else min(0.0, -5.0 + 0.5 * (k - 40)) for k in range(52)]
+    far = _run(*_drive(grades), loops=[(0, 51)])[0].ground_prior_test
+    assert far["level_ratio"] > NEAR_LEVEL_RATIO and far["allowance"] == 0.0
+    short = _run(*_drive([0.0] * 8, bias_deg=0.1), loops=[(0, 7), (1, 6)])[0].ground_prior_test
+    assert short["level_ratio"] is None and short["allowance"] == 0.0
+
+
 def test_closures_that_contradict_the_priors_win():
     """A straight level drive whose ground planes claim a 10 deg tilt under Gaussian priors: with
     two true closures the priors raise the closures' chi-square far beyond 3.84, so they leave
@@ -205,6 +224,8 @@ def test_closures_that_contradict_the_priors_win():
                           "loop")
         g.update()
         bent = max(np.linalg.norm(g.pose(k)[:3, 3] - truth[k][:3, 3]) for k in range(20))
+        if loops:  # an allowance beyond what the closures say against them keeps them
+            assert g.drop_ground_priors_unless_loops_favour(allowance=1e6)["kept"] is True
         test = g.drop_ground_priors_unless_loops_favour()
         assert test["kept"] is False and test["priors"] == 19 and test["loops"] == len(loops)
         if loops:

@@ -313,29 +313,29 @@ class PoseGraph:
             self._estimate = gtsam.LevenbergMarquardtOptimizer(graph, self._estimate, lm).optimize()
         return weights
 
-    def drop_ground_priors_unless_loops_favour(self, limit: float = 22.46, max_iterations: int = 100,
+    def drop_ground_priors_unless_loops_favour(self, allowance: float = 0.0, limit: float = 22.46,
+                                               max_iterations: int = 100,
                                                keep_kinds: frozenset[str] | set[str] = frozenset()) -> dict:
-        """Keep the ground priors only where the loop closures fit better with them than without.
+        """Keep the ground priors only where the loop closures fit them, within ``allowance``, as
+        well as they fit without them.
 
         For a world the run found not level, or could not test (:class:`~submapslam.uncertainty.LevelGroundTest`):
-        the priors' flat-world bet then has the evidence against it, and the closures, the one
+        the priors' flat-world bet then has evidence against it, and the closures, the one
         measurement of the heights besides the odometry, must speak for it. The active graph is
         solved with and without every ground prior (LM from the current estimate); each loop
         edge's whitened residual, capped at ``limit`` (a wrong closure counts once), is summed
-        for both. The priors stay only when they lower that sum; closures that fit as well
-        either way (floored loop edges see heights poorly: a Livox-like drive along KITTI 02's
-        climbs fitted its 15 closures to chi-square 0.07 with the priors that squeezed its hills
-        by 8 m and 0.02 without), closures that they contradict, and no closure at all, all let
-        them leave, and the solution without them becomes the estimate. Priors of ``keep_kinds``
-        (not a bet on level ground: the walls' vertical) are neither tested nor dropped. Returns
-        ``{"kept", "priors", "loops", "loop_chi2_with", "loop_chi2_without"}``.
+        for both. The priors stay when they raise that sum by less than ``allowance`` (chi-square;
+        0: they must lower it); else, and with no closure at all, they leave, and the solution
+        without them becomes the estimate. Priors of ``keep_kinds`` (not a bet on level ground: the
+        walls' vertical) are neither tested nor dropped. Returns ``{"kept", "priors", "loops",
+        "loop_chi2_with", "loop_chi2_without", "allowance"}``.
         """
         gtsam = self._gtsam
         priors = {idx for idx, p in self._priors.items() if idx not in self._excluded and p[0] not in keep_kinds}
         loops = [idx for idx, key in self._factor_edges.items()
                  if self.edges[key].kind == "loop" and idx not in self._excluded]
         out = {"kept": True, "priors": len(priors), "loops": len(loops),
-               "loop_chi2_with": None, "loop_chi2_without": None}
+               "loop_chi2_with": None, "loop_chi2_without": None, "allowance": round(allowance, 4)}
         if not priors:
             return out
         self._flush_pending()
@@ -352,7 +352,7 @@ class PoseGraph:
             if loops:
                 c_with, c_without = loop_chi2(solve(set())), loop_chi2(without)
                 out.update(loop_chi2_with=round(c_with, 2), loop_chi2_without=round(c_without, 2))
-                if c_with < c_without:
+                if c_with - c_without < allowance:
                     return out
         except RuntimeError as exc:
             log.warning("the ground-prior test failed (%s); the priors stay", _one_line(exc))
