@@ -92,6 +92,15 @@ def test_the_level_priors_decision_in_words():
                                           "level_priors_from": "ground", "loops": 3, "loop_chi2_with": 12.73,
                                           "loop_chi2_without": 0.0})
     assert "not level (turn 2.0" in contradicted and "from 0.0 to 12.73" in contradicted
+    indifferent = level_priors_in_words({"level_ratio": 52.66, "level": False, "kept": False, "priors": 311,
+                                         "level_priors_from": "ground", "loops": 15, "loop_chi2_with": 0.07,
+                                         "loop_chi2_without": 0.02, "allowance": 0.0, "odometry_tilt_restored": 155})
+    assert indifferent.endswith("from 0.02 to 0.07 (must lower it); the 155 odometry edges' tilt weighed like "
+                                "their yaw again")
+    near = level_priors_in_words({"level_ratio": 2.5, "level": False, "kept": False, "priors": 30,
+                                  "level_priors_from": "ground", "loops": 3, "loop_chi2_with": 9.0,
+                                  "loop_chi2_without": 1.0, "allowance": 3.84})
+    assert "(at most +3.84 allowed)" in near and "weighed like" not in near
     walls = level_priors_in_words({"level_ratio": 2.866, "level": False, "kept": True, "level_priors_from": "walls",
                                    "priors": 0, "loops": 0})
     assert walls.startswith("up from the walls' vertical") and "no ground prior to test" in walls

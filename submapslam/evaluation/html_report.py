@@ -117,10 +117,14 @@ def level_priors_in_words(test: dict) -> str | None:
             why = (f": the closures fit them (chi2 {test['loop_chi2_with']} with, "
                    f"{test['loop_chi2_without']} without)")
         return f"{words}; the ground priors stayed{why}"
+    allowed = test.get("allowance")
     why = ("no closure vouched for them" if not test.get("loops") else
-           f"they raised the closures' chi2 from {test.get('loop_chi2_without')} to {test.get('loop_chi2_with')}")
+           f"they took the closures' chi2 from {test.get('loop_chi2_without')} to {test.get('loop_chi2_with')}"
+           + ("" if allowed is None else f" ({'must lower it' if allowed == 0 else f'at most +{allowed} allowed'})"))
     count = f"{priors} " if priors else ""
-    return f"{words}; the {count}ground priors left the graph: {why}"
+    restored = test.get("odometry_tilt_restored")
+    tilt = f"; the {restored} odometry edges' tilt weighed like their yaw again" if restored else ""
+    return f"{words}; the {count}ground priors left the graph: {why}{tilt}"
 
 
 def _uncertainty(rec: RunRecord) -> str:
