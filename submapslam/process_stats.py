@@ -19,12 +19,12 @@ def peak_memory_mb() -> float:
 
 
 def combined_peak_mb(main_peak_mb: float, main_peak_when_child_ended_mb: float, child_peak_mb: float,
-                     *beside: tuple[float, float]) -> float:
+                     grids: tuple[float, float] | None = None) -> float:
     """Peak [MiB] of this process and its child processes: the odometry child, which ended before
     this process's work was done (at most this process's peak when it ended plus the child's own
-    peak, and after that, this process's peak alone), and each further child ``beside`` as
-    ``(this process's peak while it ran, its own peak)`` [MiB] (the map fusion's grid child)."""
-    pairs = [(main_peak_when_child_ended_mb, child_peak_mb), *beside]
+    peak, and after that, this process's peak alone), and the map fusion's grid child when one ran
+    (``grids``: ``(this process's peak while it ran, its own peak)`` [MiB])."""
+    pairs = [(main_peak_when_child_ended_mb, child_peak_mb)] + ([grids] if grids is not None else [])
     return max(main_peak_mb, *(main + child for main, child in pairs))
 
 

@@ -176,16 +176,22 @@ class PoseGraph:
 
     def add_between(self, i: int, j: int, T_i_j: np.ndarray, information: np.ndarray, kind: str) -> None:
         """Add ``T_i_j`` (pose of node j in node i's frame); loop edges get the robust kernel."""
-        gtsam = self._gtsam
-        information = regularised_information(information)
-        f = gtsam.BetweenFactorPose3(i, j, gtsam.Pose3(np.asarray(T_i_j, dtype=np.float64)),
-                                     self._noise(information, robust=(kind == "loop")))
+        edge = GraphEdge(i, j, np.array(T_i_j), np.array(regularised_information(information)), kind)
+        f = self._between_factor(edge)
         self._pending_graph.add(f)
         self._factor_edges[self._graph.size()] = len(self.edges)
         self._graph.add(f)
-        self.edges.append(GraphEdge(i, j, np.array(T_i_j), np.array(information), kind))
-        if kind == "odometry" and j == i + 1:
-            self.odometry_steps[i] = (np.array(T_i_j), np.linalg.inv(0.5 * (information + information.T)))
+        self.edges.append(edge)
+
+    def _between_factor(self, edge: GraphEdge):
+        """``edge``'s GTSAM between-factor (loop edges under the robust kernel); an odometry edge
+        between consecutive nodes is also kept in :attr:`odometry_steps` with its covariance."""
+        gtsam = self._gtsam
+        T = np.asarray(edge.T_i_j, dtype=np.float64)
+        if edge.kind == "odometry" and edge.j == edge.i + 1:
+            self.odometry_steps[edge.i] = (T.copy(), np.linalg.inv(0.5 * (edge.information + edge.information.T)))
+        return gtsam.BetweenFactorPose3(edge.i, edge.j, gtsam.Pose3(T),
+                                        self._noise(edge.information, robust=(edge.kind == "loop")))
 
     # ------------------------------------------------------------------ solving
     def update(self, extra_iterations: int = 0) -> None:
@@ -368,22 +374,17 @@ class PoseGraph:
         that the batch pass, the final check and the marginals solve (iSAM2 keeps them: call this
         once the incremental updates are over, as at the end of a run); the edges, and the g2o
         export, carry the new information. Returns how many edges were reweighed."""
-        gtsam = self._gtsam
         self._flush_pending()
         count = 0
         for idx, key in list(self._factor_edges.items()):
             e = self.edges[key]
             if e.kind != kind or idx in self._excluded or idx in self._relaxed:
                 continue
-            e.information = np.asarray(information_of(e.information), dtype=np.float64)
-            T = np.asarray(e.T_i_j, dtype=np.float64)
+            e.information = regularised_information(information_of(e.information))
             del self._factor_edges[idx]
             self._excluded.add(idx)
             self._factor_edges[self._graph.size()] = key
-            self._graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(T),
-                                                     self._noise(e.information, robust=(kind == "loop"))))
-            if kind == "odometry":
-                self.odometry_steps[e.i] = (T, np.linalg.inv(0.5 * (e.information + e.information.T)))
+            self._graph.add(self._between_factor(e))
             count += 1
         return count
 

@@ -93,7 +93,7 @@ def write_results(result: SlamResult, out_dir: str | Path, maps: MapOutputs,
     grids = None
     if maps.grid_process is not None:
         grids = (maps.grid_process["main_mb_while_child"], maps.grid_process["peak_mb"])
-    summary["peak_memory_mb"] = round(combined_peak_mb(*peaks, *([grids] if grids is not None else [])), 1)
+    summary["peak_memory_mb"] = round(combined_peak_mb(*peaks, grids=grids), 1)
     summary["peak_memory_mb_by_process"] = peaks_by_process(*peaks, grids=grids)
     paths["summary.json"].write_text(json.dumps(summary, indent=2) + "\n")
     return paths
