@@ -405,14 +405,16 @@ class Odometry:
         Planar runs: ``wheel_overruled`` scans whose constant-velocity guess fitted better than the
         wheels', ``registration_overruled`` scans whose wheel pose fitted better than where
         registration went. Narrow-field 3D runs (voxel_gicp): ``turned_guesses_tried`` scans whose
-        usual guesses fitted poorly, ``far_from_prediction`` scans whose best alignment ended far
+        usual guesses fitted poorly, ``turned_guess_won`` of those where a turned one replaced the usual
+        alignment, ``far_from_prediction`` scans whose best alignment ended far
         from the prediction, ``near_alignment_kept`` of those where a near one won
         (:class:`~submapslam.registration.voxel_gicp.VoxelGicpTracker`). Other 3D runs:
         ``first_step_from_a_guessed_move``, whether the second scan started from a step along the
         sensor's axes (:meth:`_first_step`)."""
         if self._gicp is not None:
             t = self._gicp
-            return {"turned_guesses_tried": t.turned_tries, "far_from_prediction": t.far_results,
+            return {"turned_guesses_tried": t.turned_tries, "turned_guess_won": t.turned_won,
+                    "far_from_prediction": t.far_results,
                     "near_alignment_kept": t.near_kept}
         if not self.planar:
             return {"first_step_from_a_guessed_move": self.first_step_moved}

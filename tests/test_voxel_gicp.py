@@ -173,3 +173,35 @@ def test_the_coarse_stage_registers_a_thinner_copy_of_the_scan():
         scan = tracker.prepare(_narrow_view(room, truth))
         pose, inliers = tracker.align(scan, [T0])
         assert np.linalg.norm((inverse(truth) @ pose)[:3, 3]) < 0.02 and inliers > 0.8 * scan.size()
+
+
+def test_a_turned_guess_that_fits_barely_better_elsewhere_does_not_replace_the_prediction():
+    """No guess fits well (70 % inliers): the turned guesses are tried. One that ends 23 deg away
+    with 2 % more inliers is another heading the scene fits about as well (a junction seen through
+    a narrow field), and the prediction's alignment stays; with ``turn_margin`` (5 %) more, or
+    reaching ``enough_inliers``, it wins; ending where the usual one did, any gain is taken."""
+
+    class Cloud:
+        def size(self) -> int:
+            return 1000
+
+    usual = np.eye(4)
+    elsewhere = _rot_z(23.0)
+    elsewhere[:3, 3] = (0.6, 0.2, 0.0)
+    same = usual.copy()
+    same[0, 3] = 0.01
+    for turned_inliers, turned_pose, expected in ((720, elsewhere, usual), (760, elsewhere, elsewhere),
+                                                  (810, elsewhere, elsewhere), (701, same, same),
+                                                  (690, same, usual)):
+        tracker = VoxelGicpTracker()
+        calls = []
+
+        def coarse_to_fine(cloud, guess, n=turned_inliers, pose=turned_pose, calls=calls):
+            calls.append(guess)
+            return (700, usual) if len(calls) <= 2 else (n, pose)
+
+        tracker._coarse_to_fine = coarse_to_fine
+        pose, inliers = tracker.align(Cloud(), [np.eye(4), np.eye(4)])
+        assert np.array_equal(pose, expected), (turned_inliers, inliers)
+        assert tracker.turned_tries == 1
+        assert len(calls) == (3 if turned_inliers >= 800 else 2 + 2 * len(VoxelGicpSettings().turns_deg))

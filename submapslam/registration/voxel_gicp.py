@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry import se2_to_matrix
+from ..geometry import inverse, rotation_angle, se2_to_matrix
 
 
 @dataclass(frozen=True)
@@ -59,7 +59,9 @@ class VoxelGicpSettings:
     turns_deg: when no guess reaches ``enough_inliers``, each guess turned by these angles about
     the scan's own z axis is tried too, in this order, until one reaches it (a hand-held sensor
     turning 20 deg between keyframes: from the usual guesses the alignment can end metres off
-    with the turn right and 76 % inliers, where the true step has 98 %).
+    with the turn right and 76 % inliers, where the true step has 98 %). When none reaches it, the
+    best turned result replaces the usual one only with ``turn_margin`` of the scan's points more
+    inliers, or where it ended within ``same_alignment_m`` [m] / ``same_alignment_deg`` of it.
     far_m / near_share: an alignment that ends more than ``far_m`` and twice the predicted step
     from the prediction may have slid along a repeated structure (the coarse map's 2 m voxels and
     4 m reach let it: in a hand-held walk through a building, one 3 m bay over, with 85 %
@@ -82,6 +84,9 @@ class VoxelGicpSettings:
     fine_translation_epsilon: float = 0.002
     fine_rotation_epsilon_deg: float = 0.2
     turns_deg: tuple[float, ...] = (10.0, -10.0, 20.0, -20.0)
+    turn_margin: float = 0.05
+    same_alignment_m: float = 0.1
+    same_alignment_deg: float = 1.0
     far_m: float = 1.0
     near_share: float = 0.9
 
@@ -105,6 +110,7 @@ class VoxelGicpTracker:
             voxel_map.set_lru(horizon=s.horizon, clear_cycle=10)
         self._inserted = 0
         self.turned_tries = 0  # scans whose usual guesses fit poorly, so that turned ones were tried
+        self.turned_won = 0  # ... and of them, those where a turned one replaced the usual alignment
         self.far_results = 0  # scans whose best alignment ended far from the prediction ...
         self.near_kept = 0  # ... and of them, those where a near one fitted about as well and won
 
@@ -143,10 +149,14 @@ class VoxelGicpTracker:
         assert best is not None, "align needs at least one guess"
         if best[0] < enough:
             self.turned_tries += 1
+            turned: tuple[int, np.ndarray] | None = None
             for guess, turn in ((g, t) for g in guesses for t in s.turns_deg):  # the nearest turns first
-                best = self._better(best, self._coarse_to_fine(cloud, guess @ se2_to_matrix(0.0, 0.0, np.radians(turn))))
-                if best[0] >= enough:  # until one fits well
+                turned = self._better(turned, self._coarse_to_fine(cloud, guess @ se2_to_matrix(0.0, 0.0, np.radians(turn))))
+                if turned[0] >= enough:  # until one fits well
                     break
+            if turned is not None and self._turned_wins(turned, best, cloud.size()):
+                best = turned
+                self.turned_won += 1
         prediction = guesses[0][:3, 3]
         reach = max(s.far_m, 2.0 * float(np.linalg.norm(prediction - guesses[-1][:3, 3])))
         if np.linalg.norm(best[1][:3, 3] - prediction) > reach:
@@ -160,6 +170,22 @@ class VoxelGicpTracker:
                 self.near_kept += 1
                 best = near
         return best[1], best[0]
+
+    def _turned_wins(self, turned: tuple[int, np.ndarray], usual: tuple[int, np.ndarray], size: int) -> bool:
+        """Whether the best turned guess's ``(inliers, T_odom_scan)`` replaces the usual guesses' best
+        (``size``: the scan's points): it has more inliers, and it fits well (``enough_inliers``), or it
+        has ``turn_margin`` of the scan more, or it ended where the usual one did (the same alignment,
+        converged a little further). Where the scene fits many headings about as well (a junction of
+        which a narrow field of view sees little), a turned guess 23 deg off the truth once won by 0.9 %
+        of the points, and the odometry of a Livox-like drive along KITTI 06 ended 53 m off."""
+        if turned[0] <= usual[0]:
+            return False
+        s = self.settings
+        if turned[0] >= s.enough_inliers * size or turned[0] >= usual[0] + s.turn_margin * size:
+            return True
+        step = inverse(usual[1]) @ turned[1]
+        return bool(np.linalg.norm(step[:3, 3]) <= s.same_alignment_m
+                    and np.degrees(rotation_angle(step)) <= s.same_alignment_deg)
 
     @staticmethod
     def _better(best: tuple[int, np.ndarray] | None, candidate: tuple[int, np.ndarray]) -> tuple[int, np.ndarray]:
