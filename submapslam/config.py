@@ -219,8 +219,9 @@ class BackendConfig(_Strict):
         3.0, gt=0, description="3D logs: each odometry edge's roll and pitch sigma is this many times the tilt "
         "by which the registration between consecutive submaps corrects the odometry (a robust RMS over the run "
         "so far, per metre; uncertainty.TiltDrift), where that is below the drift model's: a sensor that holds "
-        "its tilt is not outweighed by the ground priors; once the level test has dropped every prior, the "
-        "edges' roll and pitch are weighed like their yaw again. null: the drift model alone")
+        "its tilt is not outweighed by the ground priors; where the ground is not level and no ground prior is left "
+        "at the end (the level test dropped them, or the walls' verticals were the only level priors), the edges' "
+        "roll and pitch are weighed like their yaw again. null: the drift model alone")
     odometry_sigma_floor_m: float = Field(0.02, gt=0)
     odometry_sigma_floor_deg: float = Field(0.2, gt=0)
     ground_attitude_sigma_deg: float | None = Field(

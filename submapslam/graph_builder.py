@@ -319,7 +319,9 @@ class GraphBuilder:
         fit either way had kept them (KITTI 02: 2.52 m, odometry 0.19). :attr:`ground_prior_test` says what was measured and
         decided. An untested bet is not kept on faith: the hand-held Livox main building, whose
         ground 2 of 8 anchors see, ended at 0.0625 m with its two level priors against its
-        odometry's 0.0483 m (BENCHMARKS.md)."""
+        odometry's 0.0483 m (BENCHMARKS.md). On ground not level (or untested) where no ground prior
+        is left, the walls' alone or none, the odometry edges' tilt is weighed like their yaw again
+        (``odometry_tilt_restored``: how many edges)."""
         if self.level_test is None:
             return
         ratio = self.level_test.ratio(self.tilt_drift.sigma)
@@ -331,10 +333,13 @@ class GraphBuilder:
             allowance = PRIOR_CONTRADICTION_CHI2 if ratio is not None and ratio <= NEAR_LEVEL_RATIO else 0.0
             self.ground_prior_test.update(self.graph.drop_ground_priors_unless_loops_favour(
                 allowance, keep_kinds={WALL_VERTICAL_PRIOR}))
-        if not self.ground_prior_test["kept"] and not self.graph.has_active_priors():
-            # TiltDrift tightened the edges' roll and pitch to hold the priors off; with none left, a
-            # tight tilt beside the model's loose yaw lets the loops mend heights by turning the headings
-            # between them (a Livox-like drive along KITTI 02: 0.29 m against its odometry's 0.19 m)
+        if (ratio is None or ratio > 1.0) and not self.graph.has_active_priors(ignore_kinds={WALL_VERTICAL_PRIOR}):
+            # TiltDrift tightened the edges' roll and pitch to hold off the ground priors' bet on level
+            # ground. With none of them left on ground that is not level, a tight tilt beside the model's
+            # loose yaw only does harm: on a grade a turn about the anchor's own (tilted) z axis tilts the
+            # world's up, so whatever corrects the anchors' attitude, loops mending heights or the walls'
+            # plumb verticals, is bought by turning headings (a Livox-like drive along KITTI 02: 0.29 m
+            # against its odometry's 0.19 m; a 64-ring one with walls, 50 m of relief: 0.27 m against 0.18)
             self.ground_prior_test["odometry_tilt_restored"] = self.graph.reweigh_edges("odometry",
                                                                                         tilt_no_tighter_than_yaw)
 

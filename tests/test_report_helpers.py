@@ -104,6 +104,11 @@ def test_the_level_priors_decision_in_words():
     walls = level_priors_in_words({"level_ratio": 2.866, "level": False, "kept": True, "level_priors_from": "walls",
                                    "priors": 0, "loops": 0})
     assert walls.startswith("up from the walls' vertical") and "no ground prior to test" in walls
+    assert "weighed like" not in walls
+    walls_restored = level_priors_in_words({"level_ratio": 10.5, "level": False, "kept": True, "priors": 0,
+                                            "level_priors_from": "walls", "loops": 0, "odometry_tilt_restored": 74})
+    assert "no ground prior to test" in walls_restored
+    assert walls_restored.endswith("the 74 odometry edges' tilt weighed like their yaw again")
     assert level_priors_in_words({"level_ratio": 0.43, "level": True, "kept": True,
                                   "level_priors_from": "walls"}).endswith("level (turn 0.43 of the odometry's "
                                                                           "allowance); the ground priors stayed")

@@ -388,9 +388,10 @@ class PoseGraph:
             count += 1
         return count
 
-    def has_active_priors(self) -> bool:
-        """Whether any ground or level prior is still in the graph the solution uses."""
-        return any(idx not in self._excluded for idx in self._priors)
+    def has_active_priors(self, ignore_kinds: frozenset[str] | set[str] = frozenset()) -> bool:
+        """Whether any ground or level prior of a kind not in ``ignore_kinds`` is still in the
+        graph the solution uses."""
+        return any(idx not in self._excluded and p[0] not in ignore_kinds for idx, p in self._priors.items())
 
     def edge_chi2(self) -> dict[int, float]:
         """Whitened squared residual of every active between-edge at the current estimate.

@@ -109,8 +109,10 @@ def level_priors_in_words(test: dict) -> str | None:
         found = f"{'level' if level else 'not level'} (turn {ratio} of the odometry's allowance)"
     words = f"up from {source}; ground {found}" if source else f"ground {found}"
     priors = test.get("priors")
+    restored = test.get("odometry_tilt_restored")
+    tilt = f"; the {restored} odometry edges' tilt weighed like their yaw again" if restored else ""
     if priors == 0:
-        return f"{words}; no ground prior to test (the walls' level priors are no bet on level ground: they stay)"
+        return f"{words}; no ground prior to test (the walls' level priors are no bet on level ground: they stay){tilt}"
     if test.get("kept", True):
         why = ""
         if level is not True and test.get("loop_chi2_with") is not None:
@@ -122,8 +124,6 @@ def level_priors_in_words(test: dict) -> str | None:
            f"they took the closures' chi2 from {test.get('loop_chi2_without')} to {test.get('loop_chi2_with')}"
            + ("" if allowed is None else f" ({'must lower it' if allowed == 0 else f'at most +{allowed} allowed'})"))
     count = f"{priors} " if priors else ""
-    restored = test.get("odometry_tilt_restored")
-    tilt = f"; the {restored} odometry edges' tilt weighed like their yaw again" if restored else ""
     return f"{words}; the {count}ground priors left the graph: {why}{tilt}"
 
 
