@@ -49,6 +49,8 @@ NEAR_LEVEL_RATIO = 3.0
 
 PRIOR_INFORMATION = np.diag([1e8] * 6)  # the first anchor is the world frame
 WALL_VERTICAL_PRIOR = "wall vertical prior"  # the kind of a level prior whose up comes from the walls
+#: level priors that are no bet on level ground: the ground test neither tests nor drops them
+NO_BET_PRIORS = frozenset({WALL_VERTICAL_PRIOR})
 LEVEL_SOURCE_WAIT = 5  # submaps without walls after which the level priors come from the ground
 WORLD_UP_VOTES = 3  # submaps with walls whose verticals agree the world's up
 
@@ -329,11 +331,12 @@ class GraphBuilder:
                                   "level_priors_from": self._level_from, "wall_verticals": self.wall_verticals}
         if ratio is not None:
             self.ground_prior_test["level"] = ratio <= 1.0
-        if ratio is None or ratio > 1.0:
-            allowance = PRIOR_CONTRADICTION_CHI2 if ratio is not None and ratio <= NEAR_LEVEL_RATIO else 0.0
-            self.ground_prior_test.update(self.graph.drop_ground_priors_unless_loops_favour(
-                allowance, keep_kinds={WALL_VERTICAL_PRIOR}))
-        if (ratio is None or ratio > 1.0) and not self.graph.has_active_priors(ignore_kinds={WALL_VERTICAL_PRIOR}):
+        if ratio is not None and ratio <= 1.0:
+            return  # level: the priors' bet holds, and so does the tight tilt that holds them off
+        allowance = PRIOR_CONTRADICTION_CHI2 if ratio is not None and ratio <= NEAR_LEVEL_RATIO else 0.0
+        self.ground_prior_test.update(self.graph.drop_ground_priors_unless_loops_favour(
+            allowance, keep_kinds=NO_BET_PRIORS))
+        if not self.graph.has_active_priors(ignore_kinds=NO_BET_PRIORS):
             # TiltDrift tightened the edges' roll and pitch to hold off the ground priors' bet on level
             # ground. With none of them left on ground that is not level, a tight tilt beside the model's
             # loose yaw only does harm: on a grade a turn about the anchor's own (tilted) z axis tilts the

@@ -249,16 +249,19 @@ def _walled_submap(k: int, T_odom_anchor: np.ndarray, R_world_anchor: np.ndarray
     return sm
 
 
-def _feed(submaps: list, truth: list, **backend) -> tuple[GraphBuilder, float]:
-    """A GraphBuilder fed ``submaps`` (12 m apart, their edges' tilt corrections 0.1 deg: a 16-ring
-    odometry), finished; returns it and the largest anchor position error [m] against ``truth``."""
+def _feed(submaps: list, truth: list, tilt_deg: float = 0.1, edge_tilt_deg: float | None = None,
+          **backend) -> tuple[GraphBuilder, float]:
+    """A GraphBuilder fed ``submaps`` (12 m apart, their edges' tilt corrections ``tilt_deg``: 0.1, a
+    16-ring odometry; their roll and pitch sigma the drift model's, or ``edge_tilt_deg`` as TiltDrift
+    would make it), finished; returns it and the largest anchor position error [m] against ``truth``."""
     config = BackendConfig(odometry_registration_covariance=False, **backend)
     builder = GraphBuilder(config, OdometryConfig(), planar=False, match_voxel=0.5)
     for k, sm in enumerate(submaps):
         prev = submaps[k - 1] if k else None
         info = None if prev is None else odometry_information(
-            inverse(prev.T_odom_anchor) @ sm.T_odom_anchor, 12.0, False, config)
-        builder.add_submap(sm, prev, False, information=info, tilt=np.deg2rad([0.1, -0.1]) if k else None)
+            inverse(prev.T_odom_anchor) @ sm.T_odom_anchor, 12.0, False, config,
+            None if edge_tilt_deg is None else np.deg2rad(edge_tilt_deg))
+        builder.add_submap(sm, prev, False, information=info, tilt=np.deg2rad([tilt_deg, -tilt_deg]) if k else None)
     builder.finish()
     return builder, max(np.linalg.norm(builder.graph.pose(k)[:3, 3] - truth[k][:3, 3]) for k in range(len(truth)))
 
@@ -303,21 +306,6 @@ def test_a_stretch_without_walls_keeps_its_ground_planes_against_the_walls_up():
     assert drift > 3.0 and error < 0.2 * drift, (error, drift)
 
 
-def _feed_tight(submaps: list, truth: list, edge_tilt_deg: float, tilt_deg: float) -> tuple[GraphBuilder, float]:
-    """:func:`_feed` with every odometry edge's roll and pitch sigma ``edge_tilt_deg`` (as TiltDrift
-    makes it) and its registration's tilt correction ``tilt_deg``; returns the builder and the
-    largest anchor position error [m]."""
-    config = BackendConfig(odometry_registration_covariance=False)
-    builder = GraphBuilder(config, OdometryConfig(), planar=False, match_voxel=0.5)
-    for k, sm in enumerate(submaps):
-        prev = submaps[k - 1] if k else None
-        info = None if prev is None else odometry_information(
-            inverse(prev.T_odom_anchor) @ sm.T_odom_anchor, 12.0, False, config, np.deg2rad(edge_tilt_deg))
-        builder.add_submap(sm, prev, False, information=info, tilt=np.deg2rad([tilt_deg, -tilt_deg]) if k else None)
-    builder.finish()
-    return builder, max(np.linalg.norm(builder.graph.pose(k)[:3, 3] - truth[k][:3, 3]) for k in range(len(truth)))
-
-
 def test_walls_alone_on_a_grade_weigh_the_odometry_tilt_like_its_yaw(monkeypatch):
     """A road that climbs to 5 deg and back with plumb walls beside it, under an odometry that pitches
     0.1 deg up every step while its registrations see 0.02 deg (TiltDrift tightens the edges' tilt
@@ -330,16 +318,16 @@ def test_walls_alone_on_a_grade_weigh_the_odometry_tilt_like_its_yaw(monkeypatch
     truth, odometry = _drive(grades, bias_deg=0.1)
     walled = [_walled_submap(k, odometry[k], truth[k][:3, :3], 12.0) for k in range(len(truth))]
     drift = max(np.linalg.norm(odometry[k][:3, 3] - truth[k][:3, 3]) for k in range(len(truth)))
-    builder, error = _feed_tight(walled, truth, edge_tilt_deg=0.02, tilt_deg=0.02)
+    builder, error = _feed(walled, truth, edge_tilt_deg=0.02, tilt_deg=0.02)
     test = builder.ground_prior_test
     assert test["level"] is False and test["priors"] == 0 and test["wall_verticals"] == len(truth)
     assert test["odometry_tilt_restored"] == len(truth) - 1
     assert drift > 10.0 and error < 0.1 * drift, (error, drift)
     monkeypatch.setattr("submapslam.backend.pose_graph.PoseGraph.reweigh_edges", lambda self, kind, f: 0)
-    _, held = _feed_tight(walled, truth, edge_tilt_deg=0.02, tilt_deg=0.02)
+    _, held = _feed(walled, truth, edge_tilt_deg=0.02, tilt_deg=0.02)
     assert held > 0.8 * drift, (held, drift)
     monkeypatch.undo()
     level_truth, level_odometry = _drive([0.0] * 30, bias_deg=0.1)
     level = [_walled_submap(k, level_odometry[k], level_truth[k][:3, :3], 12.0) for k in range(30)]
-    kept, _ = _feed_tight(level, level_truth, edge_tilt_deg=0.02, tilt_deg=0.1)
+    kept, _ = _feed(level, level_truth, edge_tilt_deg=0.02, tilt_deg=0.1)
     assert kept.ground_prior_test["level"] is True and "odometry_tilt_restored" not in kept.ground_prior_test
