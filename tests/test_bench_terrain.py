@@ -46,3 +46,21 @@ def test_a_world_that_cannot_be_generated_ends_in_one_line(tmp_path, monkeypatch
         bench.generate("00:7:5", tmp_path)
     assert "'00:7:5'" in str(err.value) and "synth failed" in str(err.value) and "\n" not in str(err.value)
     assert not (tmp_path / "ter00_7_5").exists()
+
+
+def test_a_seed_in_the_spec_writes_another_world(tmp_path, monkeypatch):
+    """``SEQ:RINGS[:SCANS][:sSEED]``: the seed (the city's layout and the noise) names the folder
+    and changes the scans; a seed that is not a number stops with one line."""
+    import numpy as np
+    import pytest
+
+    bench = load_tool("bench_terrain")
+    monkeypatch.setattr(bench, "KITTI_GT", shared_data("trajectories", "kitti_gt", "00.txt.xz").parent)
+    plain, seeded = bench.generate("00:16:3", tmp_path), bench.generate("00:16:3:s5", tmp_path)
+    assert (plain.name, seeded.name) == ("ter00_16_3", "ter00_16_3_s5")
+    first = sorted((plain / "scans").iterdir())[0].name
+    assert (seeded / "scans" / first).read_bytes() != (plain / "scans" / first).read_bytes()
+    assert np.array_equal(np.loadtxt(plain / "groundtruth_tum.txt")[:, 1:], np.loadtxt(seeded / "groundtruth_tum.txt")[:, 1:])
+    with pytest.raises(SystemExit) as err:
+        bench.generate("00:16:3:sx", tmp_path)
+    assert "'00:16:3:sx'" in str(err.value) and "\n" not in str(err.value)

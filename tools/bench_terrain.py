@@ -3,12 +3,13 @@
 Usage:
     python tools/bench_terrain.py LOG... [--out DIR] [--config FILE] [--max-scans N] [--json FILE]
         [--markdown FILE]
-    python tools/bench_terrain.py --generate 00:16 05:16:1800 08:64:1800 09:livox --data-root /work/bench_data
+    python tools/bench_terrain.py --generate 00:16 05:16:1800 08:64:1800 09:livox 06:livox:s5 --data-root /work/bench_data
 
 LOG is a synthetic cloud-folder log (``submapslam synth kitti --terrain``). ``--generate
-SEQ:RINGS[:SCANS]`` uses DATA_ROOT/terSEQ_RINGS[_SCANS] and writes it first (``synth kitti --path
-kitti_gt/SEQ.txt.xz --rings RINGS --terrain [--max-scans SCANS]``) when the folder is missing;
-RINGS ``livox`` writes the Livox-like pattern with irregular keyframes (``--sensor livox --keyframes``).
+SEQ:RINGS[:SCANS][:sSEED]`` uses DATA_ROOT/terSEQ_RINGS[_SCANS][_sSEED] and writes it first (``synth
+kitti --path kitti_gt/SEQ.txt.xz --rings RINGS --terrain [--max-scans SCANS] [--seed SEED]``) when the
+folder is missing; RINGS ``livox`` writes the Livox-like pattern with irregular keyframes (``--sensor
+livox --keyframes``).
 
 Each log runs as ``submapslam run LOG --out OUT/NAME`` in a child process. Per log: ATE RMSE
 after SE(3) alignment [m] and as % of the 3D ground-truth path, odometry ATE, closures accepted
@@ -52,12 +53,13 @@ KITTI_GT = REPO.parent / "shared" / "data" / "trajectories" / "kitti_gt"
 
 
 def generate(spec: str, root: Path) -> Path:
-    """The log of ``SEQ:RINGS[:SCANS]`` under ``root``, written first when missing."""
+    """The log of ``SEQ:RINGS[:SCANS][:sSEED]`` under ``root``, written first when missing."""
     parts = spec.split(":")
-    if len(parts) not in (2, 3):
-        raise SystemExit(f"--generate {spec!r}: use SEQ:RINGS or SEQ:RINGS:SCANS")
+    seed = parts.pop()[1:] if len(parts) > 2 and parts[-1].startswith("s") else None
+    if len(parts) not in (2, 3) or (seed is not None and not seed.isdigit()):
+        raise SystemExit(f"--generate {spec!r}: use SEQ:RINGS[:SCANS][:sSEED]")
     seq, rings = parts[0], parts[1]
-    name = f"ter{seq}_{rings}" + (f"_{parts[2]}" if len(parts) == 3 else "")
+    name = f"ter{seq}_{rings}" + (f"_{parts[2]}" if len(parts) == 3 else "") + (f"_s{seed}" if seed else "")
     out = root / name
     if not (out / "meta.yaml").exists():
         sensor = ["--sensor", "livox", "--keyframes"] if rings == "livox" else ["--rings", rings]
@@ -65,6 +67,8 @@ def generate(spec: str, root: Path) -> Path:
                *sensor, "--terrain", "--out", str(out), "--overwrite"]
         if len(parts) == 3:
             cmd += ["--max-scans", parts[2]]
+        if seed:
+            cmd += ["--seed", seed]
         proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
         if proc.returncode != 0:
             why = (proc.stderr.strip() or proc.stdout.strip()).splitlines()[-1:] or ["no message"]
