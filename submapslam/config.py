@@ -107,6 +107,13 @@ class OdometryConfig(_Strict):
                               "that later scans can see through what moved; also with drop_movers off (the odometry "
                               "drifts less when the newest scans are not yet in the map it registers to: 600 scans "
                               "of KITTI 00, ATE 0.148 -> 0.082 m); 0: at once (the behaviour before)")
+    movers_delay_s: float | None = Field(
+        0.8, ge=0, description="3D: a waiting scan also enters KISS-ICP's local map once the newest scan is this "
+        "many seconds later [s]. At 10 Hz movers_delay scans come first; a keyframed log (scans 0.2-0.5 s and "
+        "1-6 m apart) waits 2-4 scans: 8 keyframes back the map lay 20-40 m behind, and registering to it shrank "
+        "the path by 0.15-0.2 % (keyframed worlds along KITTI 05, 06, 07 and 10: ATE 0.135, 0.244, 0.110 and "
+        "0.589 -> 0.078, 0.073, 0.061 and 0.311 m; MulRan KAIST03 0.036 -> 0.029 m; BENCHMARKS.md, stop 68); "
+        "None: movers_delay scans alone")
     movers_views: int = Field(4, ge=1, description="3D: at most this many of those scans test one scan (spread "
                               "over them): the cost per scan")
     separate_process: bool | None = Field(

@@ -155,7 +155,8 @@ class Odometry:
             from .mapping.moving_points import MoverFilter
 
             self.movers = MoverFilter(history=config.movers_history, delay=config.movers_delay,
-                                      max_views=config.movers_views, test=config.drop_movers)
+                                      max_views=config.movers_views, test=config.drop_movers,
+                                      delay_s=config.movers_delay_s)
         if planar and config.planar_point_to_line:
             from .registration.point_to_line import RecentScanMap
 
@@ -262,7 +263,8 @@ class Odometry:
             self._local_map.update(frame_down, new_pose)
             self._scans_in_map += 1
         else:  # each scan enters the local map a few scans late, without what the scans around it saw through
-            for points, pose in self.movers.add(frame, frame_down, new_pose, immediate=self._local_map.empty()):
+            for points, pose in self.movers.add(frame, frame_down, new_pose, immediate=self._local_map.empty(),
+                                                timestamp=scan.timestamp):
                 self._local_map.update(points, pose)
                 self._scans_in_map += 1
         self._advance(new_pose)

@@ -64,3 +64,19 @@ def test_a_seed_in_the_spec_writes_another_world(tmp_path, monkeypatch):
     with pytest.raises(SystemExit) as err:
         bench.generate("00:16:3:sx", tmp_path)
     assert "'00:16:3:sx'" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_rings_ending_in_kf_write_irregular_keyframes(tmp_path, monkeypatch):
+    """``SEQ:16kf:SCANS``: the 16-ring world at irregular keyframes, its scans further apart in time
+    than the 10 Hz world's and its meta.yaml saying so."""
+    import numpy as np
+    import yaml
+
+    bench = load_tool("bench_terrain")
+    monkeypatch.setattr(bench, "KITTI_GT", shared_data("trajectories", "kitti_gt", "00.txt.xz").parent)
+    regular, keyframed = bench.generate("00:16:30", tmp_path), bench.generate("00:16kf:30", tmp_path)
+    assert keyframed.name == "ter00_16kf_30"
+    assert "keyframes" in yaml.safe_load((keyframed / "meta.yaml").read_text())
+    assert "keyframes" not in yaml.safe_load((regular / "meta.yaml").read_text())
+    gaps = [np.diff(np.loadtxt(log / "groundtruth_tum.txt")[:, 0]) for log in (regular, keyframed)]
+    assert np.allclose(gaps[0], 0.1, atol=1e-3) and np.median(gaps[1]) > 0.15

@@ -81,6 +81,21 @@ def test_a_scan_enters_the_local_map_late_without_what_later_scans_saw_through()
     assert filt.entering(again, np.eye(4))[in_box(again)].mean() > 0.9
 
 
+@pytest.mark.parametrize("gap_s, waits", [(0.1, 8), (0.4, 2), (0.25, 4), (None, 8)])
+def test_a_scan_waits_eight_scans_or_a_time_whichever_comes_first(gap_s, waits):
+    """At 10 Hz a scan enters the local map 8 scans late; in a keyframed log (scans 0.25-0.4 s
+    apart) once the newest scan is 0.8 s later; without times, by the count alone."""
+    filt = MoverFilter(delay=8, delay_s=0.8, test=False)
+    scan = cast(box=False)
+    entered_at = []
+    for k in range(12):
+        stamp = None if gap_s is None else 100.0 + k * gap_s
+        for _, pose in filt.add(scan, scan, np.eye(4) + k * np.eye(4, k=3), timestamp=stamp):
+            entered_at.append((round(pose[0, 3]), k))   # (the scan that entered, the scan that let it)
+    assert entered_at[0] == (0, waits)
+    assert all(later - scan_index == waits for scan_index, later in entered_at)
+
+
 def test_numpy_clusters_are_the_26_connected_components():
     points = np.random.default_rng(1).uniform(0.0, 30.0, (3000, 3))
     keys = np.unique(voxel_keys(points, 0.4))

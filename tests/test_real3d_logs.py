@@ -101,13 +101,13 @@ def test_livox_loop_from_its_hundredth_keyframe_where_more_inliers_fit_worse(tmp
     assert error <= 0.15, f"ATE {error:.3f} m"
 
 
-def test_mulran_keyframes_of_a_64_ring_lidar_within_five_centimetres():
-    """The first 21 keyframes of MulRan KAIST03 (an Ouster OS1-64 on a car, keyframes 1.0-1.4 m
-    apart, 23 m) against SC-A-LOAM's pose-graph output for them (an estimate, not a survey): 0.036 m
-    at the defaults, KISS-ICP 1.3.0 at its defaults 0.029 m on the same scans
-    (tools/bench_regression.py --only real3d). Each scan enters KISS-ICP's local map 8 scans late
-    (``odometry.movers_delay``), so the first scans register against the first one alone: without
-    the delay 0.032 m; 21 keyframes are too few to retune a default on."""
+def test_mulran_keyframes_of_a_64_ring_lidar_within_three_and_a_half_centimetres():
+    """The first 21 keyframes of MulRan KAIST03 (an Ouster OS1-64 on a car, keyframes 0.2-0.7 s and
+    1.0-1.4 m apart, 23 m) against SC-A-LOAM's pose-graph output for them (an estimate, not a
+    survey): 0.029 m at the defaults, KISS-ICP 1.3.0 at its defaults 0.029 m on the same scans
+    (tools/bench_regression.py --only real3d). A scan enters KISS-ICP's local map 8 scans late
+    (``odometry.movers_delay``) or once the newest scan is 0.8 s later (``movers_delay_s``), here
+    after 4: by the count alone the first scans registered against the first one alone, 0.036 m."""
     folder = shared_data("lidar3d", "mulran_kaist03")
     result = run(open_log(folder))
     assert len(result.poses) == 21
@@ -116,5 +116,5 @@ def test_mulran_keyframes_of_a_64_ring_lidar_within_five_centimetres():
     reference = Trajectory(whole.timestamps[:21], whole.poses[:21])
     np.testing.assert_allclose(result.timestamps, reference.timestamps)
     error = _ate(result.timestamps, result.poses, reference)
-    assert error <= 0.045, f"ATE {error:.4f} m"
+    assert error <= 0.035, f"ATE {error:.4f} m"
     assert _dynamic_share(result) <= 0.005

@@ -9,7 +9,8 @@ LOG is a synthetic cloud-folder log (``submapslam synth kitti --terrain``). ``--
 SEQ:RINGS[:SCANS][:sSEED]`` uses DATA_ROOT/terSEQ_RINGS[_SCANS][_sSEED] and writes it first (``synth
 kitti --path kitti_gt/SEQ.txt.xz --rings RINGS --terrain [--max-scans SCANS] [--seed SEED]``) when the
 folder is missing; RINGS ``livox`` writes the Livox-like pattern with irregular keyframes (``--sensor
-livox --keyframes``).
+livox --keyframes``), RINGS ending in ``kf`` (``16kf``) that many rings at irregular keyframes
+(``--rings 16 --keyframes``).
 
 Each log runs as ``submapslam run LOG --out OUT/NAME`` in a child process. Per log: ATE RMSE
 after SE(3) alignment [m] and as % of the 3D ground-truth path, odometry ATE, closures accepted
@@ -62,7 +63,12 @@ def generate(spec: str, root: Path) -> Path:
     name = f"ter{seq}_{rings}" + (f"_{parts[2]}" if len(parts) == 3 else "") + (f"_s{seed}" if seed else "")
     out = root / name
     if not (out / "meta.yaml").exists():
-        sensor = ["--sensor", "livox", "--keyframes"] if rings == "livox" else ["--rings", rings]
+        if rings == "livox":
+            sensor = ["--sensor", "livox", "--keyframes"]
+        elif rings.endswith("kf"):
+            sensor = ["--rings", rings[:-2], "--keyframes"]
+        else:
+            sensor = ["--rings", rings]
         cmd = [sys.executable, "-m", "submapslam", "synth", "kitti", "--path", str(KITTI_GT / f"{seq}.txt.xz"),
                *sensor, "--terrain", "--out", str(out), "--overwrite"]
         if len(parts) == 3:

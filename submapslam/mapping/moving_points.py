@@ -472,19 +472,23 @@ class MoverFilter:
     The last ``history + delay + 1`` scans are kept as range images. :meth:`entering` marks the
     points of the scan being registered that the last ``history`` scans saw through; :meth:`add`
     files a registered scan and returns the scans now ready for the local map (``delay`` scans
-    late), each without the clusters the scans before and after it saw through.
+    late, or sooner once ``delay_s`` seconds older than the newest scan), each without the
+    clusters the scans before and after it saw through.
     """
 
     def __init__(self, params: MoverParams = MoverParams(), history: int = 6, delay: int = 3,
-                 max_views: int = 6, test: bool = True) -> None:
-        """``test=False``: only the delay (nothing is tested, no range image is kept)."""
+                 max_views: int = 6, test: bool = True, delay_s: float | None = None) -> None:
+        """``test=False``: only the delay (nothing is tested, no range image is kept).
+        ``delay_s`` [s]: a waiting scan also enters once the newest scan is this much later
+        (None: ``delay`` scans alone)."""
         self.params = params
         self.test = test
         self.history = history
         self.delay = delay
+        self.delay_s = delay_s
         self.max_views = max_views  # scans that test one scan, spread over those at hand
         self._views = ViewStack(history + delay + 1, params)
-        self._waiting: list[tuple] = []  # (index, points, pose, votes before) waiting for the map
+        self._waiting: list[tuple] = []  # (index, points, pose, votes before, time [s]) waiting for the map
         self._before: np.ndarray | None = None  # votes of the last entering() test
         self._count = 0
         self.dropped = 0  # points kept out of registration and the local map so far
@@ -502,13 +506,15 @@ class MoverFilter:
         return mask
 
     def add(self, scan_points: np.ndarray, points_down: np.ndarray, T_world_sensor: np.ndarray,
-            immediate: bool = False) -> list[tuple[np.ndarray, np.ndarray]]:
+            immediate: bool = False, timestamp: float | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
         """File a registered scan: ``scan_points`` ``(N, 3)`` (all of it, for its range image) and
-        ``points_down`` ``(M, 3)`` (what goes into the map), sensor frame, at ``T_world_sensor``.
+        ``points_down`` ``(M, 3)`` (what goes into the map), sensor frame, at ``T_world_sensor``,
+        taken at ``timestamp`` [s] (None: unknown, the count alone decides).
 
-        Returns ``[(points, T_world_sensor)]`` to insert into the local map now: the scan that
-        is ``delay`` scans old, without its moving clusters (``immediate``: this scan as it is,
-        e.g. the first scan of an empty map, after the scans still waiting, as they are).
+        Returns ``[(points, T_world_sensor)]`` to insert into the local map now: the scans that
+        are ``delay`` scans old or ``delay_s`` older than this one, oldest first, without their
+        moving clusters (``immediate``: this scan as it is, e.g. the first scan of an empty map,
+        after the scans still waiting, as they are).
         """
         index = self._count
         self._count += 1
@@ -517,17 +523,18 @@ class MoverFilter:
             self._views.add(index, T, scan_points)
         before, self._before = self._before, None
         if immediate:
-            ready = [(pts, pose) for _, pts, pose, _ in self._waiting] + [(points_down, T)]
+            ready = [(pts, pose) for _, pts, pose, _, _ in self._waiting] + [(points_down, T)]
             self._waiting = []
             return ready
         points_down = np.asarray(points_down, dtype=np.float64)
         if before is None or len(before) != len(points_down):
             before = np.zeros(len(points_down), dtype=bool)
-        self._waiting.append((index, points_down, T, before))
+        self._waiting.append((index, points_down, T, before, timestamp))
         ready = []
-        while len(self._waiting) > self.delay:
+        while self._waiting and (len(self._waiting) > self.delay
+                                  or self._old_enough(self._waiting[0][4], timestamp)):
             # the votes of the scans before it (taken at its predicted pose) and of those after it
-            k, pts, pose, votes = self._waiting.pop(0)
+            k, pts, pose, votes, _ = self._waiting.pop(0)
             if not self.test:
                 ready.append((pts, pose))
                 continue
@@ -537,6 +544,13 @@ class MoverFilter:
             self.dropped += int(moved.sum())
             ready.append((pts[~moved], pose))
         return ready
+
+    def _old_enough(self, waiting_since: float | None, now: float | None) -> bool:
+        """A scan taken at ``waiting_since`` [s] has waited ``delay_s`` by ``now`` [s], to within a
+        millisecond of timestamp rounding (never when either time or ``delay_s`` is unknown)."""
+        if self.delay_s is None or waiting_since is None or now is None:
+            return False
+        return now - waiting_since >= self.delay_s - 1e-3
 
 
 class SubmapMovers:
