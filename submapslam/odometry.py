@@ -81,8 +81,9 @@ def above_ground_band(points: np.ndarray, band_m: float) -> np.ndarray:
 
 def young_scans(config: OdometryConfig) -> int:
     """3D: how many scans after the first register against a local map of fewer than
-    ``young_map_scans`` scans: those, and the ``movers_delay`` scans each waits before it enters
-    the map (KISS-ICP registration; voxelised GICP has no young map)."""
+    ``young_map_scans`` scans, at most: those, and the ``movers_delay`` scans each waits before it
+    enters the map (fewer where ``movers_delay_s`` lets them in sooner: a keyframed log); KISS-ICP
+    registration only, voxelised GICP has no young map."""
     if config.registration == "voxel_gicp":
         return 0
     delayed = config.movers_delay if (config.drop_movers or config.movers_delay > 0) else 0
