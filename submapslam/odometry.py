@@ -265,7 +265,7 @@ class Odometry:
             self._scans_in_map += 1
         else:  # each scan enters the local map a few scans late, without what the scans around it saw through
             for points, pose in self.movers.add(frame, frame_down, new_pose, immediate=self._local_map.empty(),
-                                                timestamp=scan.timestamp):
+                                                timestamp=scan.timestamp if scan.timed else None):
                 self._local_map.update(points, pose)
                 self._scans_in_map += 1
         self._advance(new_pose)

@@ -112,11 +112,12 @@ def _serve() -> None:
         config, planar = _receive(inbox)
         odometry = Odometry(OdometryConfig(**config), planar)
         while (item := _receive(inbox)) is not None:
-            points, point_times, wheel, known, stamp = item
+            points, point_times, wheel, known, stamp, timed = item
             points = points.astype(np.float64)
             point_times = None if point_times is None else point_times.astype(np.float64)
             try:
-                pose, frame = odometry.register(Scan(0, stamp, points, point_times, wheel, planar), known)
+                pose, frame = odometry.register(Scan(0, stamp, points, point_times, wheel, planar, timed=timed),
+                                                known)
                 kept = _kept_points(points, frame, odometry.config)
                 _send(outbox, ("ok", (pose, frame if kept is None else kept, odometry.last_frame_down,
                                       odometry.last_xyt)))
@@ -149,7 +150,7 @@ class OdometryProcess:
 
     def submit(self, scan: Scan, known: Known = None) -> None:
         self._child.put((_exact_float32(scan.points), _exact_float32(scan.point_times), scan.odometry, known,
-                          float(scan.timestamp)))
+                          float(scan.timestamp), scan.timed))
         self._submitted.append(scan.points)
         self._in_flight += 1
 

@@ -31,6 +31,8 @@ class Scan:
             (reading at the laser's maximum range) end, at that range, in the frame of
             ``points``; free space up to there for the occupancy grid, never a point. None: not
             known.
+        timed: False when the log gives no times and ``timestamp`` is the scan's index (a cloud
+            folder without times.txt): nothing may read a rate from it.
     """
 
     index: int
@@ -41,6 +43,7 @@ class Scan:
     planar: bool = False
     source: str = ""
     no_returns: NDArray[np.float64] | None = None
+    timed: bool = True
 
     def __post_init__(self) -> None:
         self.points = np.asarray(self.points, dtype=np.float64).reshape(-1, 3)

@@ -5,6 +5,8 @@ log 8 scans lay 20-40 m behind, and registering to a map that far back shrank th
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -40,3 +42,37 @@ def test_a_keyframed_drive_is_not_shrunk_by_a_local_map_far_behind(keyframed_dri
     by_count = _ate(keyframed_drive, with_updates(PipelineConfig(), {"odometry": {"movers_delay_s": None}}))
     assert error <= 0.10, f"ATE {error:.4f} m"
     assert error < 0.8 * by_count, f"ATE {error:.4f} m, {by_count:.4f} m by the count alone"
+
+
+def test_a_folder_without_times_waits_by_the_count_alone(tmp_path):
+    """A cloud folder without times.txt numbers its scans 0, 1, 2 ... as their timestamps: taken
+    for seconds they would let every scan into the local map one scan late. Its scans say they
+    carry no times, and wait the 8 scans, in this process and in the odometry's child process."""
+    from submapslam.config import OdometryConfig
+    from submapslam.odometry import Odometry, resolve_registration
+    from submapslam.odometry_stage import InlineOdometry, OdometryProcess
+
+    log = generate_kitti_drive(shared_data("trajectories", "kitti_gt", "00.txt.xz"), tmp_path / "log", rings=16,
+                               seed=2, max_scans=12)
+    (log / "times.txt").unlink()
+    untimed = list(open_log(log))
+    assert [s.timestamp for s in untimed[:3]] == [0.0, 1.0, 2.0] and not any(s.timed for s in untimed)
+    config = resolve_registration(OdometryConfig(), untimed[0])
+
+    def entered(scans) -> int:
+        odometry = Odometry(config, planar=False)
+        for scan in scans[:10]:
+            odometry.register(scan)
+        return odometry._scans_in_map
+
+    timed_each_second = [dataclasses.replace(s, timed=True) for s in untimed]
+    assert entered(untimed) == 2            # the first at once, the second when the tenth came
+    assert entered(timed_each_second) == 9  # real times 1 s apart: each enters one scan late
+    inline, child = InlineOdometry(config, False), OdometryProcess(config, False)
+    try:
+        for scan in untimed:
+            inline.submit(scan)
+            child.submit(scan)
+            assert np.array_equal(inline.result().pose, child.result().pose)
+    finally:
+        child.close()

@@ -143,7 +143,9 @@ class CloudFolderReader:
         mounting = self.meta.get("T_base_sensor")
         self.T_base_sensor = np.eye(4) if mounting is None else check_transform(mounting, self.path / "meta.yaml")
         self._mounted = not sensor_frame and not np.array_equal(self.T_base_sensor, np.eye(4))
-        self.timestamps = self._read_times(_find_file(("times.txt", "times.txt.xz"), folders))
+        times_file = _find_file(("times.txt", "times.txt.xz"), folders)
+        self.timed = times_file is not None  # else each scan's timestamp is its index
+        self.timestamps = self._read_times(times_file)
         self.odometry = self._read_odometry(_find_file(("odometry_tum.txt",), folders))
 
     def __len__(self) -> int:
@@ -233,6 +235,7 @@ class CloudFolderReader:
                 odometry=None if self.odometry is None else self.odometry[k],
                 planar=self.planar,
                 source=str(path.name),
+                timed=self.timed,
             )
             index += 1
         if index == 0 and self.skipped_files:
