@@ -113,8 +113,8 @@ class OdometryConfig(_Strict):
         "1-6 m apart) waits 2-4 scans: 8 keyframes back the map lay 20-40 m behind, and registering to it shrank "
         "the path by 0.15-0.2 % (keyframed worlds along KITTI 05, 06, 07 and 10: ATE 0.135, 0.244, 0.110 and "
         "0.589 -> 0.078, 0.073, 0.061 and 0.311 m; MulRan KAIST03 0.036 -> 0.029 m; BENCHMARKS.md, stop 68). "
-        "A log without times (a cloud folder without times.txt, its scans numbered) waits by the count; None: "
-        "movers_delay scans alone")
+        "A log without times (a cloud folder without times.txt, its scans numbered), or whose scans never come "
+        "within twice this of each other (times not in seconds), waits by the count; None: movers_delay scans alone")
     movers_views: int = Field(4, ge=1, description="3D: at most this many of those scans test one scan (spread "
                               "over them): the cost per scan")
     separate_process: bool | None = Field(

@@ -81,10 +81,11 @@ def test_a_scan_enters_the_local_map_late_without_what_later_scans_saw_through()
     assert filt.entering(again, np.eye(4))[in_box(again)].mean() > 0.9
 
 
-@pytest.mark.parametrize("gap_s, waits", [(0.1, 8), (0.4, 2), (0.25, 4), (None, 8)])
+@pytest.mark.parametrize("gap_s, waits", [(0.1, 8), (0.4, 2), (0.25, 4), (None, 8), (100.0, 8)])
 def test_a_scan_waits_eight_scans_or_a_time_whichever_comes_first(gap_s, waits):
     """At 10 Hz a scan enters the local map 8 scans late; in a keyframed log (scans 0.25-0.4 s
-    apart) once the newest scan is 0.8 s later; without times, by the count alone."""
+    apart) once the newest scan is 0.8 s later; without times, or with times that cannot be
+    seconds (10 Hz in milliseconds: 100 apart), by the count alone."""
     filt = MoverFilter(delay=8, delay_s=0.8, test=False)
     scan = cast(box=False)
     entered_at = []
