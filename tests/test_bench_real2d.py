@@ -99,3 +99,20 @@ def test_the_bench_runs_a_cut_as_its_own_row(bench, tmp_path, monkeypatch):
     cut = tmp_path / "out" / "cuts" / "intel-every2.clf"
     assert seen[-1][3] == str(cut) and cut.exists() and doc["name"] == "intel (1 scan in 2)"
     assert sum(line.startswith("FLASER") for line in cut.read_text().splitlines()) == 30
+
+
+def test_a_sensor_variant_runs_against_the_original_logs_reference(bench, tmp_path, monkeypatch):
+    """``--sensor beams2``: the log rewritten once under OUT/variants, run in a child, and scored on
+    the corrected log matched to the original log's scans; a variant that is not one: one line."""
+    _write_log(tmp_path / "room.clf")  # its own "corrected" log
+    monkeypatch.setitem(bench.LOGS, "room", ("room.clf", "room.clf"))
+    doc = bench.run_child("room", tmp_path, tmp_path / "out", None, sensor="beams2")
+    variant = tmp_path / "out" / "variants" / "room-beams2.clf"
+    assert doc["name"] == "room (beams2)" and doc["log_path"] == str(variant)
+    assert variant.read_text().split()[1] == "91"  # 181 beams, every other one kept
+    assert doc["scans"] == 60 and doc["reference_poses"] == 60 and doc["ate"] < 0.05
+    for spec, kwargs in (("beams4", {"every_beam": 4}), ("range20", {"max_range": 20.0})):
+        assert bench.sensor_variant(spec) == kwargs
+    with pytest.raises(ValueError, match="use beamsK") as err:
+        bench.sensor_variant("beamsX")
+    assert "\n" not in str(err.value)

@@ -3,7 +3,7 @@
 Usage:
     python tools/bench_real2d.py [--data ../shared/data/carmen] [--logs intel fr079 mit-csail]
                                  [--config FILE] [--out DIR] [--json FILE] [--markdown FILE]
-                                 [--numeric native avx2 sse] [--every 1 2 3]
+                                 [--numeric native avx2 sse] [--every 1 2 3] [--sensor beams4 range20]
 
 Each log runs in its own child process (``submapslam.api.run_log``, all output files written);
 the parent measures the child's wall time and peak resident set (``os.wait4``). Reported per
@@ -22,6 +22,12 @@ SIMD kernels and OpenBLAS's core type held to what another CPU would pick (envir
 ``NPY_DISABLE_CPU_FEATURES`` and ``OPENBLAS_CORETYPE``). Sums and products then differ in their
 last bits, as they do between two users' machines; a run's ATE spread over the variants says how
 much of a difference between two figures is the machine and not the code.
+
+``--sensor`` also runs every log as another scanner would have recorded it
+(``tools/carmen_sensor_variant.py``, written under ``OUT/variants`` once): ``beamsK`` every K-th
+beam, ``rangeR`` ranges beyond R metres as no-returns. Its scans keep their times, and the
+corrected log is matched to the original log's scans (MIT CSAIL's by their ranges), so a variant
+is scored against the same reference poses.
 """
 
 from __future__ import annotations
@@ -55,8 +61,22 @@ NUMERIC = {
 CARTOGRAPHER = {"intel": "0.0229 m / 0.453°", "fr079": "0.0452 m", "mit-csail": "0.0319 m"}
 
 
-def child(log: Path, ref: Path, out: Path, config: Path | None, result_json: Path) -> None:
-    """Run ``log`` at defaults (or ``config``) into ``out`` and write the figures to ``result_json``."""
+def sensor_variant(spec: str) -> dict:
+    """``beamsK`` / ``rangeR`` -> the keyword arguments of ``carmen_sensor_variant.write_variant``."""
+    try:
+        if spec.startswith("beams"):
+            return {"every_beam": int(spec[len("beams"):])}
+        if spec.startswith("range"):
+            return {"max_range": float(spec[len("range"):])}
+    except ValueError:
+        pass
+    raise ValueError(f"sensor variant {spec!r}: use beamsK (every K-th beam) or rangeR (ranges beyond R m)")
+
+
+def child(log: Path, ref: Path, out: Path, config: Path | None, result_json: Path, key_log: Path | None = None) -> None:
+    """Run ``log`` at defaults (or ``config``) into ``out`` and write the figures to ``result_json``;
+    the corrected log ``ref`` is matched to the scans of ``key_log`` (a sensor variant's original
+    log), else of ``log``."""
     from submapslam.api import run_log
     from submapslam.evaluation.derived_relations import count_loop_relations, derive_relations
     from submapslam.evaluation.metrics import ate, relations_error
@@ -66,7 +86,7 @@ def child(log: Path, ref: Path, out: Path, config: Path | None, result_json: Pat
     result, _ = run_log(log, out, config=config, overwrite=True)
     wall = time.perf_counter() - t0
     s = result.summary()
-    reference = carmen_reference_trajectory(ref, log)
+    reference = carmen_reference_trajectory(ref, key_log or log)
     relations = derive_relations(reference)
     est = Trajectory(result.timestamps, result.poses)
     odo = Trajectory(result.timestamps, result.odometry_poses)
@@ -83,10 +103,22 @@ def child(log: Path, ref: Path, out: Path, config: Path | None, result_json: Pat
     result_json.write_text(json.dumps(doc, indent=1, default=float) + "\n")
 
 
-def run_child(name: str, data: Path, out: Path, config: Path | None, numeric: str = "native", every: int = 1) -> dict:
+def variant_log(name: str, data: Path, out: Path, sensor: str) -> Path:
+    """``OUT/variants/NAME-SENSOR.clf``: the log as the ``sensor`` variant records it, written once."""
+    from carmen_sensor_variant import write_variant
+
+    log = out / "variants" / f"{name}-{sensor}.clf"
+    if not log.exists():
+        log.parent.mkdir(parents=True, exist_ok=True)
+        write_variant(data / LOGS[name][0], log, **sensor_variant(sensor))
+    return log
+
+
+def run_child(name: str, data: Path, out: Path, config: Path | None, numeric: str = "native", every: int = 1,
+              sensor: str | None = None) -> dict:
     """One log in a child process under the ``numeric`` variant, at every ``every``-th scan (a cut
-    written under ``out/cuts`` by ``tools/cut_carmen_log.py``); its figures plus ``wall_s`` and
-    ``peak_rss_mib``."""
+    written under ``out/cuts`` by ``tools/cut_carmen_log.py``) or as the ``sensor`` variant records
+    it (:func:`variant_log`); its figures plus ``wall_s`` and ``peak_rss_mib``."""
     raw, ref = LOGS[name]
     log = data / raw
     tag = name if every == 1 else f"{name}-every{every}"
@@ -97,10 +129,13 @@ def run_child(name: str, data: Path, out: Path, config: Path | None, numeric: st
 
             log.parent.mkdir(parents=True, exist_ok=True)
             cut(data / raw, log, every)
+    key = []
+    if sensor is not None:
+        log, tag, key = variant_log(name, data, out, sensor), f"{tag}-{sensor}", ["--key-log", str(data / raw)]
     tag = tag if numeric == "native" else f"{tag}-{numeric}"
     result_json = out / f"{tag}.json"
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", str(log), str(data / ref),
-           str(out / tag), str(result_json)] + (["--config", str(config)] if config else [])
+           str(out / tag), str(result_json)] + (["--config", str(config)] if config else []) + key
     env = {k: v for k, v in os.environ.items() if k not in ("NPY_DISABLE_CPU_FEATURES", "OPENBLAS_CORETYPE")}
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, env={**env, **NUMERIC[numeric]})
@@ -110,7 +145,9 @@ def run_child(name: str, data: Path, out: Path, config: Path | None, numeric: st
     if proc.returncode != 0:
         raise SystemExit(f"{name}: child exited with {proc.returncode}")
     doc = json.loads(result_json.read_text())
-    doc.update(name=name if every == 1 else f"{name} (1 scan in {every})", numeric=numeric, every=every,
+    label = name if every == 1 else f"{name} (1 scan in {every})"
+    doc.update(name=label if sensor is None else f"{label} ({sensor})", numeric=numeric, every=every, sensor=sensor,
+               log_path=str(log),
                wall_s=wall, peak_rss_mib=usage.ru_maxrss / 1024.0, out=str(out / tag))
     return doc
 
@@ -191,12 +228,21 @@ def main(argv: list[str] | None = None) -> int:
                     help="also run each log at every K-th scan (1: the log itself; 2 3: at a half and a third of "
                     "its scan rate, the motion between scans that much larger; the scan-matched columns are left "
                     "out for cuts)")
+    ap.add_argument("--sensor", nargs="+", default=[], metavar="VARIANT",
+                    help="also run each log as another scanner records it: beamsK (every K-th beam), rangeR (ranges "
+                    "beyond R m as no-returns); the scan-matched columns are left out for variants")
     ap.add_argument("--child", nargs=4, metavar=("LOG", "REF", "OUT", "RESULT_JSON"), help=argparse.SUPPRESS)
+    ap.add_argument("--key-log", type=Path, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
         log, ref, out, result_json = (Path(p) for p in args.child)
-        child(log, ref, out, args.config, result_json)
+        child(log, ref, out, args.config, result_json, args.key_log)
         return 0
+    for spec in args.sensor:
+        try:
+            sensor_variant(spec)
+        except ValueError as exc:
+            ap.error(str(exc))
     out = args.out or Path(tempfile.mkdtemp(prefix="bench_real2d_"))
     out.mkdir(parents=True, exist_ok=True)
     rows = []
@@ -208,6 +254,8 @@ def main(argv: list[str] | None = None) -> int:
                     rows[-1].update(scan_judged(name, args.data, Path(rows[-1]["out"])))
                 print(f"{rows[-1]['name']} ({numeric}): ATE {rows[-1]['ate']:.3f} m, odometry "
                       f"{rows[-1]['ate_odometry']:.3f} m, {rows[-1]['wall_s']:.1f} s", file=sys.stderr)
+        for sensor in args.sensor:
+            rows.append(run_child(name, args.data, out, args.config, "native", 1, sensor))
     md = table(rows)
     print(md)
     if args.json:

@@ -3,12 +3,14 @@ scans beside each run: rerun it whenever the data path changes.
 
 Usage:
     python tools/bench_regression.py [--data ../shared/data] [--work DIR] [--out DIR] [--json FILE]
-        [--only real2d real3d synthetic terrain paths sensors3d] [--terrain-scans 600] [--no-peers]
+        [--only real2d sensors2d real3d synthetic terrain paths sensors3d] [--terrain-scans 600] [--no-peers]
 
 Rows, each run in a child process (wall time and its own peak RSS from ``wait4``):
 
 * **real2d**: the CARMEN logs (Intel, FR079, MIT CSAIL), ATE against their corrected logs
   (``bench_real2d.run_child``; its scan-matched relations are left to that tool);
+* **sensors2d**: the same logs as other scanners would record them (``REAL2D_VARIANTS``: every 4th
+  beam, ranges clipped at 5-20 m; ``bench_real2d --sensor``), against the same corrected logs;
 * **real3d**: the real LiDAR sequences in ``DATA/lidar3d`` with reference poses
   (``bench_city.reference_file``: the Livox ones and MulRan KAIST03's first keyframes), ATE
   against them (``submapslam run``, then ``bench_terrain.evaluate``);
@@ -42,7 +44,11 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tools"))
 sys.path.insert(0, str(REPO))
 
-GROUPS = ("real2d", "real3d", "synthetic", "terrain", "paths", "sensors3d")
+GROUPS = ("real2d", "sensors2d", "real3d", "synthetic", "terrain", "paths", "sensors3d")
+#: the real CARMEN logs as other scanners would record them (``bench_real2d --sensor``): fewer beams, a
+#: shorter reach; MIT CSAIL at 20 m slides along a corridor whose far wall it loses (stop 68)
+REAL2D_VARIANTS = (("fr079", "beams4"), ("mit-csail", "beams4"), ("intel", "range15"), ("mit-csail", "range20"),
+                   ("fr079", "range5"))
 TERRAIN_PATHS = ("00", "05", "08")
 #: the other KITTI paths, for the terrain worlds no default was tuned on
 OTHER_PATHS = ("01", "02", "03", "04", "06", "07", "09", "10")
@@ -130,21 +136,25 @@ def with_peer(row: dict, peer: dict | None) -> dict:
             "memory_ratio": row["peak_rss_mib"] / peer["peak_rss_mib"]}
 
 
-def real2d_rows(data: Path, out: Path, peers: bool) -> list[dict]:
+def real2d_rows(data: Path, out: Path, peers: bool, variants: tuple[tuple[str, str | None], ...] | None = None,
+                kind: str = "real 2D (against the corrected log)") -> list[dict]:
+    """The CARMEN logs (``variants``: ``(log, bench_real2d sensor variant or None)``; default every log
+    as recorded), each against its corrected log, KISS-ICP on the same scans beside it."""
     from bench_real2d import LOGS, run_child
 
     from submapslam.io.trajectory import carmen_reference_trajectory
 
     rows = []
-    for name in LOGS:
-        doc = run_child(name, data / "carmen", out, None)
-        row = {"name": name, "kind": "real 2D (against the corrected log)", "scans": doc["scans"],
+    for name, sensor in variants or [(name, None) for name in LOGS]:
+        doc = run_child(name, data / "carmen", out, None, sensor=sensor)
+        row = {"name": doc["name"], "kind": kind, "scans": doc["scans"],
                "ate_m": doc["ate"], "odometry_ate_m": doc["ate_odometry"], "closures": doc["loops_accepted"],
                "false_closures": None, "wall_s": doc["wall_s"], "peak_rss_mib": doc["peak_rss_mib"]}
         raw, ref = LOGS[name]
-        peer = (kiss_icp_2d(data / "carmen" / raw, carmen_reference_trajectory(data / "carmen" / ref,
+        tag = name if sensor is None else f"{name}-{sensor}"
+        peer = (kiss_icp_2d(Path(doc["log_path"]), carmen_reference_trajectory(data / "carmen" / ref,
                                                                                data / "carmen" / raw),
-                            out / f"{name}-kiss-icp") if peers else None)
+                            out / f"{tag}-kiss-icp") if peers else None)
         rows.append(with_peer(row, peer))
     return rows
 
@@ -237,6 +247,9 @@ def main(argv: list[str] | None = None) -> int:
         for group in args.only:
             if group == "real2d":
                 added = real2d_rows(args.data, out, peers)
+            elif group == "sensors2d":
+                added = real2d_rows(args.data, out, peers, REAL2D_VARIANTS,
+                                    "real 2D, another scanner (against the corrected log)")
             elif group == "real3d":
                 added = real3d_rows(args.data, out, peers)
             elif group == "synthetic":
