@@ -116,3 +116,6 @@ def test_a_sensor_variant_runs_against_the_original_logs_reference(bench, tmp_pa
     with pytest.raises(ValueError, match="use beamsK") as err:
         bench.sensor_variant("beamsX")
     assert "\n" not in str(err.value)
+    with pytest.raises(SystemExit, match="room: 181 beams every 3") as stop:  # 60 beams would not keep their angles
+        bench.run_child("room", tmp_path, tmp_path / "out", None, sensor="beams3")
+    assert "\n" not in str(stop.value) and not (tmp_path / "out" / "variants" / "room-beams3.clf").exists()

@@ -131,7 +131,11 @@ def run_child(name: str, data: Path, out: Path, config: Path | None, numeric: st
             cut(data / raw, log, every)
     key = []
     if sensor is not None:
-        log, tag, key = variant_log(name, data, out, sensor), f"{tag}-{sensor}", ["--key-log", str(data / raw)]
+        try:
+            log = variant_log(name, data, out, sensor)
+        except ValueError as exc:  # e.g. a beam count the log's beam layout cannot keep
+            raise SystemExit(f"{name}: {exc}") from None
+        tag, key = f"{tag}-{sensor}", ["--key-log", str(data / raw)]
     tag = tag if numeric == "native" else f"{tag}-{numeric}"
     result_json = out / f"{tag}.json"
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", str(log), str(data / ref),
