@@ -151,10 +151,9 @@ def real2d_rows(data: Path, out: Path, peers: bool, variants: tuple[tuple[str, s
                "ate_m": doc["ate"], "odometry_ate_m": doc["ate_odometry"], "closures": doc["loops_accepted"],
                "false_closures": None, "wall_s": doc["wall_s"], "peak_rss_mib": doc["peak_rss_mib"]}
         raw, ref = LOGS[name]
-        tag = name if sensor is None else f"{name}-{sensor}"
         peer = (kiss_icp_2d(Path(doc["log_path"]), carmen_reference_trajectory(data / "carmen" / ref,
                                                                                data / "carmen" / raw),
-                            out / f"{tag}-kiss-icp") if peers else None)
+                            out / f"{Path(doc['out']).name}-kiss-icp") if peers else None)
         rows.append(with_peer(row, peer))
     return rows
 
