@@ -69,6 +69,17 @@ class OdometryConfig(_Strict):
         "by more than this [deg] (or wheel_check_m), the scan is registered from both and the better fit to the "
         "last scans is kept (stale or jumping wheel poses, as in MIT CSAIL's log, otherwise lead ICP astray)")
     wheel_check_m: float = Field(0.25, gt=0, description="2D lasers: the same in translation [m]")
+    gap_ratio: float | None = Field(
+        3.0, gt=1, description="without wheel odometry, how the last motion predicts a scan whose interval "
+        "since the last differs from the one that motion spans (a log's scans needs their times: a cloud folder "
+        "with times.txt, a bag, a CARMEN log): by less than this factor (keyframes 0.2-0.5 s apart), the motion "
+        "is carried on at its pace over the interval (the one-interval motion is tried first with voxel_gicp, "
+        "as a hand-held sensor keeps its pace less); by this factor or more (dropped frames, a recorder's "
+        "hiccup, a stop, and the scan after it), the scan is also registered from guesses along the motion "
+        "carried over the interval, bent into turns, and the best replaces the one-interval guess's when it "
+        "fits the map clearly better. A 16-ring drive without wheels missing 1, 3 and 2 s of its scans ended "
+        "9.7 m off instead of 0.09 m; keyframed drives without wheels 15 m / 9 m off (16 rings / Livox-like) "
+        "(BENCHMARKS.md, stop 69). None: the one-interval motion alone (KISS-ICP's constant-velocity model)")
     planar_previous_scan_check: bool = Field(
         True, description="2D lasers: a scan that fits the last scans below three quarters of the usual is also "
         "matched to the scan before it (exhaustive correlative search, +-1 m and +-45 deg around the predicted "

@@ -13,11 +13,19 @@ from __future__ import annotations
 import math
 import statistics
 from collections import deque
+from collections.abc import Callable
 
 import numpy as np
 
 from .config import OdometryConfig
-from .geometry import blend_poses, inverse, matrix_to_se2, se2_to_matrix, splice_height_and_tilt
+from .geometry import (
+    blend_poses,
+    blend_poses_many,
+    inverse,
+    matrix_to_se2,
+    se2_to_matrix,
+    splice_height_and_tilt,
+)
 from .registration.previous_scan import PreviousScan
 from .registration.voxel_gicp import VoxelGicpSettings, VoxelGicpTracker, azimuth_coverage_deg
 from .scan import Scan
@@ -33,6 +41,42 @@ NARROW_FIELD_DEG = 180.0  # auto registration: a first scan seeing less than thi
 #: fits poorly: its registration may give way to the wheels' pose, and it is checked against the
 #: previous scan (:meth:`Odometry._check_against_previous_scan`)
 POOR_FIT = 0.75
+#: [share] intervals between scans that differ by less than this from the one the last motion spans
+#: are taken as equal (a 10 Hz log's jitter): the motion is predicted as it was
+PACE_TOLERANCE = 0.1
+#: [local-map voxels] spacing of the guesses along the motion carried over a long interval
+#: (:meth:`Odometry._over_the_gap`): within reach of registration from one of them
+GAP_GUESS_SPACING = 2.0
+#: [deg] turns about the vertical tried at each of those guesses, after the unturned ones (a drive
+#: turned 18 deg in 2 s of dropped scans; a robot indoors turns a corner in as long)
+GAP_GUESS_TURNS_DEG = (10.0, -10.0, 20.0, -20.0)
+GAP_GUESS_TURNS_PLANAR_DEG = (15.0, -15.0, 30.0, -30.0, 45.0, -45.0, 60.0, -60.0, 90.0, -90.0)
+#: [share of the scan's points] how much better the best registration from those guesses must fit
+#: than the one-interval guess's to replace it (a robot may have stood through the interval; a
+#: corridor or a street fits every step along it alike)
+GAP_FIT_MARGIN = 0.05
+#: how many of those guesses are registered: those that fit best as they are
+GAP_GUESSES_REGISTERED = 3
+
+
+def _bent(step: np.ndarray, turn: float) -> np.ndarray:
+    """``step`` ``(4, 4)`` bent into an arc of the same length that turns by ``turn`` [rad] more
+    about its start's vertical: its x-y translation turned by half of it and shortened to the arc's
+    chord, its rotation turned by all of it."""
+    half = 0.5 * turn
+    c, s = np.cos(half), np.sin(half)
+    out = step.copy()
+    out[:2, 3] = (np.sin(half) / half) * (np.array([[c, -s], [s, c]]) @ step[:2, 3])
+    out[:3, :3] = se2_to_matrix(0.0, 0.0, turn)[:3, :3] @ step[:3, :3]
+    return out
+
+
+def _most_promising(guesses: list[np.ndarray], fit: Callable[[np.ndarray], float]) -> list[np.ndarray]:
+    """The :data:`GAP_GUESSES_REGISTERED` of ``guesses`` ``(4, 4)`` with the highest ``fit``, in
+    their order (on a tie the earlier)."""
+    fits = [fit(g) for g in guesses]
+    ranked = sorted(range(len(guesses)), key=lambda k: (-fits[k], k))[:GAP_GUESSES_REGISTERED]
+    return [guesses[k] for k in sorted(ranked)]
 
 
 def resolve_registration(config: OdometryConfig, scan: Scan) -> OdometryConfig:
@@ -126,6 +170,7 @@ class Odometry:
         self._last_stamp: float | None = None
         self._gaps: deque[float] = deque(maxlen=50)  # recent times between scans [s]
         self._last_gap: float | None = None  # time between the last two scans [s] (what last_delta spans)
+        self._gap_before: float | None = None  # the one before it [s] (what last_delta spanned before this scan)
         self._registration = get_registration(kiss)
         self._local_map = get_voxel_hash_map(kiss)
         self._threshold = get_threshold_estimator(kiss)
@@ -136,7 +181,10 @@ class Odometry:
         self.n_registered = 0
         self.first_step_moved = False  # 3D: the second scan's registration started from a guessed step
         self._scans_in_map = 0  # scans added to KISS-ICP's local map so far
+        self._wheel_predicted = False  # the last prediction came from the wheels
         self.wheel_overruled = 0  # planar scans whose constant-velocity guess fitted better than the wheels'
+        self.gap_guesses_tried = 0  # scans after a long interval also registered from the motion carried over it
+        self.gap_guess_won = 0  # ... and of them, those where that guess's registration fitted better
         self.registration_overruled = 0  # planar scans whose wheel pose fitted better than where registration went
         self.previous_scan_checked = 0  # planar scans that fitted poorly, so that their match to the previous scan was tried
         self.previous_scan_preferred = 0  # ... and of them, those where that match's pose was kept
@@ -184,12 +232,23 @@ class Odometry:
             return new_pose, frame
         frame_down = self._down(frame, self.frame_voxel)
         initial_guess = self.last_pose @ prediction
+        gap_guesses = []
+        if known is None and self._gicp is None:
+            turns = GAP_GUESS_TURNS_PLANAR_DEG if self.planar else GAP_GUESS_TURNS_DEG
+            gap_guesses = self._over_the_gap(scan, GAP_GUESS_SPACING * self.voxel_size, turns, standing=True)
+        elif known is None:  # GICP's coarse stage reaches further, turns its guesses itself when they
+            # fit poorly, and always tries no motion
+            gap_guesses = self._over_the_gap(scan, self._gicp.settings.coarse_distance, (), standing=False)
         if self._gicp is not None:
-            return self._register_gicp(frame, frame_down, initial_guess, known), frame
-        # planar: when the wheels and the constant-velocity model disagree, both are tried (below)
+            return self._register_gicp(frame, frame_down, initial_guess, known, gap_guesses), frame
+        # planar: when the wheels and the constant-velocity model disagree, or a long interval passed
+        # since the last scan, both guesses are tried (below)
         alternative = None
         if self.planar and known is None and self._wheel_disagrees(prediction):
             alternative = self.last_pose @ self.last_delta
+        elif self.planar and gap_guesses:
+            alternative = self._best_planar_guess(frame_down, gap_guesses)
+            self.gap_guesses_tried += 1
         registered = frame_down
         if self.movers is not None and not self._local_map.empty():
             # what the last scans saw through is a mover entering: not registered (a replay tests
@@ -210,6 +269,8 @@ class Odometry:
             new_pose = self._align_3d(source, initial_guess)
             if self.n_registered == 1 and np.allclose(prediction, np.eye(4)):
                 new_pose = self._first_step(source, new_pose)
+            elif gap_guesses:
+                new_pose, initial_guess = self._better_over_the_gap(source, new_pose, initial_guess, gap_guesses)
         else:
             new_pose = self._align(source, initial_guess)
         if self.planar and known is None:
@@ -217,14 +278,19 @@ class Odometry:
             if alternative is not None and not self._local_map.empty():
                 # stale or jumping wheel odometry (MIT CSAIL's FLASER poses stand still for a few
                 # scans, then jump by up to 85 deg) leads ICP into a wrong minimum: the guess
-                # whose result fits the recent scans better wins; when neither fits as the last
-                # scans did, guesses turned by up to +-30 deg from both are tried too
+                # whose result fits the recent scans better wins (after a long interval the motion
+                # carried over it only when it fits clearly better: a robot may have stood); when neither
+                # fits as the last scans did, guesses turned by up to +-30 deg from both are tried too
                 fit = self._fit(frame_down, xyt)
                 alt_xyt = self._refine(frame_down, self._align(source, alternative), alternative)
                 alt_fit = self._fit(frame_down, alt_xyt)
-                if alt_fit > fit:
+                if alt_fit > fit + (GAP_FIT_MARGIN if gap_guesses else 0.0):
                     xyt, initial_guess, fit = alt_xyt, alternative, alt_fit
-                    self.wheel_overruled += 1
+                    if gap_guesses:
+                        self.gap_guess_won += 1
+                        prediction = inverse(self.last_pose) @ alternative  # the step the previous-scan check centres on
+                    else:
+                        self.wheel_overruled += 1
                 usual = 0.5 * statistics.median(self._recent_fits) if self._recent_fits else 0.0
                 if fit < usual:
                     # a turned guess wins only if it fits as the last scans did: where the scan sees
@@ -243,7 +309,7 @@ class Odometry:
             elif self._refiner is not None:
                 fit = self._fit(frame_down, xyt)
                 poor = bool(self._recent_fits) and fit < POOR_FIT * statistics.median(self._recent_fits)
-                if poor and prediction is not self.last_delta and self._departs(initial_guess, xyt):
+                if poor and self._wheel_predicted and self._departs(initial_guess, xyt):
                     # the wheels and the motion model agreed, yet registration ended far from both
                     # and fits the last scans worse than usual (Intel's scan 11455 once turned 20 deg
                     # where the wheels turned 0.4): the wheels' pose, refined, is tried too, and the
@@ -283,6 +349,7 @@ class Odometry:
         """
         times, previous, last_gap = scan.point_times, self._last_stamp, self._last_gap
         self._last_stamp = scan.timestamp
+        self._gap_before = last_gap
         if previous is not None and scan.timestamp > previous:
             self._last_gap = scan.timestamp - previous
             self._gaps.append(self._last_gap)
@@ -301,9 +368,12 @@ class Odometry:
         return self._deskewing.preprocess(scan.points, (times - times.min()) / span, motion)
 
     def _register_gicp(self, frame: np.ndarray, frame_down: np.ndarray, initial_guess: np.ndarray,
-                       known: tuple[np.ndarray, np.ndarray | None] | None) -> np.ndarray:
-        """Narrow-field 3D: voxelised GICP from the prediction and from no motion (a hand-held
-        sensor turns in ways a constant-velocity model does not foresee); ``T_odom_base``."""
+                       known: tuple[np.ndarray, np.ndarray | None] | None,
+                       gap_guesses: list[np.ndarray] | None = None) -> np.ndarray:
+        """Narrow-field 3D: voxelised GICP from the prediction (without wheels: the last motion as
+        it was, then at its pace) and from no motion (a hand-held sensor turns in ways a
+        constant-velocity model does not foresee), after a long interval also from ``gap_guesses``
+        (:meth:`_over_the_gap`, tried after the prediction); ``T_odom_base``."""
         cloud = self._gicp.prepare(frame)
         if known is not None:
             new_pose = known[0]
@@ -311,9 +381,17 @@ class Odometry:
             new_pose = initial_guess
         else:
             guesses = [initial_guess]
+            one_interval = self.last_pose @ self.last_delta
+            if not self._wheel_predicted and not np.array_equal(one_interval, initial_guess):
+                # the motion at its pace only second: a hand-held sensor keeps its pace less than a
+                # vehicle (the Livox main building at every second keyframe: 0.28 -> 0.43 m with it first)
+                guesses.insert(0, one_interval)
+            if gap_guesses:
+                guesses.extend(gap_guesses)
+                self.gap_guesses_tried += 1
             if not np.allclose(initial_guess, self.last_pose):
                 guesses.append(self.last_pose)
-            new_pose, _ = self._gicp.align(cloud, guesses)
+            new_pose, _ = self._gicp.align(cloud, guesses, search_all=bool(gap_guesses))
             u, _, vt = np.linalg.svd(new_pose[:3, :3])  # exactly a rotation (KISS-ICP's deskew checks it)
             new_pose[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
         self._gicp.insert(cloud, new_pose)
@@ -336,18 +414,9 @@ class Odometry:
         registration from ``FIRST_STEP_GUESSES_M`` along the sensor's x or y axis. A log that
         starts at speed (2.6 m a scan) otherwise registered its second scan 0.1 m on (a street
         constrains little along itself), and the motion model kept that pace."""
-        import small_gicp
-
-        threshold = 0.5 * self.voxel_size
-        tree = small_gicp.KdTree(np.asarray(self._local_map.point_cloud(), dtype=np.float64))
-        above = above_ground_band(source, self.config.ground_band_m)  # flat ground fits any step along it
-        if not len(above):
+        share = self._map_share(source)
+        if share is None:
             return from_rest
-
-        def share(pose: np.ndarray) -> float:
-            _, d2 = tree.batch_knn_search(above @ pose[:3, :3].T + pose[:3, 3], 1)
-            return float(np.mean(np.asarray(d2).reshape(-1) < threshold * threshold))
-
         best, best_share = from_rest, share(from_rest)
         for axis in (0, 1):
             for distance in FIRST_STEP_GUESSES_M:
@@ -359,6 +428,92 @@ class Odometry:
                     best, best_share = pose, fit
         self.first_step_moved = best is not from_rest
         return best
+
+    def _map_share(self, source: np.ndarray, threshold: float | None = None) -> Callable[[np.ndarray], float] | None:
+        """3D: a function of a pose ``(4, 4)`` giving the share of ``source``'s points ``(N, 3)``
+        above the ground band (flat ground fits any step along it) that land within ``threshold``
+        [m] (default half a voxel) of the local map there; None when no point lies above the band."""
+        import small_gicp
+
+        threshold = 0.5 * self.voxel_size if threshold is None else threshold
+        above = above_ground_band(source, self.config.ground_band_m)
+        if not len(above):
+            return None
+        tree = small_gicp.KdTree(np.asarray(self._local_map.point_cloud(), dtype=np.float64))
+
+        def share(pose: np.ndarray) -> float:
+            _, d2 = tree.batch_knn_search(above @ pose[:3, :3].T + pose[:3, 3], 1)
+            return float(np.mean(np.asarray(d2).reshape(-1) < threshold * threshold))
+
+        return share
+
+    def _over_the_gap(self, scan: Scan, spacing_m: float, turns_deg: tuple[float, ...],
+                      standing: bool) -> list[np.ndarray]:
+        """Guesses ``(4, 4)`` ``T_odom_base`` of the last motion carried on at its pace over the
+        interval since the last scan, when that interval is ``config.gap_ratio`` times (or a
+        ``gap_ratio``-th of) the one the last motion spans and nothing else predicts the scan (no
+        wheels); else none. After frames were dropped the motion spans the gap, and the scan after
+        it comes at the usual interval again.
+        Over a gap the pace and the heading may have changed (a drive that turned 18 deg in 2 s of
+        dropped scans), so the guesses lie along the carried-on motion from the whole gap's step
+        down towards one interval's, ``spacing_m`` [m] apart, then the same bent into arcs that turn
+        by each of ``turns_deg`` about the vertical (:func:`_bent`), and with ``standing`` last the
+        last pose itself (the interval was a stop, and the last motion came before it). Needs the
+        scans' times."""
+        ratio = self.config.gap_ratio
+        if (ratio is None or not scan.timed or self._wheel_predicted or self.n_registered < 2
+                or self._gap_before is None or self._gap_before <= 0.0):
+            return []
+        over = self._last_gap / self._gap_before
+        if 1.0 / ratio < over < ratio:
+            return []
+        if over < 1.0:
+            paces = np.array([over])
+        else:
+            reach = (over - 1.0) * float(np.linalg.norm(self.last_delta[:3, 3]))
+            paces = np.linspace(over, 1.0, int(np.ceil(reach / spacing_m)) + 1)[:-1]
+        steps = list(blend_poses_many(np.eye(4), self.last_delta, paces))
+        bent = [_bent(step, np.radians(t)) for t in turns_deg for step in steps]
+        still = [np.eye(4)] if standing and over > 1.0 else []
+        return [self.last_pose @ step for step in steps + bent + still]
+
+    def _better_over_the_gap(self, source: np.ndarray, new_pose: np.ndarray, initial_guess: np.ndarray,
+                             gap_guesses: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """3D spinning LiDAR: ``(pose, guess)``: ``new_pose`` (registered from ``initial_guess``),
+        unless the registration of ``source`` ``(N, 3)`` from one of ``gap_guesses`` puts a larger
+        share of the scan on the local map (:meth:`_map_share`) by :data:`GAP_FIT_MARGIN`; of those,
+        the :data:`GAP_GUESSES_REGISTERED` that put the most of the scan near the map as they are
+        (within the guesses' spacing) are registered. A keyframed log's long intervals are mostly
+        stops, and along a street every step fits about alike."""
+        self.gap_guesses_tried += 1
+        share = self._map_share(source)
+        if share is None:
+            return new_pose, initial_guess
+        near = self._map_share(source, GAP_GUESS_SPACING * self.voxel_size)  # within reach of registration
+        best, best_guess, best_share = None, None, -1.0
+        for guess in _most_promising(gap_guesses, near):
+            pose = self._align_3d(source, guess)
+            fit = share(pose)
+            if fit > best_share:
+                best, best_guess, best_share = pose, guess, fit
+        if best_share <= share(new_pose) + GAP_FIT_MARGIN:
+            return new_pose, initial_guess
+        self.gap_guess_won += 1
+        return best, best_guess
+
+    def _best_planar_guess(self, frame_down: np.ndarray, guesses: list[np.ndarray]) -> np.ndarray:
+        """Planar: of the :data:`GAP_GUESSES_REGISTERED` of ``guesses`` ``(4, 4)`` that put the most
+        of the scan near the last scans as they are (within the guesses' spacing), the one whose
+        registration of the scan ``frame_down`` ``(N, 3)`` (refined) fits them best (:meth:`_fit`);
+        the earliest on a tie (the first without the point-to-line refiner). It then replaces the
+        constant-velocity guess if it fits better by :data:`GAP_FIT_MARGIN`."""
+        if len(guesses) == 1 or self._refiner is None:
+            return guesses[0]
+        source = self._down(frame_down, self.voxel_size * 1.5)
+        reach = GAP_GUESS_SPACING * self.voxel_size  # within reach of registration
+        candidates = _most_promising(guesses, lambda g: self._refiner.fit(frame_down[:, :2], matrix_to_se2(g), reach))
+        fits = [self._fit(frame_down, self._refine(frame_down, self._align(source, g), g)) for g in candidates]
+        return candidates[int(np.argmax(fits))]
 
     def _align(self, source: np.ndarray, initial_guess: np.ndarray) -> np.ndarray:
         """KISS-ICP point-to-point registration of ``source (N, 3)`` to the local map from ``initial_guess``."""
@@ -413,17 +568,22 @@ class Odometry:
         from the prediction, ``near_alignment_kept`` of those where a near one won
         (:class:`~submapslam.registration.voxel_gicp.VoxelGicpTracker`). Other 3D runs:
         ``first_step_from_a_guessed_move``, whether the second scan started from a step along the
-        sensor's axes (:meth:`_first_step`)."""
+        sensor's axes (:meth:`_first_step`). Every kind: ``gap_guesses_tried`` scans that came after a
+        long interval (``odometry.gap_ratio``) and were also registered from the motion carried over it;
+        but with voxel_gicp (whose search takes the best of all its guesses) ``gap_guess_won``, those
+        where that registration was kept."""
+        gap = {"gap_guesses_tried": self.gap_guesses_tried}
         if self._gicp is not None:
             t = self._gicp
             return {"turned_guesses_tried": t.turned_tries, "turned_guess_won": t.turned_won,
                     "far_from_prediction": t.far_results,
-                    "near_alignment_kept": t.near_kept}
+                    "near_alignment_kept": t.near_kept, **gap}
+        gap["gap_guess_won"] = self.gap_guess_won
         if not self.planar:
-            return {"first_step_from_a_guessed_move": self.first_step_moved}
+            return {"first_step_from_a_guessed_move": self.first_step_moved, **gap}
         return {"wheel_overruled": self.wheel_overruled, "registration_overruled": self.registration_overruled,
                 "previous_scan_checked": self.previous_scan_checked,
-                "previous_scan_preferred": self.previous_scan_preferred}
+                "previous_scan_preferred": self.previous_scan_preferred, **gap}
 
     def _beyond_wheel_check(self, distance_m: float, turn_deg: float) -> bool:
         """Two planar poses ``distance_m`` [m] and ``turn_deg`` [deg] apart differ by more than
@@ -441,19 +601,33 @@ class Odometry:
         """The wheel-odometry ``prediction`` (4, 4) is not the constant-velocity one and lies beyond
         the wheel check from it."""
         c = self.config
-        if self._refiner is None or not c.use_wheel_odometry or prediction is self.last_delta:
+        if self._refiner is None or not c.use_wheel_odometry or not self._wheel_predicted:
             return False
         diff = inverse(self.last_delta) @ prediction
         return self._beyond_wheel_check(np.linalg.norm(diff[:2, 3]), np.degrees(np.arctan2(diff[1, 0], diff[0, 0])))
 
     def _predicted_delta(self, scan: Scan) -> np.ndarray:
+        """The predicted step ``(4, 4)`` from the last pose to ``scan``'s: the wheels' when the log
+        has them (:attr:`_wheel_predicted`), else the last motion at its pace (:meth:`_paced_motion`)."""
         wheel = scan.odometry if self.config.use_wheel_odometry else None
-        if wheel is not None and self._last_wheel is not None:
-            delta = inverse(self._last_wheel) @ wheel
-        else:
-            delta = self.last_delta
+        self._wheel_predicted = wheel is not None and self._last_wheel is not None
+        delta = inverse(self._last_wheel) @ wheel if self._wheel_predicted else self._paced_motion(scan)
         self._last_wheel = wheel
         return delta
+
+    def _paced_motion(self, scan: Scan) -> np.ndarray:
+        """The last motion ``(4, 4)`` carried on at its pace over the interval since the last scan,
+        when that interval differs from the one it spans by more than :data:`PACE_TOLERANCE` and by
+        less than ``config.gap_ratio`` (a longer gap is searched: :meth:`_over_the_gap`); else the
+        last motion itself (KISS-ICP's constant-velocity model, one motion a scan). Keyframes
+        0.2-0.5 s apart at 10 m/s otherwise start registration up to 3 m off."""
+        ratio = self.config.gap_ratio
+        if ratio is None or not scan.timed or self._gap_before is None or self._gap_before <= 0.0:
+            return self.last_delta
+        pace = self._last_gap / self._gap_before
+        if abs(pace - 1.0) <= PACE_TOLERANCE or not 1.0 / ratio < pace < ratio:
+            return self.last_delta
+        return blend_poses(np.eye(4), self.last_delta, pace)
 
     def _advance(self, new_pose: np.ndarray) -> None:
         self.last_delta = inverse(self.last_pose) @ new_pose

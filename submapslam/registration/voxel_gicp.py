@@ -152,7 +152,7 @@ class VoxelGicpTracker:
         self._gicp.estimate_covariances(coarse, num_neighbors=s.neighbours)
         return PreparedScan(fine, coarse)
 
-    def align(self, cloud: PreparedScan, guesses: list[np.ndarray]) -> tuple[np.ndarray, int]:
+    def align(self, cloud: PreparedScan, guesses: list[np.ndarray], search_all: bool = False) -> tuple[np.ndarray, int]:
         """The best ``T_odom_scan`` over ``guesses`` (each ``(4, 4)``, tried in order), and its inliers:
         coarse, then fine from the coarse result; best = most fine inliers, within ``cost_ratio`` of
         the other's cost (:meth:`_better`; the earlier guess wins ties). A guess whose alignment has
@@ -160,12 +160,14 @@ class VoxelGicpTracker:
         the scans then try the no-motion guess; at 0.9, 12-19 %, which found a better alignment for
         under 2 % of the scans, at the same ATE). Then the turned guesses and the far-result check
         of :class:`VoxelGicpSettings` (``turns_deg``, ``far_m``); ``guesses[0]`` is the motion
-        prediction, ``guesses[-1]`` the last pose (the predicted step is the distance between them)."""
+        prediction, ``guesses[-1]`` the last pose (the predicted step is the distance between them).
+        ``search_all``: every guess is tried and none is too far (the guesses between span a gap
+        in the log, and a scan's alignment may well end far from the one-interval prediction)."""
         s = self.settings
         enough = s.enough_inliers * cloud.size()
         best: Fit | None = None
         for guess in guesses:
-            if best is not None and best.inliers >= enough:
+            if best is not None and best.inliers >= enough and not search_all:
                 break
             best = self._better(best, self._coarse_to_fine(cloud, guess))
         assert best is not None, "align needs at least one guess"
@@ -180,7 +182,7 @@ class VoxelGicpTracker:
                 best = turned
                 self.turned_won += 1
         prediction = guesses[0][:3, 3]
-        reach = max(s.far_m, 2.0 * float(np.linalg.norm(prediction - guesses[-1][:3, 3])))
+        reach = np.inf if search_all else max(s.far_m, 2.0 * float(np.linalg.norm(prediction - guesses[-1][:3, 3])))
         if np.linalg.norm(best.pose[:3, 3] - prediction) > reach:
             self.far_results += 1
             near: Fit | None = None
