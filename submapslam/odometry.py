@@ -51,10 +51,11 @@ GAP_GUESS_SPACING = 2.0
 #: turned 18 deg in 2 s of dropped scans; a robot indoors turns a corner in as long)
 GAP_GUESS_TURNS_DEG = (10.0, -10.0, 20.0, -20.0)
 GAP_GUESS_TURNS_PLANAR_DEG = (15.0, -15.0, 30.0, -30.0, 45.0, -45.0, 60.0, -60.0, 90.0, -90.0)
-#: [share of the scan's points] how much better the best registration from those guesses must fit
-#: than the one-interval guess's to replace it (a robot may have stood through the interval; a
-#: corridor or a street fits every step along it alike)
+#: [share of the scan's points] the margin by which the best registration from those guesses and the
+#: one-interval guess's must differ in fit for the other to win (:meth:`Odometry._gap_margin`)
 GAP_FIT_MARGIN = 0.05
+#: a log whose recent intervals lie within this factor of each other runs at a steady rate
+STEADY_RATE = 1.5
 #: how many of those guesses are registered: those that fit best as they are
 GAP_GUESSES_REGISTERED = 3
 
@@ -235,7 +236,8 @@ class Odometry:
         gap_guesses = []
         if known is None and self._gicp is None:
             turns = GAP_GUESS_TURNS_PLANAR_DEG if self.planar else GAP_GUESS_TURNS_DEG
-            gap_guesses = self._over_the_gap(scan, GAP_GUESS_SPACING * self.voxel_size, turns, standing=True)
+            gap_guesses = self._over_the_gap(scan, GAP_GUESS_SPACING * self.voxel_size, turns,
+                                             standing=not self._steady_rate())
         elif known is None:  # GICP's coarse stage reaches further, turns its guesses itself when they
             # fit poorly, and always tries no motion
             gap_guesses = self._over_the_gap(scan, self._gicp.settings.coarse_distance, (), standing=False)
@@ -278,13 +280,13 @@ class Odometry:
             if alternative is not None and not self._local_map.empty():
                 # stale or jumping wheel odometry (MIT CSAIL's FLASER poses stand still for a few
                 # scans, then jump by up to 85 deg) leads ICP into a wrong minimum: the guess
-                # whose result fits the recent scans better wins (after a long interval the motion
-                # carried over it only when it fits clearly better: a robot may have stood); when neither
+                # whose result fits the recent scans better wins (after a long interval, by a margin:
+                # :meth:`_gap_margin`); when neither
                 # fits as the last scans did, guesses turned by up to +-30 deg from both are tried too
                 fit = self._fit(frame_down, xyt)
                 alt_xyt = self._refine(frame_down, self._align(source, alternative), alternative)
                 alt_fit = self._fit(frame_down, alt_xyt)
-                if alt_fit > fit + (GAP_FIT_MARGIN if gap_guesses else 0.0):
+                if alt_fit > fit + (self._gap_margin() if gap_guesses else 0.0):
                     xyt, initial_guess, fit = alt_xyt, alternative, alt_fit
                     if gap_guesses:
                         self.gap_guess_won += 1
@@ -457,9 +459,9 @@ class Odometry:
         Over a gap the pace and the heading may have changed (a drive that turned 18 deg in 2 s of
         dropped scans), so the guesses lie along the carried-on motion from the whole gap's step
         down towards one interval's, ``spacing_m`` [m] apart, then the same bent into arcs that turn
-        by each of ``turns_deg`` about the vertical (:func:`_bent`), and with ``standing`` last the
-        last pose itself (the interval was a stop, and the last motion came before it). Needs the
-        scans' times."""
+        by each of ``turns_deg`` about the vertical (:func:`_bent`), and with ``standing`` (a
+        keyframed log) last the last pose itself (the interval was a stop, and the last motion came
+        before it). Needs the scans' times."""
         ratio = self.config.gap_ratio
         if (ratio is None or not scan.timed or self._wheel_predicted or self.n_registered < 2
                 or self._gap_before is None or self._gap_before <= 0.0):
@@ -481,10 +483,9 @@ class Odometry:
                              gap_guesses: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """3D spinning LiDAR: ``(pose, guess)``: ``new_pose`` (registered from ``initial_guess``),
         unless the registration of ``source`` ``(N, 3)`` from one of ``gap_guesses`` puts a larger
-        share of the scan on the local map (:meth:`_map_share`) by :data:`GAP_FIT_MARGIN`; of those,
+        share of the scan on the local map (:meth:`_map_share`), by :meth:`_gap_margin`; of those,
         the :data:`GAP_GUESSES_REGISTERED` that put the most of the scan near the map as they are
-        (within the guesses' spacing) are registered. A keyframed log's long intervals are mostly
-        stops, and along a street every step fits about alike."""
+        (within the guesses' spacing) are registered."""
         self.gap_guesses_tried += 1
         share = self._map_share(source)
         if share is None:
@@ -496,17 +497,36 @@ class Odometry:
             fit = share(pose)
             if fit > best_share:
                 best, best_guess, best_share = pose, guess, fit
-        if best_share <= share(new_pose) + GAP_FIT_MARGIN:
+        if best_share <= share(new_pose) + self._gap_margin():
             return new_pose, initial_guess
         self.gap_guess_won += 1
         return best, best_guess
+
+    def _steady_rate(self) -> bool:
+        """Whether the log runs at a steady rate: the last intervals between scans before this one,
+        but for a few long ones (lost scans), lie within :data:`STEADY_RATE` of each other
+        (keyframes 0.2-0.5 s apart do not)."""
+        recent = list(self._gaps)[:-1]
+        if len(recent) < 5:
+            return False
+        low, high = np.percentile(recent, [10.0, 90.0])
+        return bool(high <= STEADY_RATE * low)
+
+    def _gap_margin(self) -> float:
+        """[share of the scan] how much better the best registration over a long interval must fit
+        than the one-interval guess's to replace it. Along a corridor or a street every step fits
+        about alike, so it is the log's own rate that decides: a log at a steady rate
+        (:meth:`_steady_rate`) lost scans and the motion went on (``-GAP_FIT_MARGIN``: kept unless
+        the one-interval guess fits clearly better); a keyframed log pauses where the sensor stood
+        (``+GAP_FIT_MARGIN``)."""
+        return -GAP_FIT_MARGIN if self._steady_rate() else GAP_FIT_MARGIN
 
     def _best_planar_guess(self, frame_down: np.ndarray, guesses: list[np.ndarray]) -> np.ndarray:
         """Planar: of the :data:`GAP_GUESSES_REGISTERED` of ``guesses`` ``(4, 4)`` that put the most
         of the scan near the last scans as they are (within the guesses' spacing), the one whose
         registration of the scan ``frame_down`` ``(N, 3)`` (refined) fits them best (:meth:`_fit`);
         the earliest on a tie (the first without the point-to-line refiner). It then replaces the
-        constant-velocity guess if it fits better by :data:`GAP_FIT_MARGIN`."""
+        constant-velocity guess if it fits better by :meth:`_gap_margin`."""
         if len(guesses) == 1 or self._refiner is None:
             return guesses[0]
         source = self._down(frame_down, self.voxel_size * 1.5)

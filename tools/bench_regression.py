@@ -3,7 +3,8 @@ scans beside each run: rerun it whenever the data path changes.
 
 Usage:
     python tools/bench_regression.py [--data ../shared/data] [--work DIR] [--out DIR] [--json FILE]
-        [--only real2d sensors2d real3d synthetic terrain paths sensors3d] [--terrain-scans 600] [--no-peers]
+        [--only real2d sensors2d real3d synthetic terrain paths sensors3d nowheels] [--terrain-scans 600]
+        [--no-peers]
 
 Rows, each run in a child process (wall time and its own peak RSS from ``wait4``):
 
@@ -22,7 +23,10 @@ Rows, each run in a child process (wall time and its own peak RSS from ``wait4``
   worlds no default was chosen on, the first ``--terrain-scans`` scans of each;
 * **sensors3d**: the same terrain with other 3D sensors (``OTHER_SENSORS``): 64 and 128 rings,
   16 and 64 rings at irregular keyframes, and the Livox-like pattern with irregular keyframes, on the
-  first ``--terrain-scans`` scans or whole drives (their loops).
+  first ``--terrain-scans`` scans or whole drives (their loops);
+* **nowheels**: some of those logs without their wheel odometry, as the real sequences are, at
+  irregular keyframes or with seconds of scans lost (``NO_WHEELS``; ``tools/cut_cloud_log.py``
+  writes the cut under WORK once).
 
 Per row: scans, ATE [m], odometry ATE [m] (the same run before loop closure), closures accepted and
 false (3D and synthetic, against the truth), wall [s], peak RSS [MiB]; and, unless ``--no-peers``,
@@ -44,7 +48,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tools"))
 sys.path.insert(0, str(REPO))
 
-GROUPS = ("real2d", "sensors2d", "real3d", "synthetic", "terrain", "paths", "sensors3d")
+GROUPS = ("real2d", "sensors2d", "real3d", "synthetic", "terrain", "paths", "sensors3d", "nowheels")
 #: the real CARMEN logs as other scanners would record them (``bench_real2d --sensor``): fewer beams, a
 #: shorter reach; MIT CSAIL at 20 m slides along a corridor whose far wall it loses (stop 68)
 REAL2D_VARIANTS = (("fr079", "beams4"), ("mit-csail", "beams4"), ("intel", "range15"), ("mit-csail", "range20"),
@@ -71,6 +75,18 @@ OTHER_SENSORS = (("05", "64", "synthetic 3D, 64 rings", False),
                  ("05", "livox", "synthetic 3D, Livox-like keyframes, whole drive", True),
                  ("06", "livox", "synthetic 3D, Livox-like keyframes, whole drive", True),
                  ("06", "livox:s5", "synthetic 3D, Livox-like keyframes, whole drive, seed 5", True))
+
+#: logs without wheel odometry: (bench_terrain.generate's spec or a 2D world of bench_synthetic, the scans
+#: lost as "A:B" ranges, the row's name and kind); the one-interval motion model started registration
+#: metres off after a gap and at keyframes 0.2-0.5 s apart at speed (stop 69)
+NO_WHEELS = (("05:16:600", ("100:110", "200:230", "400:420"), "terrain 05, 16 rings, 6 s lost",
+              "synthetic 3D, 16 rings, no wheels, 1, 3 and 2 s of scans lost"),
+             ("05:16kf:600", (), "terrain 05, 16 rings, keyframes", "synthetic 3D, 16 rings, irregular keyframes, no wheels"),
+             ("07:64kf", (), "terrain 07, 64 rings, keyframes, whole",
+              "synthetic 3D, 64 rings, irregular keyframes, whole drive, no wheels"),
+             ("06:livox", (), "terrain 06, livox, whole", "synthetic 3D, Livox-like keyframes, whole drive, no wheels"),
+             ("rooms", ("300:310", "700:730", "1200:1220"), "rooms, 6 s lost",
+              "synthetic 2D, no wheels, 1, 3 and 2 s of scans lost"))
 
 
 def run_and_evaluate(name: str, kind: str, log: Path, out: Path, peers: bool) -> dict:
@@ -204,6 +220,31 @@ def sensor_rows(work: Path, out: Path, scans: int, peers: bool) -> list[dict]:
     return rows
 
 
+def no_wheel_rows(work: Path, out: Path, peers: bool) -> list[dict]:
+    """The ``NO_WHEELS`` rows: each log cut without its wheel odometry (and its lost scans) under
+    ``work`` once, run and scored like the others, KISS-ICP beside it."""
+    from bench_synthetic import write_variant
+    from bench_terrain import generate
+    from cut_cloud_log import cut, parse_drop
+
+    from submapslam.io.trajectory import read_tum
+
+    rows = []
+    for spec, lost, name, kind in NO_WHEELS:
+        planar = ":" not in spec
+        src = work / f"synthetic_{spec}" if planar else generate(spec, work)
+        if planar and not (src / "meta.yaml").exists():
+            write_variant(spec, src, seed=0, laps=2)
+        dst = work / (f"{src.name}_nowheels" + "".join(f"_{r.replace(':', '-')}" for r in lost))
+        if not (dst / "meta.yaml").exists():
+            cut(src, dst, 0, 1, tuple(parse_drop(r) for r in lost))
+        row = run_and_evaluate(name, kind, dst, out, peers=peers and not planar)
+        if peers and planar and "error" not in row:
+            row = with_peer(row, kiss_icp_2d(dst, read_tum(dst / "groundtruth_tum.txt"), out / f"{dst.name}-kiss-icp"))
+        rows.append(row)
+    return rows
+
+
 def markdown(rows: list[dict]) -> str:
     def f(v, fmt):
         return "—" if v is None else format(v, fmt)
@@ -258,8 +299,10 @@ def main(argv: list[str] | None = None) -> int:
             elif group == "paths":
                 added = terrain_rows(work, out, args.terrain_scans, peers, OTHER_PATHS,
                                      "synthetic 3D, 16 rings, other paths")
-            else:
+            elif group == "sensors3d":
                 added = sensor_rows(work, out, args.terrain_scans, peers)
+            else:
+                added = no_wheel_rows(work, out, peers)
             print("\n".join(markdown(added).splitlines()[2:]), flush=True)
             rows += added
     table = markdown(rows)
