@@ -80,3 +80,37 @@ def test_rings_ending_in_kf_write_irregular_keyframes(tmp_path, monkeypatch):
     assert "keyframes" not in yaml.safe_load((regular / "meta.yaml").read_text())
     gaps = [np.diff(np.loadtxt(log / "groundtruth_tum.txt")[:, 0]) for log in (regular, keyframed)]
     assert np.allclose(gaps[0], 0.1, atol=1e-3) and np.median(gaps[1]) > 0.15
+
+
+def test_a_cut_with_lost_scans_is_scored_at_the_scans_it_kept(tmp_path, monkeypatch):
+    """``cut_cloud_log.py --drop A:B`` leaves scans A to B-1 out, carries no wheel odometry, and
+    ``evaluate`` matches the run's poses to the ground truth by time: the poses of a log whose
+    middle is missing are not its first scans'. Scored as a prefix, a run placed exactly on the
+    truth would show metres of error."""
+    import numpy as np
+    import pytest
+
+    bench, cut_tool = load_tool("bench_terrain"), load_tool("cut_cloud_log")
+    monkeypatch.setattr(bench, "KITTI_GT", shared_data("trajectories", "kitti_gt", "00.txt.xz").parent)
+    src = bench.generate("00:16:40", tmp_path)
+    dst = tmp_path / "cut"
+    assert cut_tool.cut(src, dst, 0, 1, (cut_tool.parse_drop("10:20"),)) == 30
+    assert not (dst / "odometry_tum.txt").exists() and len(list((dst / "scans").glob("*.ply"))) == 30
+    times = np.loadtxt(dst / "times.txt")
+    assert np.isclose(times[10] - times[9], 1.1, atol=1e-3)  # scans 10-19 are gone
+    with pytest.raises(SystemExit, match="--drop '20:10'"):
+        cut_tool.parse_drop("20:10")
+    # a "run" that is the truth at the kept scans, with the files evaluate reads
+    out = tmp_path / "run"
+    out.mkdir()
+    truth = np.loadtxt(src / "groundtruth_tum.txt")
+    kept = truth[np.isin(np.round(truth[:, 0], 3), np.round(times, 3))]
+    assert len(kept) == 30
+    for name in ("poses_tum.txt", "odometry_tum.txt"):
+        np.savetxt(out / name, kept, fmt="%.9f")
+    (out / "summary.json").write_text(json.dumps({"scans": 30}))
+    (out / "submaps.csv").write_text("id,first_scan,last_scan,n_scans,x,y,z,qx,qy,qz,qw\n")
+    (out / "graph.g2o").write_text("")
+    (out / "loops.csv").write_text("submap_i,submap_j,accepted,reason\n")
+    figures = bench.evaluate(dst, out)
+    assert figures["ate_m"] < 1e-6 and figures["odometry_ate_m"] < 1e-6
