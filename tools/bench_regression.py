@@ -77,15 +77,17 @@ OTHER_SENSORS = (("05", "64", "synthetic 3D, 64 rings", False),
                  ("06", "livox:s5", "synthetic 3D, Livox-like keyframes, whole drive, seed 5", True))
 
 #: logs without wheel odometry: (bench_terrain.generate's spec or a 2D world of bench_synthetic, the scans
-#: lost as "A:B" ranges, the row's name and kind); the one-interval motion model started registration
+#: lost as "A:B" ranges, the row's name (unique in the table) and kind); the one-interval motion model started registration
 #: metres off after a gap and at keyframes 0.2-0.5 s apart at speed (stop 69)
-NO_WHEELS = (("05:16:600", ("100:110", "200:230", "400:420"), "terrain 05, 16 rings, 6 s lost",
+NO_WHEELS = (("05:16:600", ("100:110", "200:230", "400:420"), "terrain 05, 16 rings, 6 s lost, no wheels",
               "synthetic 3D, 16 rings, no wheels, 1, 3 and 2 s of scans lost"),
-             ("05:16kf:600", (), "terrain 05, 16 rings, keyframes", "synthetic 3D, 16 rings, irregular keyframes, no wheels"),
-             ("07:64kf", (), "terrain 07, 64 rings, keyframes, whole",
+             ("05:16kf:600", (), "terrain 05, 16 rings, keyframes, no wheels",
+              "synthetic 3D, 16 rings, irregular keyframes, no wheels"),
+             ("07:64kf", (), "terrain 07, 64 rings, keyframes, whole, no wheels",
               "synthetic 3D, 64 rings, irregular keyframes, whole drive, no wheels"),
-             ("06:livox", (), "terrain 06, livox, whole", "synthetic 3D, Livox-like keyframes, whole drive, no wheels"),
-             ("rooms", ("300:310", "700:730", "1200:1220"), "rooms, 6 s lost",
+             ("06:livox", (), "terrain 06, livox, whole, no wheels",
+              "synthetic 3D, Livox-like keyframes, whole drive, no wheels"),
+             ("rooms", ("300:310", "700:730", "1200:1220"), "rooms, 6 s lost, no wheels",
               "synthetic 2D, no wheels, 1, 3 and 2 s of scans lost"))
 
 
