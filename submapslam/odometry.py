@@ -384,10 +384,14 @@ class Odometry:
         else:
             guesses = [initial_guess]
             one_interval = self.last_pose @ self.last_delta
-            if not self._wheel_predicted and not np.array_equal(one_interval, initial_guess):
-                # the motion at its pace only second: a hand-held sensor keeps its pace less than a
-                # vehicle (the Livox main building at every second keyframe: 0.28 -> 0.43 m with it first)
+            apart = float(np.linalg.norm(one_interval[:3, 3] - initial_guess[:3, 3]))
+            if not self._wheel_predicted and 0.0 < apart < 0.5 * self._gicp.settings.coarse_distance:
+                # the motion at its pace only second where the one-interval guess lies within the
+                # coarse stage's reach anyway: a hand-held sensor keeps its pace less than a vehicle
+                # (the Livox main building at every second keyframe: 0.28 -> 0.43 m with it first)
                 guesses.insert(0, one_interval)
+            elif not self._wheel_predicted and apart > 0.0:
+                guesses.append(one_interval)
             if gap_guesses:
                 guesses.extend(gap_guesses)
                 self.gap_guesses_tried += 1
