@@ -73,15 +73,15 @@ class OdometryConfig(_Strict):
         3.0, gt=1, description="without wheel odometry, how the last motion predicts a scan whose interval "
         "since the last differs from the one that motion spans (the scans need their times: a cloud folder "
         "with times.txt, a bag, a CARMEN log): by less than this factor (keyframes 0.2-0.5 s apart), the motion "
-        "is carried on at its pace over the interval (the one-interval motion is tried first with voxel_gicp, "
-        "as a hand-held sensor keeps its pace less); by this factor or more (dropped frames, a recorder's "
+        "is carried on at its pace over the interval (voxel_gicp tries the one-interval motion first where it "
+        "lies within 2 m of that: a hand-held sensor keeps its pace less than a vehicle); by this factor or more (dropped frames, a recorder's "
         "hiccup, a stop, and the scan after it), the scan is also registered from guesses along the motion "
         "carried over the interval, bent into turns (and no motion, in a keyframed log), and the best replaces "
         "the one-interval guess's registration unless that fits the map clearly better (a log at a steady "
         "rate) or when it fits clearly better (a keyframed log, which pauses where the sensor stood). Without "
         "it, a 16-ring drive without wheels that lost 1, 3 and 2 s of its scans ended 9.7 m off (now 0.10 m), "
         "keyframed drives without wheels 15 m, 81 m and 9.1 m (16 and 64 rings, Livox-like; now 0.10, 0.63 "
-        "and 1.0 m; BENCHMARKS.md, stop 69). None: the one-interval motion alone (KISS-ICP's constant-velocity "
+        "and 0.02 m; BENCHMARKS.md, stop 69). None: the one-interval motion alone (KISS-ICP's constant-velocity "
         "model)")
     planar_previous_scan_check: bool = Field(
         True, description="2D lasers: a scan that fits the last scans below three quarters of the usual is also "
