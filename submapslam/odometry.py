@@ -20,7 +20,6 @@ import numpy as np
 from .config import OdometryConfig
 from .geometry import (
     blend_poses,
-    blend_poses_many,
     inverse,
     matrix_to_se2,
     se2_to_matrix,
@@ -29,6 +28,7 @@ from .geometry import (
 from .registration.previous_scan import PreviousScan
 from .registration.voxel_gicp import VoxelGicpSettings, VoxelGicpTracker, azimuth_coverage_deg
 from .scan import Scan
+from .scan_intervals import ScanIntervals, gap_steps, most_promising, paced
 
 #: [m] the starts tried for a 3D log's second scan, along the sensor's x and y axes, besides no
 #: motion (:meth:`Odometry._first_step`); one wins when it puts a FIRST_STEP_MARGIN larger share
@@ -41,9 +41,6 @@ NARROW_FIELD_DEG = 180.0  # auto registration: a first scan seeing less than thi
 #: fits poorly: its registration may give way to the wheels' pose, and it is checked against the
 #: previous scan (:meth:`Odometry._check_against_previous_scan`)
 POOR_FIT = 0.75
-#: [share] intervals between scans that differ by less than this from the one the last motion spans
-#: are taken as equal (a 10 Hz log's jitter): the motion is predicted as it was
-PACE_TOLERANCE = 0.1
 #: [local-map voxels] spacing of the guesses along the motion carried over a long interval
 #: (:meth:`Odometry._over_the_gap`): within reach of registration from one of them
 GAP_GUESS_SPACING = 2.0
@@ -54,30 +51,8 @@ GAP_GUESS_TURNS_PLANAR_DEG = (15.0, -15.0, 30.0, -30.0, 45.0, -45.0, 60.0, -60.0
 #: [share of the scan's points] the margin by which the best registration from those guesses and the
 #: one-interval guess's must differ in fit for the other to win (:meth:`Odometry._gap_margin`)
 GAP_FIT_MARGIN = 0.05
-#: a log whose recent intervals lie within this factor of each other runs at a steady rate
-STEADY_RATE = 1.5
 #: how many of those guesses are registered: those that fit best as they are
 GAP_GUESSES_REGISTERED = 3
-
-
-def _bent(step: np.ndarray, turn: float) -> np.ndarray:
-    """``step`` ``(4, 4)`` bent into an arc of the same length that turns by ``turn`` [rad] more
-    about its start's vertical: its x-y translation turned by half of it and shortened to the arc's
-    chord, its rotation turned by all of it."""
-    half = 0.5 * turn
-    c, s = np.cos(half), np.sin(half)
-    out = step.copy()
-    out[:2, 3] = (np.sin(half) / half) * (np.array([[c, -s], [s, c]]) @ step[:2, 3])
-    out[:3, :3] = se2_to_matrix(0.0, 0.0, turn)[:3, :3] @ step[:3, :3]
-    return out
-
-
-def _most_promising(guesses: list[np.ndarray], fit: Callable[[np.ndarray], float]) -> list[np.ndarray]:
-    """The :data:`GAP_GUESSES_REGISTERED` of ``guesses`` ``(4, 4)`` with the highest ``fit``, in
-    their order (on a tie the earlier)."""
-    fits = [fit(g) for g in guesses]
-    ranked = sorted(range(len(guesses)), key=lambda k: (-fits[k], k))[:GAP_GUESSES_REGISTERED]
-    return [guesses[k] for k in sorted(ranked)]
 
 
 def resolve_registration(config: OdometryConfig, scan: Scan) -> OdometryConfig:
@@ -168,10 +143,7 @@ class Odometry:
         self._preprocessor = get_preprocessor(kiss)
         kiss.data.deskew = True
         self._deskewing = get_preprocessor(kiss) if config.deskew is not False else None
-        self._last_stamp: float | None = None
-        self._gaps: deque[float] = deque(maxlen=50)  # recent times between scans [s]
-        self._last_gap: float | None = None  # time between the last two scans [s] (what last_delta spans)
-        self._gap_before: float | None = None  # the one before it [s] (what last_delta spanned before this scan)
+        self._intervals = ScanIntervals()  # between the scans so far [s]
         self._registration = get_registration(kiss)
         self._local_map = get_voxel_hash_map(kiss)
         self._threshold = get_threshold_estimator(kiss)
@@ -237,7 +209,7 @@ class Odometry:
         if known is None and self._gicp is None:
             turns = GAP_GUESS_TURNS_PLANAR_DEG if self.planar else GAP_GUESS_TURNS_DEG
             gap_guesses = self._over_the_gap(scan, GAP_GUESS_SPACING * self.voxel_size, turns,
-                                             standing=not self._steady_rate())
+                                             standing=not self._intervals.steady())
         elif known is None:  # GICP's coarse stage reaches further, turns its guesses itself when they
             # fit poorly, and always tries no motion
             gap_guesses = self._over_the_gap(scan, self._gicp.settings.coarse_distance, (), standing=False)
@@ -349,12 +321,8 @@ class Odometry:
         down when those scans lay further apart in time than usual (the median of the last 50
         gaps): after a pause, or in a keyframed log, a sweep is a small share of that motion.
         """
-        times, previous, last_gap = scan.point_times, self._last_stamp, self._last_gap
-        self._last_stamp = scan.timestamp
-        self._gap_before = last_gap
-        if previous is not None and scan.timestamp > previous:
-            self._last_gap = scan.timestamp - previous
-            self._gaps.append(self._last_gap)
+        times, intervals = scan.point_times, self._intervals
+        intervals.add(scan.timestamp)
         no_times = np.zeros(len(scan.points))
         if self._deskewing is None or times is None or len(times) != len(scan.points) or len(times) == 0:
             return self._preprocessor.preprocess(scan.points, no_times, self.last_delta)
@@ -363,10 +331,10 @@ class Odometry:
         if not np.isfinite(span) or span <= 0.0:
             return self._preprocessor.preprocess(scan.points, no_times, self.last_delta)
         motion = self.last_delta
-        if last_gap is not None and self._gaps:
-            sweep = statistics.median(self._gaps)  # a sweep lasts no longer than the usual time between scans
-            if last_gap > sweep:  # after a pause or in a keyframed log: the last motion took longer than a sweep
-                motion = blend_poses(np.eye(4), self.last_delta, sweep / last_gap)
+        sweep = intervals.usual()  # a sweep lasts no longer than the usual time between scans
+        if intervals.before is not None and sweep is not None and intervals.before > sweep:
+            # after a pause or in a keyframed log: the last motion took longer than a sweep
+            motion = blend_poses(np.eye(4), self.last_delta, sweep / intervals.before)
         return self._deskewing.preprocess(scan.points, (times - times.min()) / span, motion)
 
     def _register_gicp(self, frame: np.ndarray, frame_down: np.ndarray, initial_guess: np.ndarray,
@@ -463,25 +431,15 @@ class Odometry:
         Over a gap the pace and the heading may have changed (a drive that turned 18 deg in 2 s of
         dropped scans), so the guesses lie along the carried-on motion from the whole gap's step
         down towards one interval's, ``spacing_m`` [m] apart, then the same bent into arcs that turn
-        by each of ``turns_deg`` about the vertical (:func:`_bent`), and with ``standing`` (a
+        by each of ``turns_deg`` about the vertical (:func:`~submapslam.scan_intervals.bent`), and with ``standing`` (a
         keyframed log) last the last pose itself (the interval was a stop, and the last motion came
         before it). Needs the scans' times."""
-        ratio = self.config.gap_ratio
-        if (ratio is None or not scan.timed or self._wheel_predicted or self.n_registered < 2
-                or self._gap_before is None or self._gap_before <= 0.0):
+        ratio, over = self.config.gap_ratio, self._intervals.pace()
+        if ratio is None or not scan.timed or self._wheel_predicted or self.n_registered < 2 or over is None:
             return []
-        over = self._last_gap / self._gap_before
         if 1.0 / ratio < over < ratio:
             return []
-        if over < 1.0:
-            paces = np.array([over])
-        else:
-            reach = (over - 1.0) * float(np.linalg.norm(self.last_delta[:3, 3]))
-            paces = np.linspace(over, 1.0, int(np.ceil(reach / spacing_m)) + 1)[:-1]
-        steps = list(blend_poses_many(np.eye(4), self.last_delta, paces))
-        bent = [_bent(step, np.radians(t)) for t in turns_deg for step in steps]
-        still = [np.eye(4)] if standing and over > 1.0 else []
-        return [self.last_pose @ step for step in steps + bent + still]
+        return [self.last_pose @ step for step in gap_steps(self.last_delta, over, spacing_m, turns_deg, standing)]
 
     def _better_over_the_gap(self, source: np.ndarray, new_pose: np.ndarray, initial_guess: np.ndarray,
                              gap_guesses: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -496,7 +454,7 @@ class Odometry:
             return new_pose, initial_guess
         near = self._map_share(source, GAP_GUESS_SPACING * self.voxel_size)  # within reach of registration
         best, best_guess, best_share = None, None, -1.0
-        for guess in _most_promising(gap_guesses, near):
+        for guess in most_promising(gap_guesses, near, GAP_GUESSES_REGISTERED):
             pose = self._align_3d(source, guess)
             fit = share(pose)
             if fit > best_share:
@@ -506,24 +464,14 @@ class Odometry:
         self.gap_guess_won += 1
         return best, best_guess
 
-    def _steady_rate(self) -> bool:
-        """Whether the log runs at a steady rate: the last intervals between scans before this one,
-        but for a few long ones (lost scans), lie within :data:`STEADY_RATE` of each other
-        (keyframes 0.2-0.5 s apart do not)."""
-        recent = list(self._gaps)[:-1]
-        if len(recent) < 5:
-            return False
-        low, high = np.percentile(recent, [10.0, 90.0])
-        return bool(high <= STEADY_RATE * low)
-
     def _gap_margin(self) -> float:
         """[share of the scan] how much better the best registration over a long interval must fit
         than the one-interval guess's to replace it. Along a corridor or a street every step fits
         about alike, so it is the log's own rate that decides: a log at a steady rate
-        (:meth:`_steady_rate`) lost scans and the motion went on (``-GAP_FIT_MARGIN``: kept unless
+        (:meth:`ScanIntervals.steady`) lost scans and the motion went on (``-GAP_FIT_MARGIN``: kept unless
         the one-interval guess fits clearly better); a keyframed log pauses where the sensor stood
         (``+GAP_FIT_MARGIN``)."""
-        return -GAP_FIT_MARGIN if self._steady_rate() else GAP_FIT_MARGIN
+        return -GAP_FIT_MARGIN if self._intervals.steady() else GAP_FIT_MARGIN
 
     def _best_planar_guess(self, frame_down: np.ndarray, guesses: list[np.ndarray]) -> np.ndarray:
         """Planar: of the :data:`GAP_GUESSES_REGISTERED` of ``guesses`` ``(4, 4)`` that put the most
@@ -535,7 +483,8 @@ class Odometry:
             return guesses[0]
         source = self._down(frame_down, self.voxel_size * 1.5)
         reach = GAP_GUESS_SPACING * self.voxel_size  # within reach of registration
-        candidates = _most_promising(guesses, lambda g: self._refiner.fit(frame_down[:, :2], matrix_to_se2(g), reach))
+        candidates = most_promising(guesses, lambda g: self._refiner.fit(frame_down[:, :2], matrix_to_se2(g), reach),
+                                    GAP_GUESSES_REGISTERED)
         fits = [self._fit(frame_down, self._refine(frame_down, self._align(source, g), g)) for g in candidates]
         return candidates[int(np.argmax(fits))]
 
@@ -641,17 +590,14 @@ class Odometry:
 
     def _paced_motion(self, scan: Scan) -> np.ndarray:
         """The last motion ``(4, 4)`` carried on at its pace over the interval since the last scan,
-        when that interval differs from the one it spans by more than :data:`PACE_TOLERANCE` and by
+        when that interval differs from the one it spans by more than
+        :data:`~submapslam.scan_intervals.PACE_TOLERANCE` and by
         less than ``config.gap_ratio`` (a longer gap is searched: :meth:`_over_the_gap`); else the
         last motion itself (KISS-ICP's constant-velocity model, one motion a scan). Keyframes
         0.2-0.5 s apart at 10 m/s otherwise start registration up to 3 m off."""
-        ratio = self.config.gap_ratio
-        if ratio is None or not scan.timed or self._gap_before is None or self._gap_before <= 0.0:
+        if self.config.gap_ratio is None or not scan.timed:
             return self.last_delta
-        pace = self._last_gap / self._gap_before
-        if abs(pace - 1.0) <= PACE_TOLERANCE or not 1.0 / ratio < pace < ratio:
-            return self.last_delta
-        return blend_poses(np.eye(4), self.last_delta, pace)
+        return paced(self.last_delta, self._intervals.pace(), self.config.gap_ratio)
 
     def _advance(self, new_pose: np.ndarray) -> None:
         self.last_delta = inverse(self.last_pose) @ new_pose

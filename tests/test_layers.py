@@ -17,6 +17,7 @@ PKG = Path(__file__).resolve().parents[1] / "submapslam"
 # low to high; a module belongs to the first entry that is its name or a package above it
 LAYERS: list[tuple[str, ...]] = [
     ("geometry", "config", "errors", "trajectory", "landmark_log", "result", "process_stats", "child_process", "_deps", "scan",
+     "scan_intervals",
      "checkpoint", "observer", "session_map", "progress", "uncertainty"),
     ("registration",),
     ("odometry", "odometry_stage", "start_frame", "submaps", "mapping", "topology", "backend", "ekf"),
