@@ -208,11 +208,10 @@ class Odometry:
         gap_guesses = []
         if known is None and self._gicp is None:
             turns = GAP_GUESS_TURNS_PLANAR_DEG if self.planar else GAP_GUESS_TURNS_DEG
-            gap_guesses = self._over_the_gap(scan, GAP_GUESS_SPACING * self.voxel_size, turns,
-                                             standing=not self._intervals.steady())
+            gap_guesses = self._over_the_gap(scan, GAP_GUESS_SPACING * self.voxel_size, turns, may_stand=True)
         elif known is None:  # GICP's coarse stage reaches further, turns its guesses itself when they
             # fit poorly, and always tries no motion
-            gap_guesses = self._over_the_gap(scan, self._gicp.settings.coarse_distance, (), standing=False)
+            gap_guesses = self._over_the_gap(scan, self._gicp.settings.coarse_distance, (), may_stand=False)
         if self._gicp is not None:
             return self._register_gicp(frame, frame_down, initial_guess, known, gap_guesses), frame
         # planar: when the wheels and the constant-velocity model disagree, or a long interval passed
@@ -422,23 +421,24 @@ class Odometry:
         return share
 
     def _over_the_gap(self, scan: Scan, spacing_m: float, turns_deg: tuple[float, ...],
-                      standing: bool) -> list[np.ndarray]:
+                      may_stand: bool) -> list[np.ndarray]:
         """Guesses ``(4, 4)`` ``T_odom_base`` of the last motion carried on at its pace over the
         interval since the last scan, when that interval is ``config.gap_ratio`` times (or a
         ``gap_ratio``-th of) the one the last motion spans and nothing else predicts the scan (no
         wheels); else none. After frames were dropped the motion spans the gap, and the scan after
-        it comes at the usual interval again.
-        Over a gap the pace and the heading may have changed (a drive that turned 18 deg in 2 s of
-        dropped scans), so the guesses lie along the carried-on motion from the whole gap's step
-        down towards one interval's, ``spacing_m`` [m] apart, then the same bent into arcs that turn
-        by each of ``turns_deg`` about the vertical (:func:`~submapslam.scan_intervals.bent`), and with ``standing`` (a
-        keyframed log) last the last pose itself (the interval was a stop, and the last motion came
-        before it). Needs the scans' times."""
+        it comes at the usual interval again. Over a gap the pace and the heading may have changed (a
+        drive that turned 18 deg in 2 s of dropped scans), so the guesses lie along the carried-on
+        motion from the whole gap's step down towards one interval's, ``spacing_m`` [m] apart, then
+        the same bent into arcs that turn by each of ``turns_deg`` about the vertical
+        (:func:`~submapslam.scan_intervals.bent`), and with ``may_stand`` in a keyframed log last
+        the last pose itself (the interval was a stop, and the last motion came before it). Needs
+        the scans' times."""
         ratio, over = self.config.gap_ratio, self._intervals.pace()
         if ratio is None or not scan.timed or self._wheel_predicted or self.n_registered < 2 or over is None:
             return []
         if 1.0 / ratio < over < ratio:
             return []
+        standing = may_stand and not self._intervals.steady()
         return [self.last_pose @ step for step in gap_steps(self.last_delta, over, spacing_m, turns_deg, standing)]
 
     def _better_over_the_gap(self, source: np.ndarray, new_pose: np.ndarray, initial_guess: np.ndarray,
