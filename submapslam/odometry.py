@@ -221,7 +221,6 @@ class Odometry:
             alternative = self.last_pose @ self.last_delta
         elif self.planar and gap_guesses:
             alternative = self._best_planar_guess(frame_down, gap_guesses)
-            self.gap_guesses_tried += 1
         registered = frame_down
         if self.movers is not None and not self._local_map.empty():
             # what the last scans saw through is a mover entering: not registered (a replay tests
@@ -359,9 +358,7 @@ class Odometry:
                 guesses.insert(0, one_interval)
             elif not self._wheel_predicted and apart > 0.0:
                 guesses.append(one_interval)
-            if gap_guesses:
-                guesses.extend(gap_guesses)
-                self.gap_guesses_tried += 1
+            guesses.extend(gap_guesses or [])
             if not np.allclose(initial_guess, self.last_pose):
                 guesses.append(self.last_pose)
             new_pose, _ = self._gicp.align(cloud, guesses, search_all=bool(gap_guesses))
@@ -402,21 +399,22 @@ class Odometry:
         self.first_step_moved = best is not from_rest
         return best
 
-    def _map_share(self, source: np.ndarray, threshold: float | None = None) -> Callable[[np.ndarray], float] | None:
-        """3D: a function of a pose ``(4, 4)`` giving the share of ``source``'s points ``(N, 3)``
-        above the ground band (flat ground fits any step along it) that land within ``threshold``
-        [m] (default half a voxel) of the local map there; None when no point lies above the band."""
+    def _map_share(self, source: np.ndarray) -> Callable[..., float] | None:
+        """3D: a function ``share(pose, threshold=None)`` of a pose ``(4, 4)`` giving the share of
+        ``source``'s points ``(N, 3)`` above the ground band (flat ground fits any step along it)
+        that land within ``threshold`` [m] (default half a voxel) of the local map there (one k-d
+        tree of the map for every call); None when no point lies above the band."""
         import small_gicp
 
-        threshold = 0.5 * self.voxel_size if threshold is None else threshold
         above = above_ground_band(source, self.config.ground_band_m)
         if not len(above):
             return None
         tree = small_gicp.KdTree(np.asarray(self._local_map.point_cloud(), dtype=np.float64))
 
-        def share(pose: np.ndarray) -> float:
+        def share(pose: np.ndarray, threshold: float | None = None) -> float:
+            limit = 0.5 * self.voxel_size if threshold is None else threshold
             _, d2 = tree.batch_knn_search(above @ pose[:3, :3].T + pose[:3, 3], 1)
-            return float(np.mean(np.asarray(d2).reshape(-1) < threshold * threshold))
+            return float(np.mean(np.asarray(d2).reshape(-1) < limit * limit))
 
         return share
 
@@ -439,6 +437,7 @@ class Odometry:
         if 1.0 / ratio < over < ratio:
             return []
         standing = may_stand and not self._intervals.steady()
+        self.gap_guesses_tried += 1
         return [self.last_pose @ step for step in gap_steps(self.last_delta, over, spacing_m, turns_deg, standing)]
 
     def _better_over_the_gap(self, source: np.ndarray, new_pose: np.ndarray, initial_guess: np.ndarray,
@@ -448,13 +447,12 @@ class Odometry:
         share of the scan on the local map (:meth:`_map_share`), by :meth:`_gap_margin`; of those,
         the :data:`GAP_GUESSES_REGISTERED` that put the most of the scan near the map as they are
         (within the guesses' spacing) are registered."""
-        self.gap_guesses_tried += 1
         share = self._map_share(source)
         if share is None:
             return new_pose, initial_guess
-        near = self._map_share(source, GAP_GUESS_SPACING * self.voxel_size)  # within reach of registration
+        reach = GAP_GUESS_SPACING * self.voxel_size  # within reach of registration
         best, best_guess, best_share = None, None, -1.0
-        for guess in most_promising(gap_guesses, near, GAP_GUESSES_REGISTERED):
+        for guess in most_promising(gap_guesses, lambda g: share(g, reach), GAP_GUESSES_REGISTERED):
             pose = self._align_3d(source, guess)
             fit = share(pose)
             if fit > best_share:

@@ -34,6 +34,7 @@ class ScanIntervals:
         self._recent: deque[float] = deque(maxlen=history)  # the last intervals, this scan's included
         self.last: float | None = None  # into the newest scan (what the motion into it will span)
         self.before: float | None = None  # the one before it (what the last motion spans)
+        self.shortest: float | None = None  # of all so far
 
     def add(self, timestamp: float) -> None:
         """The next scan's ``timestamp`` [s]; an interval is counted only when time moved on."""
@@ -42,6 +43,7 @@ class ScanIntervals:
         if previous is not None and timestamp > previous:
             self.last = timestamp - previous
             self._recent.append(self.last)
+            self.shortest = self.last if self.shortest is None else min(self.shortest, self.last)
 
     def usual(self) -> float | None:
         """The median of the recent intervals [s] (a sweep lasts no longer), or None."""

@@ -183,21 +183,31 @@ def real3d_rows(data: Path, out: Path, peers: bool) -> list[dict]:
     return [run_and_evaluate(log.name, "real 3D (against its reference)", log, out, peers) for log in logs]
 
 
-def synthetic_rows(work: Path, out: Path, peers: bool) -> list[dict]:
-    from bench_synthetic import SCANNERS, write_variant
+def synthetic_world(work: Path, name: str) -> Path:
+    """The 2D world ``name`` of ``bench_synthetic`` (seed 0, 2 laps) under ``work``, written first when missing."""
+    from bench_synthetic import write_variant
 
+    log = work / f"synthetic_{name}"
+    if not (log / "meta.yaml").exists():
+        write_variant(name, log, seed=0, laps=2)
+    return log
+
+
+def planar_row(name: str, kind: str, log: Path, out: Path, peers: bool) -> dict:
+    """A 2D log's row (``run_and_evaluate``), with KISS-ICP's 2D child beside it when ``peers``."""
     from submapslam.io.trajectory import read_tum
 
-    rows = []
-    for name in ["rectangle", "rooms", "figure8", *SCANNERS]:
-        log = work / f"synthetic_{name}"
-        if not (log / "meta.yaml").exists():
-            write_variant(name, log, seed=0, laps=2)
-        row = run_and_evaluate(name, "synthetic 2D", log, out, peers=False)
-        if peers and "error" not in row:
-            row = with_peer(row, kiss_icp_2d(log, read_tum(log / "groundtruth_tum.txt"), out / f"{name}-kiss-icp"))
-        rows.append(row)
-    return rows
+    row = run_and_evaluate(name, kind, log, out, peers=False)
+    if peers and "error" not in row:
+        row = with_peer(row, kiss_icp_2d(log, read_tum(log / "groundtruth_tum.txt"), out / f"{log.name}-kiss-icp"))
+    return row
+
+
+def synthetic_rows(work: Path, out: Path, peers: bool) -> list[dict]:
+    from bench_synthetic import SCANNERS
+
+    return [planar_row(name, "synthetic 2D", synthetic_world(work, name), out, peers)
+            for name in ["rectangle", "rooms", "figure8", *SCANNERS]]
 
 
 def terrain_rows(work: Path, out: Path, scans: int, peers: bool, paths: tuple[str, ...] = TERRAIN_PATHS,
@@ -225,25 +235,17 @@ def sensor_rows(work: Path, out: Path, scans: int, peers: bool) -> list[dict]:
 def no_wheel_rows(work: Path, out: Path, peers: bool) -> list[dict]:
     """The ``NO_WHEELS`` rows: each log cut without its wheel odometry (and its lost scans) under
     ``work`` once, run and scored like the others, KISS-ICP beside it."""
-    from bench_synthetic import write_variant
     from bench_terrain import generate
     from cut_cloud_log import cut, parse_drop
-
-    from submapslam.io.trajectory import read_tum
 
     rows = []
     for spec, lost, name, kind in NO_WHEELS:
         planar = ":" not in spec
-        src = work / f"synthetic_{spec}" if planar else generate(spec, work)
-        if planar and not (src / "meta.yaml").exists():
-            write_variant(spec, src, seed=0, laps=2)
+        src = synthetic_world(work, spec) if planar else generate(spec, work)
         dst = work / (f"{src.name}_nowheels" + "".join(f"_{r.replace(':', '-')}" for r in lost))
         if not (dst / "meta.yaml").exists():
             cut(src, dst, 0, 1, tuple(parse_drop(r) for r in lost))
-        row = run_and_evaluate(name, kind, dst, out, peers=peers and not planar)
-        if peers and planar and "error" not in row:
-            row = with_peer(row, kiss_icp_2d(dst, read_tum(dst / "groundtruth_tum.txt"), out / f"{dst.name}-kiss-icp"))
-        rows.append(row)
+        rows.append(planar_row(name, kind, dst, out, peers) if planar else run_and_evaluate(name, kind, dst, out, peers))
     return rows
 
 

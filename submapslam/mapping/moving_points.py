@@ -45,6 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..geometry import transform_points
+from ..scan_intervals import ScanIntervals
 from .dynamic_removal import (
     RangeImage,
     VoxelAccumulator,
@@ -491,8 +492,7 @@ class MoverFilter:
         self._waiting: list[tuple] = []  # (index, points, pose, votes before, time [s]) waiting for the map
         self._before: np.ndarray | None = None  # votes of the last entering() test
         self._count = 0
-        self._last_time: float | None = None
-        self._shortest_gap: float | None = None  # between two consecutive scans so far [s]
+        self._intervals = ScanIntervals()  # between the timed scans so far
         self.dropped = 0  # points kept out of registration and the local map so far
 
     def entering(self, points_sensor: np.ndarray, T_world_sensor: np.ndarray) -> np.ndarray:
@@ -521,10 +521,7 @@ class MoverFilter:
         index = self._count
         self._count += 1
         if timestamp is not None:
-            if self._last_time is not None and timestamp > self._last_time:
-                gap = timestamp - self._last_time
-                self._shortest_gap = gap if self._shortest_gap is None else min(self._shortest_gap, gap)
-            self._last_time = timestamp
+            self._intervals.add(timestamp)
         T = np.asarray(T_world_sensor, dtype=np.float64)
         if len(scan_points) >= 10 and self.test:
             self._views.add(index, T, scan_points)
@@ -559,7 +556,8 @@ class MoverFilter:
         seconds (milliseconds, nanoseconds) would let every scan in one scan late."""
         if self.delay_s is None or waiting_since is None or now is None:
             return False
-        if self._shortest_gap is None or self._shortest_gap > 2.0 * self.delay_s:
+        shortest = self._intervals.shortest
+        if shortest is None or shortest > 2.0 * self.delay_s:
             return False
         return now - waiting_since >= self.delay_s - 1e-3
 
