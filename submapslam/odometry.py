@@ -27,6 +27,7 @@ from .geometry import (
 )
 from .registration.previous_scan import PreviousScan
 from .registration.voxel_gicp import VoxelGicpSettings, VoxelGicpTracker, azimuth_coverage_deg
+from .registration.wall_noise import WallNoise
 from .scan import Scan
 from .scan_intervals import ScanIntervals, gap_steps, most_promising, paced
 
@@ -163,6 +164,7 @@ class Odometry:
         self.previous_scan_preferred = 0  # ... and of them, those where that match's pose was kept
         self._recent_fits: deque[float] = deque(maxlen=20)  # planar: fit of the last scans to the ones before
         self._refiner = None
+        self._wall_noise = WallNoise()  # planar: the laser's scatter across walls, for the line test
         self.movers = None  # 3D: keeps what moved out of registration and the local map
         self._gicp = None  # 3D narrow-field sensors: voxelised GICP instead of KISS-ICP's registration
         if not planar and config.registration == "voxel_gicp":
@@ -196,6 +198,9 @@ class Odometry:
         """
         frame = self._crop_and_deskew(scan)
         prediction = self._predicted_delta(scan)
+        if self._refiner is not None:
+            self._wall_noise.add(scan.points[:, :2])  # the reader's points, beams in order
+            self._refiner.noise_m = self._wall_noise.sigma_m
         if len(frame) < 10:
             # nothing to register: dead-reckon on the prediction
             new_pose = self.last_pose @ prediction if known is None else known[0]
@@ -554,7 +559,8 @@ class Odometry:
             return {"first_step_from_a_guessed_move": self.first_step_moved, **gap}
         return {"wheel_overruled": self.wheel_overruled, "registration_overruled": self.registration_overruled,
                 "previous_scan_checked": self.previous_scan_checked,
-                "previous_scan_preferred": self.previous_scan_preferred, **gap}
+                "previous_scan_preferred": self.previous_scan_preferred, **gap,
+                "wall_noise_m": round(float(self._wall_noise.sigma_m), 4)}
 
     def _beyond_wheel_check(self, distance_m: float, turn_deg: float) -> bool:
         """Two planar poses ``distance_m`` [m] and ``turn_deg`` [deg] apart differ by more than

@@ -111,7 +111,8 @@ def test_a_sensor_variant_runs_against_the_original_logs_reference(bench, tmp_pa
     assert doc["name"] == "room (beams2)" and doc["log_path"] == str(variant)
     assert variant.read_text().split()[1] == "91"  # 181 beams, every other one kept
     assert doc["scans"] == 60 and doc["reference_poses"] == 60 and doc["ate"] < 0.05
-    for spec, kwargs in (("beams4", {"every_beam": 4}), ("range20", {"max_range": 20.0})):
+    for spec, kwargs in (("beams4", {"every_beam": 4}), ("range20", {"max_range": 20.0}),
+                         ("noise3", {"range_noise": 0.03})):
         assert bench.sensor_variant(spec) == kwargs
     with pytest.raises(ValueError, match="use beamsK") as err:
         bench.sensor_variant("beamsX")

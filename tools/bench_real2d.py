@@ -3,7 +3,7 @@
 Usage:
     python tools/bench_real2d.py [--data ../shared/data/carmen] [--logs intel fr079 mit-csail]
                                  [--config FILE] [--out DIR] [--json FILE] [--markdown FILE]
-                                 [--numeric native avx2 sse] [--every 1 2 3] [--sensor beams4 range20]
+                                 [--numeric native avx2 sse] [--every 1 2 3] [--sensor beams4 range20 noise3]
 
 Each log runs in its own child process (``submapslam.api.run_log``, all output files written);
 the parent measures the child's wall time and peak resident set (``os.wait4``). Reported per
@@ -25,7 +25,8 @@ much of a difference between two figures is the machine and not the code.
 
 ``--sensor`` also runs every log as another scanner would have recorded it
 (``tools/carmen_sensor_variant.py``, written under ``OUT/variants`` once): ``beamsK`` every K-th
-beam, ``rangeR`` ranges beyond R metres as no-returns. Its scans keep their times, and the
+beam, ``rangeR`` ranges beyond R metres as no-returns, ``noiseC`` C centimetres of Gaussian range
+noise on every return (a cheaper scanner; seed 0). Its scans keep their times, and the
 corrected log is matched to the original log's scans (MIT CSAIL's by their ranges), so a variant
 is scored against the same reference poses.
 """
@@ -62,15 +63,18 @@ CARTOGRAPHER = {"intel": "0.0229 m / 0.453°", "fr079": "0.0452 m", "mit-csail":
 
 
 def sensor_variant(spec: str) -> dict:
-    """``beamsK`` / ``rangeR`` -> the keyword arguments of ``carmen_sensor_variant.write_variant``."""
+    """``beamsK`` / ``rangeR`` / ``noiseC`` -> the keyword arguments of ``carmen_sensor_variant.write_variant``."""
     try:
         if spec.startswith("beams"):
             return {"every_beam": int(spec[len("beams"):])}
         if spec.startswith("range"):
             return {"max_range": float(spec[len("range"):])}
+        if spec.startswith("noise"):
+            return {"range_noise": float(spec[len("noise"):]) / 100.0}
     except ValueError:
         pass
-    raise ValueError(f"sensor variant {spec!r}: use beamsK (every K-th beam) or rangeR (ranges beyond R m)")
+    raise ValueError(f"sensor variant {spec!r}: use beamsK (every K-th beam), rangeR (ranges beyond R m) "
+                     "or noiseC (C cm of range noise)")
 
 
 def child(log: Path, ref: Path, out: Path, config: Path | None, result_json: Path, key_log: Path | None = None) -> None:
