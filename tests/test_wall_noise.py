@@ -2,11 +2,10 @@
 normals (registration/wall_noise.py, point_to_line.line_normals' noise allowance)."""
 
 import numpy as np
-import pytest
 
 import submapslam.registration.point_to_line as point_to_line
-from submapslam.registration.point_to_line import first_point_per_cell, line_normals
 from submapslam.registration.kdtree2d import KdTree2D
+from submapslam.registration.point_to_line import first_point_per_cell, line_normals
 from submapslam.registration.wall_noise import MAX_WALL_NOISE_M, WallNoise
 
 from .conftest import load_tool, shared_data
