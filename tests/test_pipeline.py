@@ -72,8 +72,9 @@ def test_run_writes_every_output(rectangle_run):
     assert summary["scan_refinement"]["matches_kept"] > 0  # 2D: every scan refined after the submap solve
     checks = summary["odometry_checks"]  # 2D: how often the odometry's checks overruled a guess
     assert set(checks) == {"wheel_overruled", "registration_overruled", "previous_scan_checked",
-                           "previous_scan_preferred", "gap_guesses_tried", "gap_guess_won"}
+                           "previous_scan_preferred", "gap_guesses_tried", "gap_guess_won", "wall_noise_m"}
     assert all(v >= 0 for v in checks.values()) and checks["gap_guesses_tried"] == 0  # wheels predict every scan
+    assert 0.002 < checks["wall_noise_m"] < 0.012  # the synthetic laser's 1 cm of range noise, as measured
     for T_anchor, idx, T_anchor_scans in zip(result.submap_poses, result.submap_scan_indices,
                                              result.submap_scan_poses):  # the grid's scan poses are the refined ones
         np.testing.assert_allclose(T_anchor @ T_anchor_scans, result.poses[idx], atol=1e-9)
