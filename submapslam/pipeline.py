@@ -564,7 +564,7 @@ class SubmapSLAM:
         if self.planar and self.config.scan_refinement.enabled and n >= 2 and failure is None:
             release_free_memory()  # the run's freed temporaries (every thread's heap) out of the refinement's peak
             with self.timer("scan_refinement"):
-                poses, refinement = self._refine_scans(poses)
+                poses, refinement = self._refine_scans(poses, odometry_checks.get("wall_noise_m", 0.0))
             scan_poses = [inverse(graph.pose(s.id)) @ poses[s.scan_indices] for s in self.submaps]
         return SlamResult(
             timestamps=timestamps,
@@ -617,9 +617,10 @@ class SubmapSLAM:
             ground_priors=self._graph_builder.ground_prior_test,
         )
 
-    def _refine_scans(self, poses: np.ndarray) -> tuple[np.ndarray, dict]:
+    def _refine_scans(self, poses: np.ndarray, wall_noise_m: float) -> tuple[np.ndarray, dict]:
         """Planar: every scan's ``T_world_base`` ``(N, 4, 4)`` after the scan-level refinement
-        (:mod:`.scan_refine`) of ``poses`` (the submap solve's), and its figures."""
+        (:mod:`.scan_refine`) of ``poses`` (the submap solve's), and its figures; ``wall_noise_m``
+        [m]: the laser's scatter across walls as the odometry measured it."""
         from .geometry import matrix_to_se2
         from .scan_refine import refine_scans
 
@@ -632,7 +633,7 @@ class SubmapSLAM:
         scan_points = _ScanLookup(self.submaps, where)
         refined = refine_scans(matrix_to_se2(np.array(self._odom_poses)), matrix_to_se2(poses),
                                [s.scan_indices for s in self.submaps], [s.points for s in self.submaps],
-                               scan_points, self.config.scan_refinement)
+                               scan_points, self.config.scan_refinement, wall_noise_m)
         return refined.poses, refined.stats
 
     def close(self) -> None:

@@ -179,13 +179,15 @@ def anchor_sigmas(odom_anchors: np.ndarray, world_anchors: np.ndarray, cfg: Scan
 
 def refine_scans(odom_xyt: np.ndarray, world_xyt: np.ndarray, submap_scan_indices: list[list[int]],
                  submap_points: list[np.ndarray], scan_points: list[np.ndarray],
-                 cfg: ScanRefineConfig) -> RefinedScans:
+                 cfg: ScanRefineConfig, wall_noise_m: float = 0.0) -> RefinedScans:
     """Refine every scan's world pose after the submap solve.
 
     ``odom_xyt`` ``(N, 3)``: each scan's odometry pose; ``world_xyt`` ``(N, 3)``: its pose after
     the submap solve (the initial estimate); ``submap_scan_indices``: the scans of each submap
     (the first is its anchor); ``submap_points``: each submap's ``(M, >=2)`` cloud in its anchor
-    frame; ``scan_points``: each scan's ``(n, >=2)`` points in its sensor frame.
+    frame; ``scan_points``: each scan's ``(n, >=2)`` points in its sensor frame; ``wall_noise_m``
+    [m]: the laser's scatter across walls the odometry measured (:mod:`.registration.wall_noise`),
+    which the submaps' line test allows for.
     """
     t0 = time.perf_counter()
     n = len(odom_xyt)
@@ -199,7 +201,8 @@ def refine_scans(odom_xyt: np.ndarray, world_xyt: np.ndarray, submap_scan_indice
     clouds = []
     for p in submap_points:
         xy = np.ascontiguousarray(np.asarray(p)[:, :2], dtype=np.float64)
-        clouds.append((xy, line_normals(xy, cKDTree(xy)) if len(xy) >= 7 else np.full((len(xy), 2), np.nan)))
+        clouds.append((xy, line_normals(xy, cKDTree(xy), noise_m=wall_noise_m) if len(xy) >= 7
+                       else np.full((len(xy), 2), np.nan)))
     scans: dict[int, np.ndarray] = {}  # keyframes only
     for i in keyframes.tolist():
         xy = np.ascontiguousarray(np.asarray(scan_points[i])[:, :2], dtype=np.float64)
