@@ -93,7 +93,8 @@ class SlamResult:
             that returned nothing (free space in the grid; an empty list per submap when the log
             gives none; a map folder keeps them).
         odometry_checks: planar and narrow-field 3D runs: how often the odometry's checks tried
-            more than its first guess (:meth:`~submapslam.odometry.Odometry.checks`); empty otherwise.
+            more than its first guess (:meth:`~submapslam.odometry.Odometry.checks`), and for planar
+            runs ``wall_noise_m``, the laser's measured scatter across walls; empty otherwise.
         scan_refinement: planar runs: the figures of the scan-level refinement after the submap
             solve (:mod:`~submapslam.scan_refine`: keyframes, matches tried and kept, seconds);
             empty when it did not run. ``poses`` and ``submap_scan_poses`` are the refined ones.

@@ -37,9 +37,9 @@ def first_point_per_cell(xy: np.ndarray, cell: float) -> np.ndarray:
 
 
 #: a neighbourhood scattered across its line by up to this many times the scanner's measured wall
-#: noise (:mod:`.wall_noise`) is still a line: at 2.5 the clean logs' tests are as before (their
-#: noise explains less than a tenth of their spread along) and 3 cm of range noise keeps the walls
-#: (FR079 with it: 0.53 -> 0.08 m; 2 and 3 drifted more on one log or another)
+#: noise (:mod:`.wall_noise`, the part beyond :data:`CLEAN_WALL_NOISE_M`) is still a line: 3 cm of
+#: range noise keeps the walls (FR079 with it: 0.53 -> 0.10 m; factors 2 and 3 did worse on one
+#: noisy log or another, BENCHMARKS.md stop 70)
 LINE_NOISE_FACTOR = 2.5
 #: [m] the wall noise of the scanners ``max_flatness`` was chosen on (Intel 0.005, FR079 0.006 m):
 #: only the noise beyond it needs room
@@ -54,7 +54,9 @@ def line_normals(points: np.ndarray, tree: cKDTree, k: int = 7, max_flatness: fl
     """Unit normals ``(M, 2)`` of 2D points from their ``k`` nearest neighbours; NaN where not line-like.
 
     Line-like: the neighbours' scatter across their line is under ``max_flatness`` of their
-    scatter along it, or (a noisy scanner) within :data:`LINE_NOISE_FACTOR` x ``noise_m`` [m] rms."""
+    scatter along it, or (a noisy scanner, ``noise_m`` [m] its wall noise) within
+    :data:`LINE_NOISE_FACTOR` x the noise beyond :data:`CLEAN_WALL_NOISE_M` rms and under
+    :data:`NOISY_LINE_FLATNESS` of the scatter along. ``noise_m`` up to that clean figure changes nothing."""
     k = min(k, len(points))
     _, idx = tree.query(points, k=k)
     nb = points[idx]

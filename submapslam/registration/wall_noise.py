@@ -46,13 +46,13 @@ class WallNoise:
     """The scatter across walls over a log's planar scans so far: a running robust figure (the
     median of the measured scans' chord distances, kept as a histogram of 0.1 mm bins), so that a
     run and its resumed replay, which see the same scans, use the same figures. The first
-    ``every_scan`` scans are all measured, then every ``then_every``-th (36 us a scan measured)."""
+    ``first_scans`` scans are all measured, then every ``then_every``-th (36 us a scan measured)."""
 
     BIN_M = 1e-4  # [m] histogram bin
     BINS = 1000  # up to 0.1 m; larger distances (corners, edges) count in the last bin
 
-    def __init__(self, every_scan: int = 20, then_every: int = 10) -> None:
-        self.every_scan, self.then_every = every_scan, then_every
+    def __init__(self, first_scans: int = 20, then_every: int = 10) -> None:
+        self.first_scans, self.then_every = first_scans, then_every
         self._scans = 0
         self._counts = np.zeros(self.BINS, dtype=np.int64)
         self.sigma_m = 0.0  # [m] 0 until a scan gave a reading
@@ -60,7 +60,7 @@ class WallNoise:
     def add(self, points_xy: np.ndarray) -> None:
         """Offer a scan's points ``(N, 2)`` (sensor frame, beams in order) to the figure."""
         self._scans += 1
-        if self._scans > self.every_scan and self._scans % self.then_every:
+        if self._scans > self.first_scans and self._scans % self.then_every:
             return
         d = np.abs(chord_distances(points_xy))
         if len(d) == 0:
