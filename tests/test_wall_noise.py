@@ -23,6 +23,8 @@ def _noisy_scan(pose, sigma, rng, beams=361):
 
 
 def test_the_wall_noise_grows_with_the_range_noise_and_points_out_of_order_are_held():
+    """Ten scans of a room at 0, 1, 3 and 5 cm of range noise: the figure reads 0.4-1x the noise and
+    grows with it; a scan whose points are out of beam order reads no more than the cap."""
     rng = np.random.default_rng(3)
     readings = []
     for sigma in (0.0, 0.01, 0.03, 0.05):
