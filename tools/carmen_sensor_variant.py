@@ -16,7 +16,8 @@ noise of SIGMA [m] added to every range that returned (a cheaper scanner; ``--se
 and robot poses, ODOM's pose, each its own chain) re-integrated with its travel times S and its turn
 times K (worn wheels, a wheel base calibrated wrong). Timestamps are unchanged, so a run on DST
 scores against the corrected log with the original log as the scans' key
-(``submapslam eval OUT/poses_tum.txt CORRECTED --raw-log SRC``; BENCHMARKS.md). Other laser records (ROBOTLASER1, RAWLASER*) are refused: their layouts differ.
+(``submapslam eval OUT/poses_tum.txt CORRECTED --raw-log SRC``; BENCHMARKS.md). Other laser
+records (ROBOTLASER1, RAWLASER*) are refused: their layouts differ.
 """
 
 from __future__ import annotations
