@@ -22,9 +22,9 @@ def _noisy_scan(pose, sigma, rng, beams=361):
     return np.stack([r * np.cos(angles[keep]), r * np.sin(angles[keep])], axis=1)
 
 
-def test_the_wall_noise_grows_with_the_range_noise_and_points_out_of_order_are_held():
+def test_the_wall_noise_grows_with_the_range_noise_whatever_the_points_order():
     """Ten scans of a room at 0, 1, 3 and 5 cm of range noise: the figure reads 0.4-1x the noise and
-    grows with it; a scan whose points are out of beam order reads no more than the cap."""
+    grows with it; a scan's points in another order read the same; scattered points read the cap."""
     rng = np.random.default_rng(3)
     readings = []
     for sigma in (0.0, 0.01, 0.03, 0.05):
@@ -35,9 +35,14 @@ def test_the_wall_noise_grows_with_the_range_noise_and_points_out_of_order_are_h
     assert readings[0] < 0.001  # exact walls: no scatter (the room's corners are outliers to a median)
     assert 0.4 * 0.01 < readings[1] < 0.01 and 0.4 * 0.03 < readings[2] < 0.03
     assert readings[1] < readings[2] < readings[3]
-    shuffled = WallNoise()
-    shuffled.add(rng.permutation(_noisy_scan((0.0, 0.0, 0.0), 0.0, rng)))
-    assert shuffled.sigma_m <= MAX_WALL_NOISE_M  # not a scanner's noise: held
+    scan = _noisy_scan((0.0, 0.0, 0.0), 0.03, rng)
+    ordered, shuffled = WallNoise(), WallNoise()
+    ordered.add(scan)
+    shuffled.add(rng.permutation(scan))  # points in another order (a cloud of the scan): read in bearing order
+    assert shuffled.sigma_m == ordered.sigma_m < MAX_WALL_NOISE_M
+    messy = WallNoise()
+    messy.add(rng.uniform(-5.0, 5.0, (300, 2)))  # no walls at all: more than a scanner's noise, held
+    assert messy.sigma_m == MAX_WALL_NOISE_M
 
 
 def test_a_noisy_wall_keeps_its_normal_and_a_blob_does_not():

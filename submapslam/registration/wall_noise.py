@@ -6,7 +6,7 @@ has to allow for it: on a scanner three times noisier than the logs it was writt
 points lose their line normal, the point-to-line refinement has little left to hold on to, and
 the odometry drifts (FR079 with 3 cm of range noise: 5.4 m instead of 0.9 m).
 
-The measure needs no map: along a scan (beams in order) each point's distance from the chord of
+The measure needs no map: along a scan (points in bearing order) each point's distance from the chord of
 its two neighbours is, on a wall, the noise across that wall (variance 1.5x a point's, the
 chord's ends adding half each). The median of those distances is blind to the corners and edges
 among them. It reads about 0.6x a Gaussian range noise's sigma (beams meet walls obliquely, so
@@ -25,15 +25,18 @@ import numpy as np
 MAX_CHORD_M = 0.5
 #: Gaussian scale of a median absolute deviation
 MAD_TO_SIGMA = 1.0 / 0.6745
-#: [m] the figure is held to this: more is not a scanner's noise but points out of beam order
+#: [m] the figure is held to this: more is no scanner's noise (points of several sweeps, say)
 MAX_WALL_NOISE_M = 0.05
 
 
 def chord_distances(points_xy: np.ndarray) -> np.ndarray:
-    """Signed distances [m] ``(M,)`` of each inner point of a scan ``(N, 2)`` (beams in order) from
-    the chord through its two neighbours, where those lie within :data:`MAX_CHORD_M`."""
+    """Signed distances [m] ``(M,)`` of each inner point of a scan ``(N, 2)`` (sensor or robot frame)
+    from the chord through its two neighbours in bearing, where those lie within :data:`MAX_CHORD_M`.
+    The points are taken in bearing order (a scanner's beam order, whatever order they came in)."""
+    points_xy = points_xy[np.isfinite(points_xy).all(axis=1)]
     if len(points_xy) < 3:
         return np.zeros(0)
+    points_xy = points_xy[np.argsort(np.arctan2(points_xy[:, 1], points_xy[:, 0]), kind="stable")]
     before, mid, after = points_xy[:-2], points_xy[1:-1], points_xy[2:]
     chord = after - before
     length = np.hypot(chord[:, 0], chord[:, 1])
@@ -58,7 +61,7 @@ class WallNoise:
         self.sigma_m = 0.0  # [m] 0 until a scan gave a reading
 
     def add(self, points_xy: np.ndarray) -> None:
-        """Offer a scan's points ``(N, 2)`` (sensor frame, beams in order) to the figure."""
+        """Offer a scan's points ``(N, 2)`` (sensor frame) to the figure."""
         self._scans += 1
         if self._scans > self.first_scans and self._scans % self.then_every:
             return
