@@ -55,7 +55,9 @@ from scipy.spatial import cKDTree
 from .config import LocalizationConfig
 from .errors import InputError, SubmapSlamError
 from .geometry import inverse, matrix_to_se2, se2_to_matrix
+from .registration import point_to_line as point_to_line_module
 from .registration.point_to_line import first_point_per_cell, line_normals, point_to_line
+from .registration.wall_noise import WallNoise
 from .scan import Scan
 
 log = logging.getLogger(__name__)
@@ -219,18 +221,34 @@ class Localizer:
             self._xy = xy
             self._render_xy = xy[first_point_per_cell(xy, 2 * self.voxel)]  # enough for 0.5 deg bearings
             self._tree = cKDTree(xy)
-            normals = line_normals(xy, self._tree)
-            line = np.isfinite(normals[:, 0])
-            if line.sum() < 10:
-                raise SubmapSlamError("the planar map has fewer than 10 line-like points: nothing to localise against")
-            self._line_pts, self._line_normals = xy[line], normals[line]
-            self._line_tree = cKDTree(self._line_pts)
+            self.wall_noise_m = 0.0  # [m] the scanner's scatter across walls the line test allows for
+            self._map_lines(0.0)
             self._map3d = np.column_stack([xy, np.zeros(len(xy))])
         else:
             from .registration.spatial import SpatialCloud
 
             self._cloud = SpatialCloud(pts, self.voxel)
             self._tree = cKDTree(self._cloud.points)
+
+    def _map_lines(self, wall_noise_m: float) -> None:
+        """Planar: the map's line-like points, their normals and k-d tree, with the line test allowing
+        for ``wall_noise_m`` [m] (:func:`~submapslam.registration.point_to_line.line_normals`)."""
+        normals = line_normals(self._xy, self._tree, noise_m=wall_noise_m)
+        line = np.isfinite(normals[:, 0])
+        if line.sum() < 10:
+            raise SubmapSlamError("the planar map has fewer than 10 line-like points: nothing to localise against")
+        self._line_pts, self._line_normals = self._xy[line], normals[line]
+        self._line_tree = cKDTree(self._line_pts)
+        self.wall_noise_m = wall_noise_m
+
+    def allow_wall_noise(self, wall_noise_m: float) -> None:
+        """Planar: let the map's and the local targets' line test allow for the scanner's measured
+        scatter across walls (:class:`~submapslam.registration.wall_noise.WallNoise` of the log's
+        scans; a noisy scanner's map and scans keep their walls). Up to the clean scanners' figure
+        nothing changes."""
+        clean = point_to_line_module.CLEAN_WALL_NOISE_M
+        if self.planar and max(wall_noise_m, clean) != max(self.wall_noise_m, clean):
+            self._map_lines(wall_noise_m)
 
     # --- scans ---------------------------------------------------------------------------------
     def preprocess(self, points: np.ndarray) -> np.ndarray:
@@ -363,7 +381,7 @@ class Localizer:
         pts = pts[first_point_per_cell(pts, self.voxel)]
         if len(pts) < 10:
             return None
-        normals = line_normals(pts, cKDTree(pts))
+        normals = line_normals(pts, cKDTree(pts), noise_m=self.wall_noise_m)
         line = np.isfinite(normals[:, 0])
         return _LocalTarget(self, pts[line], normals[line]) if line.sum() >= 10 else None
 
@@ -442,6 +460,11 @@ def parse_initial_pose(initial_pose: np.ndarray | tuple | str | None) -> np.ndar
     return arr
 
 
+#: planar: the log's first scans, on which the scanner's wall noise is measured before the line
+#: tests allow for it (:meth:`Localizer.allow_wall_noise`)
+WALL_NOISE_SCANS = 20
+
+
 def localize_log(
     log_reader: Iterable[Scan],
     map_dir_or_points: str | Path | np.ndarray,
@@ -482,6 +505,7 @@ def localize_log(
     last_wheel: np.ndarray | None = None
     last_delta = np.eye(4)
     since_search = 0
+    wall_noise = WallNoise()  # planar: the scanner's scatter across walls, over the first scans
     k = -1
     for n, scan in enumerate(log_reader):
         if n < start:
@@ -499,6 +523,10 @@ def localize_log(
             delta = se2_to_matrix(*matrix_to_se2(delta))
         last_wheel = wheel
         dr.append(np.eye(4) if k == 0 else dr[-1] @ delta)
+        if loc.planar and k < WALL_NOISE_SCANS:
+            wall_noise.add(scan.points[:, :2])
+            if k == WALL_NOISE_SCANS - 1:  # the scanner's noise known: the line tests allow for it from here on
+                loc.allow_wall_noise(wall_noise.sigma_m)
         pts = loc.preprocess(scan.points)
         stamps.append(scan.timestamp)
         prev = poses[-1] if poses else (T0 if T0 is not None else np.eye(4))

@@ -101,3 +101,25 @@ def _odometry(path, n=None):
             break
         out.append(matrix_to_se2(odo.register(scan)[0]))
     return np.array(out), odo.checks()
+
+
+def test_localize_allows_for_a_noisy_scanners_walls_in_its_map():
+    """A map of walls scattered 1.8 cm across: the localiser's line test keeps few of them until told
+    the scanner's wall noise (localize_log measures it on the log's first 20 scans); a clean
+    scanner's figure leaves the map's lines as they were (the same arrays)."""
+    from submapslam.localization import Localizer
+
+    rng = np.random.default_rng(6)
+    walls = []
+    for x0, y0, x1, y1 in ROOM:
+        t = rng.uniform(0.0, 1.0, max(int(np.hypot(x1 - x0, y1 - y0) / 0.01), 10))  # a map's density: ~1 cm
+        p = np.stack([x0 + t * (x1 - x0), y0 + t * (y1 - y0)], axis=1)
+        d = np.array([y1 - y0, x0 - x1]) / max(np.hypot(x1 - x0, y1 - y0), 1e-9)
+        walls.append(p + rng.normal(0.0, 0.018, (len(p), 1)) * d)
+    xy = np.vstack(walls)
+    loc = Localizer(np.column_stack([xy, np.zeros(len(xy))]))
+    plain = loc._line_pts
+    loc.allow_wall_noise(0.006)
+    assert loc._line_pts is plain  # a clean scanner: nothing recomputed
+    loc.allow_wall_noise(0.018)
+    assert len(loc._line_pts) > 1.5 * len(plain) and loc.wall_noise_m == 0.018
