@@ -55,8 +55,12 @@ from scipy.spatial import cKDTree
 from .config import LocalizationConfig
 from .errors import InputError, SubmapSlamError
 from .geometry import inverse, matrix_to_se2, se2_to_matrix
-from .registration import point_to_line as point_to_line_module
-from .registration.point_to_line import first_point_per_cell, line_normals, point_to_line
+from .registration.point_to_line import (
+    CLEAN_WALL_NOISE_M,
+    first_point_per_cell,
+    line_normals,
+    point_to_line,
+)
 from .registration.wall_noise import WallNoise
 from .scan import Scan
 
@@ -246,8 +250,7 @@ class Localizer:
         scatter across walls (:class:`~submapslam.registration.wall_noise.WallNoise` of the log's
         scans; a noisy scanner's map and scans keep their walls). Up to the clean scanners' figure
         nothing changes."""
-        clean = point_to_line_module.CLEAN_WALL_NOISE_M
-        if self.planar and max(wall_noise_m, clean) != max(self.wall_noise_m, clean):
+        if self.planar and max(wall_noise_m, CLEAN_WALL_NOISE_M) != max(self.wall_noise_m, CLEAN_WALL_NOISE_M):
             self._map_lines(wall_noise_m)
 
     # --- scans ---------------------------------------------------------------------------------
