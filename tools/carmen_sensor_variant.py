@@ -30,6 +30,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from submapslam.geometry import matrix_to_se2, relative, se2_to_matrix  # noqa: E402
 from submapslam.io.carmen import RECORD_PRIORITY, beam_angles  # noqa: E402
 from submapslam.io.compression import open_text  # noqa: E402
 
@@ -40,23 +41,19 @@ class DistortedChain:
 
     def __init__(self, scale: float, turn_scale: float) -> None:
         self.scale, self.turn_scale = scale, turn_scale
-        self._last: np.ndarray | None = None  # (3,) last recorded pose (x, y, theta)
-        self._out: np.ndarray | None = None  # (3,) its distorted pose
+        self._last: np.ndarray | None = None  # (4, 4) last recorded pose
+        self._out: np.ndarray | None = None  # (4, 4) its distorted pose
 
     def __call__(self, pose: np.ndarray) -> np.ndarray:
         """The distorted ``(x, y, theta)`` [m, rad] of the next recorded ``pose``."""
+        T = se2_to_matrix(*pose)
         if self._last is None:
-            out = pose.copy()
+            out = T
         else:
-            c, s = np.cos(self._last[2]), np.sin(self._last[2])
-            dx, dy = pose[0] - self._last[0], pose[1] - self._last[1]
-            step = self.scale * np.array([c * dx + s * dy, -s * dx + c * dy])  # in the last pose's frame
-            turn = self.turn_scale * np.arctan2(np.sin(pose[2] - self._last[2]), np.cos(pose[2] - self._last[2]))
-            c, s = np.cos(self._out[2]), np.sin(self._out[2])
-            theta = np.arctan2(np.sin(self._out[2] + turn), np.cos(self._out[2] + turn))
-            out = np.array([self._out[0] + c * step[0] - s * step[1], self._out[1] + s * step[0] + c * step[1], theta])
-        self._last, self._out = pose.copy(), out
-        return out
+            dx, dy, turn = matrix_to_se2(relative(self._last, T))  # the step in the last pose's frame
+            out = self._out @ se2_to_matrix(self.scale * dx, self.scale * dy, self.turn_scale * turn)
+        self._last, self._out = T, out
+        return matrix_to_se2(out)
 
 
 def _pose_tokens(tokens: list[str], chain: DistortedChain | None) -> list[str]:

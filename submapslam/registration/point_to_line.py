@@ -69,9 +69,10 @@ def line_normals(points: np.ndarray, tree: cKDTree, k: int = 7, max_flatness: fl
     small, large = 0.5 * (a + c) - half_gap, 0.5 * (a + c) + half_gap
     angle = 0.5 * np.arctan2(2 * b, a - c)  # direction of the larger eigenvector (the line)
     normals = np.stack([-np.sin(angle), np.cos(angle)], axis=1)
-    excess = max(noise_m * noise_m - CLEAN_WALL_NOISE_M**2, 0.0)  # beyond what max_flatness allows for
-    noisy_line = np.minimum(k * LINE_NOISE_FACTOR**2 * excess, NOISY_LINE_FLATNESS * large)
-    allowed = np.maximum(max_flatness * np.maximum(large, 1e-12), noisy_line)
+    allowed = max_flatness * np.maximum(large, 1e-12)
+    excess = noise_m * noise_m - CLEAN_WALL_NOISE_M**2  # beyond what max_flatness allows for
+    if excess > 0.0:
+        allowed = np.maximum(allowed, np.minimum(k * LINE_NOISE_FACTOR**2 * excess, NOISY_LINE_FLATNESS * large))
     normals[small > allowed] = np.nan
     return normals
 
