@@ -403,14 +403,11 @@ class Odometry:
         (odometry 0.64 m), its steps 0.4 m short and then backwards from a guess 0.13 m off; at a
         voxel it registered within 0.04 m of the truth. The two rarely differ (5 cm, 0.2 deg);
         when they do, the share decides."""
-        wide = self._align(source, initial_guess)
         sigma = self._threshold.get_threshold()
-        tight_sigma = self.voxel_size
-        if sigma <= tight_sigma:
+        wide = self._align(source, initial_guess, sigma)
+        if sigma <= self.voxel_size:
             return wide
-        tight = self._registration.align_points_to_map(
-            points=source, voxel_map=self._local_map, initial_guess=initial_guess,
-            max_correspondance_distance=3.0 * tight_sigma, kernel=tight_sigma)
+        tight = self._align(source, initial_guess, self.voxel_size)
         apart = inverse(wide) @ tight
         if np.linalg.norm(apart[:3, 3]) < TIGHT_AGREES_M and rotation_angle(apart) < np.deg2rad(TIGHT_AGREES_DEG):
             return wide
@@ -531,9 +528,11 @@ class Odometry:
         fits = [self._fit(frame_down, self._refine(frame_down, self._align(source, g), g)) for g in candidates]
         return candidates[int(np.argmax(fits))]
 
-    def _align(self, source: np.ndarray, initial_guess: np.ndarray) -> np.ndarray:
-        """KISS-ICP point-to-point registration of ``source (N, 3)`` to the local map from ``initial_guess``."""
-        sigma = self._threshold.get_threshold()
+    def _align(self, source: np.ndarray, initial_guess: np.ndarray, sigma: float | None = None) -> np.ndarray:
+        """KISS-ICP point-to-point registration of ``source (N, 3)`` to the local map from ``initial_guess``,
+        at ``sigma`` [m] (correspondences up to three times it; default: the adaptive threshold)."""
+        if sigma is None:
+            sigma = self._threshold.get_threshold()
         return self._registration.align_points_to_map(
             points=source, voxel_map=self._local_map, initial_guess=initial_guess,
             max_correspondance_distance=3.0 * sigma, kernel=sigma)
