@@ -41,6 +41,9 @@ class Checkpoint:
             (GTSAM order, [rad, m]; the run's measured odometry noise is made of these).
         loop_records: per submap id, the hypotheses tested when it closed, in test order.
         source: the log the scans came from.
+        map_refreshed: ``(K,)`` bool, the scans for which the odometry put the scans waiting for
+            its local map into it early (:meth:`~submapslam.odometry.Odometry._fresh_map_if_off`);
+            None: none.
     """
 
     timestamps: np.ndarray
@@ -52,6 +55,7 @@ class Checkpoint:
     loop_records: dict[int, list[LoopRecord]] = field(default_factory=dict)
     source: str = ""
     run_frame: np.ndarray | None = None
+    map_refreshed: np.ndarray | None = None
 
     @property
     def n_scans(self) -> int:
@@ -62,9 +66,10 @@ class Checkpoint:
         """Submaps whose graph work (odometry edge, loop tests) the checkpoint holds."""
         return len(self.loop_records)
 
-    def known_pose(self, scan_index: int) -> tuple[np.ndarray, np.ndarray | None] | None:
-        """``(T_odom_base, xyt or None)`` of a scan the checkpoint covers, else None."""
+    def known_pose(self, scan_index: int) -> tuple[np.ndarray, np.ndarray | None, bool] | None:
+        """``(T_odom_base, xyt or None, map refreshed)`` of a scan the checkpoint covers, else None."""
         if scan_index >= self.n_scans:
             return None
         xyt = self.planar_poses[scan_index] if self.planar_poses is not None else None
-        return self.odometry_poses[scan_index], xyt
+        refreshed = self.map_refreshed is not None and bool(self.map_refreshed[scan_index])
+        return self.odometry_poses[scan_index], xyt, refreshed

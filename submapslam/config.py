@@ -128,7 +128,10 @@ class OdometryConfig(_Strict):
         "the path by 0.15-0.2 % (keyframed worlds along KITTI 05, 06, 07 and 10: ATE 0.135, 0.244, 0.110 and "
         "0.589 -> 0.078, 0.073, 0.061 and 0.311 m; MulRan KAIST03 0.036 -> 0.029 m; BENCHMARKS.md, stop 68). "
         "A log without times (a cloud folder without times.txt, its scans numbered), or whose scans never come "
-        "within twice this of each other (times not in seconds), waits by the count; None: movers_delay scans alone")
+        "within twice this of each other (times not in seconds), waits by the count; None: movers_delay scans alone. "
+        "Without wheels, a scan that lands on the delayed map far less than the last scans did lets the waiting "
+        "scans in at once and registers again (a 64-ring keyframed drive turning into a street the map had not "
+        "seen: 89 -> 0.09 m; BENCHMARKS.md, stop 72)")
     movers_views: int = Field(4, ge=1, description="3D: at most this many of those scans test one scan (spread "
                               "over them): the cost per scan")
     separate_process: bool | None = Field(

@@ -59,6 +59,11 @@ GAP_GUESSES_REGISTERED = 3
 #: agree, and the first stands (:meth:`Odometry._tight_or_wide`)
 TIGHT_AGREES_M = 0.05
 TIGHT_AGREES_DEG = 0.2
+#: 3D without wheels: a scan whose share on the delayed local map falls below this part of the
+#: usual (the median of the last FRESH_MAP_HISTORY scans') has the waiting scans put into the map
+#: and registers again (:meth:`Odometry._fresh_map_if_off`)
+FRESH_MAP_RATIO = 0.5
+FRESH_MAP_HISTORY = 10
 
 
 def resolve_registration(config: OdometryConfig, scan: Scan) -> OdometryConfig:
@@ -160,12 +165,17 @@ class Odometry:
         self.n_registered = 0
         self.first_step_moved = False  # 3D: the second scan's registration started from a guessed step
         self._scans_in_map = 0  # scans added to KISS-ICP's local map so far
+        self._map_tree: tuple[int, object] | None = None  # (scans in map, small_gicp k-d tree of the local map then)
         self._wheel_predicted = False  # the last prediction came from the wheels
         self.wheel_overruled = 0  # planar scans whose constant-velocity guess fitted better than the wheels'
         self.gap_guesses_tried = 0  # scans after a long interval also registered from the motion carried over it
         self.gap_guess_won = 0  # ... and of them, those where that guess's registration fitted better
         self.tight_tried = 0  # 3D: scans registered at a voxel too, the two results apart (:meth:`_tight_or_wide`)
         self.tight_won = 0  # ... and of them, those where the tight result was kept
+        self.fresh_map_tried = 0  # 3D without wheels: scans registered again once the waiting scans entered the map
+        self.fresh_map_won = 0  # ... and of them, those where that registration was kept
+        self.last_map_refreshed = False  # the waiting scans entered the local map early for the last scan
+        self._recent_shares: deque[float] = deque(maxlen=FRESH_MAP_HISTORY)  # 3D: the last scans' map shares
         self.registration_overruled = 0  # planar scans whose wheel pose fitted better than where registration went
         self.previous_scan_checked = 0  # planar scans that fitted poorly, so that their match to the previous scan was tried
         self.previous_scan_preferred = 0  # ... and of them, those where that match's pose was kept
@@ -201,8 +211,10 @@ class Odometry:
         motion compensation; :attr:`last_frame_down` is the same thinned to :attr:`frame_voxel`
         (what registration used). ``known``: the ``(T_odom_base, xyt or None)`` this scan was
         registered at before (a resumed run): no ICP, the local map and the motion model are
-        updated exactly as they were. :attr:`last_xyt` is the planar pose as refined.
+        updated exactly as they were (``known[2]``, when given: whether the waiting scans entered the
+        map early for it, :attr:`last_map_refreshed`). :attr:`last_xyt` is the planar pose as refined.
         """
+        self.last_map_refreshed = False
         frame = self._crop_and_deskew(scan)
         prediction = self._predicted_delta(scan)
         if self._refiner is not None:
@@ -241,6 +253,8 @@ class Odometry:
         source = self._down(registered, self.voxel_size * 1.5)
         if known is not None:
             new_pose = known[0]
+            if not self.planar and not self._local_map.empty():
+                self._fresh_map_if_off(source, initial_guess, new_pose, replayed=len(known) > 2 and bool(known[2]))
             if self.planar:
                 xyt = known[1] if known[1] is not None else matrix_to_se2(new_pose)
                 if self._refiner is not None:  # the fits the live run kept, for the scans after the replay
@@ -255,6 +269,7 @@ class Odometry:
                 new_pose = self._first_step(source, new_pose)
             elif gap_guesses:
                 new_pose, initial_guess = self._better_over_the_gap(source, new_pose, initial_guess, gap_guesses)
+            new_pose = self._fresh_map_if_off(source, initial_guess, new_pose)
         else:
             new_pose = self._align(source, initial_guess)
         if self.planar and known is None:
@@ -420,6 +435,45 @@ class Odometry:
         self.tight_won += 1
         return tight
 
+    def _fresh_map_if_off(self, source: np.ndarray, initial_guess: np.ndarray, pose: np.ndarray,
+                          replayed: bool | None = None) -> np.ndarray:
+        """A spinning LiDAR without wheels: ``pose`` ``(4, 4)``, the registration of ``source``
+        ``(N, 3)`` from ``initial_guess``, or, when the scan lands on the delayed local map much
+        less than the last scans did (its share, :meth:`_map_share`, below ``FRESH_MAP_RATIO`` of
+        their median), the scans still waiting for the map enter it now and the scan registers
+        again from the same guess; of the two, the one with the larger share on that map.
+        ``replayed``: a resumed run's decision for this scan (its ``pose`` is the one kept).
+
+        Each scan enters the map 0.8 s late (``movers_delay_s``: the odometry drifts less, and
+        movers can be seen through). Where the last keyframes turned into a street the map has
+        not seen, the scan's share fell from 0.89 to 0.14 and registration carried the turn on
+        at 4-10 deg a keyframe (a 64-ring drive without wheels ended 89 m off; the waiting
+        scans had seen that street). With the wheels' guess the delayed map holds."""
+        if self.movers is None or self._wheel_predicted or not self.movers.waiting:
+            return pose
+        share = self._map_share(source)
+        if share is None:
+            return pose
+        if replayed is None:
+            fit = share(pose)
+            refresh = len(self._recent_shares) >= 3 and fit < FRESH_MAP_RATIO * statistics.median(self._recent_shares)
+        else:
+            refresh = replayed
+        if refresh:
+            for points, entered in self.movers.flush():
+                self._local_map.update(points, entered)
+                self._scans_in_map += 1
+            self.last_map_refreshed = True
+            share = self._map_share(source)
+            if replayed is None:
+                self.fresh_map_tried += 1
+                again = self._tight_or_wide(source, initial_guess)
+                if share(again) > share(pose):
+                    pose = again
+                    self.fresh_map_won += 1
+        self._recent_shares.append(share(pose) if refresh or replayed is not None else fit)
+        return pose
+
     def _first_step(self, source: np.ndarray, from_rest: np.ndarray) -> np.ndarray:
         """The second scan of a 3D log with no motion known yet: ``from_rest`` ``(4, 4)`` (its
         registration from no motion) or, if one fits the first scan clearly better, a
@@ -445,13 +499,16 @@ class Odometry:
         """3D: a function ``share(pose, threshold=None)`` of a pose ``(4, 4)`` giving the share of
         ``source``'s points ``(N, 3)`` above the ground band (flat ground fits any step along it)
         that land within ``threshold`` [m] (default half a voxel) of the local map there (one k-d
-        tree of the map for every call); None when no point lies above the band."""
+        tree of the map as it is, kept until the map changes); None when no point lies above the band."""
         import small_gicp
 
         above = above_ground_band(source, self.config.ground_band_m)
         if not len(above):
             return None
-        tree = small_gicp.KdTree(np.asarray(self._local_map.point_cloud(), dtype=np.float64))
+        if self._map_tree is None or self._map_tree[0] != self._scans_in_map:  # every map update counts a scan
+            self._map_tree = (self._scans_in_map,
+                              small_gicp.KdTree(np.asarray(self._local_map.point_cloud(), dtype=np.float64)))
+        tree = self._map_tree[1]
 
         def share(pose: np.ndarray, threshold: float | None = None) -> float:
             limit = 0.5 * self.voxel_size if threshold is None else threshold
@@ -598,7 +655,8 @@ class Odometry:
         gap["gap_guess_won"] = self.gap_guess_won
         if not self.planar:
             return {"first_step_from_a_guessed_move": self.first_step_moved, "tight_tried": self.tight_tried,
-                    "tight_won": self.tight_won, **gap}
+                    "tight_won": self.tight_won, "fresh_map_tried": self.fresh_map_tried,
+                    "fresh_map_won": self.fresh_map_won, **gap}
         return {"wheel_overruled": self.wheel_overruled, "registration_overruled": self.registration_overruled,
                 "previous_scan_checked": self.previous_scan_checked,
                 "previous_scan_preferred": self.previous_scan_preferred, **gap,

@@ -31,7 +31,8 @@ from .process_stats import single_threaded_blas
 from .scan import Scan
 
 log = logging.getLogger(__name__)
-Known = tuple[np.ndarray, np.ndarray | None] | None  # a resumed run's (T_odom_base, xyt or None)
+#: a resumed run's (T_odom_base, xyt or None, whether the waiting scans entered the local map early for it)
+Known = tuple[np.ndarray, np.ndarray | None, bool] | None
 
 
 #: [s] how long a child whose answers stopped coming may take to end before it is stopped
@@ -45,12 +46,15 @@ class Registered:
     pose: ``(4, 4)`` ``T_odom_base``. frame: ``(N, 3)`` the scan's points in its base frame after
     range filtering and motion compensation. frame_down: the same thinned to the odometry's
     ``frame_voxel`` (what registration used). xyt: planar logs: ``(3,)`` x, y, yaw as refined.
+    map_refreshed: the scans waiting for the local map entered it early for this one
+    (:attr:`~submapslam.odometry.Odometry.last_map_refreshed`; a checkpoint keeps it).
     """
 
     pose: np.ndarray
     frame: np.ndarray
     frame_down: np.ndarray
     xyt: np.ndarray | None
+    map_refreshed: bool = False
 
 
 class InlineOdometry:
@@ -68,7 +72,8 @@ class InlineOdometry:
     def result(self) -> Registered:
         scan, known = self._pending.popleft()
         pose, frame = self._odometry.register(scan, known)
-        return Registered(pose, frame, self._odometry.last_frame_down, self._odometry.last_xyt)
+        return Registered(pose, frame, self._odometry.last_frame_down, self._odometry.last_xyt,
+                          self._odometry.last_map_refreshed)
 
     def checks(self) -> dict:
         """:meth:`Odometry.checks` of the registration so far."""
@@ -120,7 +125,7 @@ def _serve() -> None:
                                                 known)
                 kept = _kept_points(points, frame, odometry.config)
                 _send(outbox, ("ok", (pose, frame if kept is None else kept, odometry.last_frame_down,
-                                      odometry.last_xyt)))
+                                      odometry.last_xyt, odometry.last_map_refreshed)))
             except Exception as exc:  # noqa: BLE001 - handed to the parent, raised there
                 _send(outbox, ("error", f"{exc.__class__.__name__}: {exc}"))
         _send(outbox, ("end", (_own_peak_kib(), odometry.checks())))
@@ -178,8 +183,8 @@ class OdometryProcess:
         points = self._submitted.popleft()
         if kind == "error":
             raise SubmapSlamError(f"odometry: {value}")
-        pose, frame, frame_down, xyt = value
-        return Registered(pose, points[frame] if frame.dtype == bool else frame, frame_down, xyt)
+        pose, frame, frame_down, xyt, map_refreshed = value
+        return Registered(pose, points[frame] if frame.dtype == bool else frame, frame_down, xyt, map_refreshed)
 
     def checks(self) -> dict:
         """:meth:`Odometry.checks` of the child's registration, known once :meth:`close` has

@@ -172,7 +172,7 @@ class SubmapSLAM:
         scan = self._in_flight.popleft()
         with self.timer("odometry"):  # in-process: the registration; a child process: the wait for it
             registered = self._odometry.result()
-        self._registered.append((registered.pose, registered.xyt))
+        self._registered.append((registered.pose, registered.xyt, registered.map_refreshed))
         if self._observer is None:
             # only an observer reads a scan's raw points once it is registered (``registered.frame``
             # holds them as used): the start frame holds 31 3D scans, ~3 MB each of raw points at 64 rings
@@ -384,8 +384,9 @@ class SubmapSLAM:
         taken = self._registered[:len(self._odom_poses)]  # while the start's scans are passed on: those taken
         return Checkpoint(
             timestamps=np.array(self.timestamps, dtype=np.float64),
-            odometry_poses=np.array([pose for pose, _ in taken]).reshape(-1, 4, 4),
-            planar_poses=np.array([xyt for _, xyt in taken]).reshape(-1, 3) if self.planar else None,
+            odometry_poses=np.array([pose for pose, _, _ in taken]).reshape(-1, 4, 4),
+            planar_poses=np.array([xyt for _, xyt, _ in taken]).reshape(-1, 3) if self.planar else None,
+            map_refreshed=np.array([refreshed for _, _, refreshed in taken], dtype=bool),
             run_frame=self._start_frame.correction,
             odometry_information=dict(self._graph_builder.odometry_information) if self._graph_builder else {},
             odometry_correction=dict(self._graph_builder.odometry_correction) if self._graph_builder else {},

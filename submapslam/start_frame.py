@@ -15,6 +15,7 @@ correction larger than the limits is not believed (the run keeps the odometry's 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
 
@@ -95,7 +96,7 @@ class StartFrame:
             return registered
         pose = self.correction @ registered.pose
         xyt = matrix_to_se2(pose) if registered.xyt is not None else None
-        return Registered(pose, registered.frame, registered.frame_down, xyt)
+        return dataclasses.replace(registered, pose=pose, xyt=xyt)
 
 
 def planar_start_correction(first: Registered, later: list[Registered]) -> np.ndarray | None:

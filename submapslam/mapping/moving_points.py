@@ -549,6 +549,18 @@ class MoverFilter:
             ready.append((pts[~moved], pose))
         return ready
 
+    @property
+    def waiting(self) -> int:
+        """Registered scans not yet in the local map."""
+        return len(self._waiting)
+
+    def flush(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """``[(points, T_world_sensor)]``: every scan still waiting, oldest first, as it is (no
+        mover test: the scans after it have not been seen yet), for the local map now."""
+        ready = [(pts, pose) for _, pts, pose, _, _ in self._waiting]
+        self._waiting = []
+        return ready
+
     def _old_enough(self, waiting_since: float | None, now: float | None) -> bool:
         """A scan taken at ``waiting_since`` [s] has waited ``delay_s`` by ``now`` [s], to within a
         millisecond of timestamp rounding. Never when either time or ``delay_s`` is unknown, nor
