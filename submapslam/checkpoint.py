@@ -13,10 +13,20 @@ uninterrupted run gives.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
 from .result import LoopRecord
+
+
+class KnownScan(NamedTuple):
+    """A resumed run's record of one scan's registration, which the odometry replays without ICP."""
+
+    pose: np.ndarray  # (4, 4) T_odom_base as registered
+    xyt: np.ndarray | None = None  # planar: (3,) x, y, yaw as refined
+    map_refreshed: bool = False  # the scans waiting for the local map entered it early for this one
+    guess: np.ndarray | None = None  # (4, 4) the guess the kept registration started from; None: the prediction
 
 
 @dataclass
@@ -44,6 +54,9 @@ class Checkpoint:
         map_refreshed: ``(K,)`` bool, the scans for which the odometry put the scans waiting for
             its local map into it early (:meth:`~submapslam.odometry.Odometry._fresh_map_if_off`);
             None: none.
+        guesses: scan index -> ``(4, 4)`` the guess its kept registration started from, where not
+            the prediction (a guess over a gap, the constant-velocity guess against the wheels'):
+            the adaptive threshold learns from how far the registration moved from it.
     """
 
     timestamps: np.ndarray
@@ -56,6 +69,7 @@ class Checkpoint:
     source: str = ""
     run_frame: np.ndarray | None = None
     map_refreshed: np.ndarray | None = None
+    guesses: dict[int, np.ndarray] = field(default_factory=dict)
 
     @property
     def n_scans(self) -> int:
@@ -66,10 +80,10 @@ class Checkpoint:
         """Submaps whose graph work (odometry edge, loop tests) the checkpoint holds."""
         return len(self.loop_records)
 
-    def known_pose(self, scan_index: int) -> tuple[np.ndarray, np.ndarray | None, bool] | None:
-        """``(T_odom_base, xyt or None, map refreshed)`` of a scan the checkpoint covers, else None."""
+    def known_pose(self, scan_index: int) -> KnownScan | None:
+        """The registration of a scan the checkpoint covers, else None."""
         if scan_index >= self.n_scans:
             return None
         xyt = self.planar_poses[scan_index] if self.planar_poses is not None else None
         refreshed = self.map_refreshed is not None and bool(self.map_refreshed[scan_index])
-        return self.odometry_poses[scan_index], xyt, refreshed
+        return KnownScan(self.odometry_poses[scan_index], xyt, refreshed, self.guesses.get(scan_index))

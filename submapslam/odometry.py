@@ -17,6 +17,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from .checkpoint import KnownScan
 from .config import OdometryConfig
 from .geometry import (
     blend_poses,
@@ -175,6 +176,7 @@ class Odometry:
         self.fresh_map_tried = 0  # 3D without wheels: scans registered again once the waiting scans entered the map
         self.fresh_map_won = 0  # ... and of them, those where that registration was kept
         self.last_map_refreshed = False  # the waiting scans entered the local map early for the last scan
+        self.last_guess: np.ndarray | None = None  # (4, 4) the guess the last scan's kept registration started from, if not the prediction
         self._recent_shares: deque[float] = deque(maxlen=FRESH_MAP_HISTORY)  # 3D: the last scans' map shares
         self.registration_overruled = 0  # planar scans whose wheel pose fitted better than where registration went
         self.previous_scan_checked = 0  # planar scans that fitted poorly, so that their match to the previous scan was tried
@@ -203,18 +205,22 @@ class Odometry:
 
             self._refiner = RecentScanMap()
 
-    def register(self, scan: Scan, known: tuple[np.ndarray, np.ndarray | None] | None = None
-                 ) -> tuple[np.ndarray, np.ndarray]:
+    def register(self, scan: Scan, known: KnownScan | tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Register one scan; return ``(T_odom_base, points_deskewed)``.
 
         ``points_deskewed`` is ``(N, 3)`` in the scan's sensor frame after range filtering and
         motion compensation; :attr:`last_frame_down` is the same thinned to :attr:`frame_voxel`
-        (what registration used). ``known``: the ``(T_odom_base, xyt or None)`` this scan was
-        registered at before (a resumed run): no ICP, the local map and the motion model are
-        updated exactly as they were (``known[2]``, when given: whether the waiting scans entered the
-        map early for it, :attr:`last_map_refreshed`). :attr:`last_xyt` is the planar pose as refined.
+        (what registration used). ``known``: how this scan was registered before (a resumed run,
+        :class:`~submapslam.checkpoint.KnownScan` or its leading fields as a tuple): no ICP, the local
+        map, the motion model and the adaptive threshold are updated exactly as they were.
+        :attr:`last_xyt` is the planar pose as refined; :attr:`last_guess` the guess the kept
+        registration started from where not the prediction, :attr:`last_map_refreshed` whether the
+        waiting scans entered the local map early for it.
         """
+        if known is not None and not isinstance(known, KnownScan):
+            known = KnownScan(*known)
         self.last_map_refreshed = False
+        self.last_guess = None
         frame = self._crop_and_deskew(scan)
         prediction = self._predicted_delta(scan)
         if self._refiner is not None:
@@ -222,13 +228,13 @@ class Odometry:
             self._refiner.noise_m = self._wall_noise.sigma_m
         if len(frame) < 10:
             # nothing to register: dead-reckon on the prediction
-            new_pose = self.last_pose @ prediction if known is None else known[0]
+            new_pose = self.last_pose @ prediction if known is None else known.pose
             self.last_xyt = matrix_to_se2(new_pose) if self.planar else None
             self._advance(new_pose)
             self.last_frame_down = frame
             return new_pose, frame
         frame_down = self._down(frame, self.frame_voxel)
-        initial_guess = self.last_pose @ prediction
+        initial_guess = predicted = self.last_pose @ prediction
         gap_guesses = []
         if known is None and self._gicp is None:
             turns = GAP_GUESS_TURNS_PLANAR_DEG if self.planar else GAP_GUESS_TURNS_DEG
@@ -252,11 +258,13 @@ class Odometry:
             registered = frame_down[~self.movers.entering(frame_down, initial_guess)]
         source = self._down(registered, self.voxel_size * 1.5)
         if known is not None:
-            new_pose = known[0]
+            new_pose = known.pose
             if not self.planar and not self._local_map.empty():
-                self._fresh_map_if_off(source, initial_guess, new_pose, replayed=len(known) > 2 and bool(known[2]))
+                self._fresh_map_if_off(source, initial_guess, new_pose, replayed=known.map_refreshed)
+            if known.guess is not None:
+                initial_guess = known.guess
             if self.planar:
-                xyt = known[1] if known[1] is not None else matrix_to_se2(new_pose)
+                xyt = known.xyt if known.xyt is not None else matrix_to_se2(new_pose)
                 if self._refiner is not None:  # the fits the live run kept, for the scans after the replay
                     self._recent_fits.append(self._fit(frame_down, xyt))
                     self._refiner.add(frame_down[:, :2], xyt)
@@ -325,6 +333,7 @@ class Odometry:
             new_pose = se2_to_matrix(*xyt)
             self.last_xyt = xyt
         self._threshold.update_model_deviation(inverse(initial_guess) @ new_pose)
+        self.last_guess = None if initial_guess is predicted else initial_guess
         if self.movers is None:
             self._local_map.update(frame_down, new_pose)
             self._scans_in_map += 1
@@ -363,7 +372,7 @@ class Odometry:
         return self._deskewing.preprocess(scan.points, (times - times.min()) / span, motion)
 
     def _register_gicp(self, frame: np.ndarray, frame_down: np.ndarray, initial_guess: np.ndarray,
-                       known: tuple[np.ndarray, np.ndarray | None] | None,
+                       known: KnownScan | None,
                        gap_guesses: list[np.ndarray] | None = None) -> np.ndarray:
         """Narrow-field 3D: voxelised GICP from the prediction (without wheels: the last motion as
         it was, then at its pace) and from no motion (a hand-held sensor turns in ways a
@@ -371,7 +380,7 @@ class Odometry:
         (:meth:`_over_the_gap`, tried after the prediction); ``T_odom_base``."""
         cloud = self._gicp.prepare(frame)
         if known is not None:
-            new_pose = known[0]
+            new_pose = known.pose
         elif self._gicp.empty():
             new_pose = initial_guess
         else:

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .checkpoint import KnownScan
 from .child_process import ChildProcess, child_streams, usable_cores
 from .child_process import own_peak_kib as _own_peak_kib
 from .child_process import receive as _receive
@@ -31,8 +32,7 @@ from .process_stats import single_threaded_blas
 from .scan import Scan
 
 log = logging.getLogger(__name__)
-#: a resumed run's (T_odom_base, xyt or None, whether the waiting scans entered the local map early for it)
-Known = tuple[np.ndarray, np.ndarray | None, bool] | None
+Known = KnownScan | None  # a resumed run's record of the scan's registration
 
 
 #: [s] how long a child whose answers stopped coming may take to end before it is stopped
@@ -47,7 +47,9 @@ class Registered:
     range filtering and motion compensation. frame_down: the same thinned to the odometry's
     ``frame_voxel`` (what registration used). xyt: planar logs: ``(3,)`` x, y, yaw as refined.
     map_refreshed: the scans waiting for the local map entered it early for this one
-    (:attr:`~submapslam.odometry.Odometry.last_map_refreshed`; a checkpoint keeps it).
+    (:attr:`~submapslam.odometry.Odometry.last_map_refreshed`). guess: ``(4, 4)`` the guess the
+    kept registration started from where not the prediction (:attr:`~submapslam.odometry.Odometry.last_guess`).
+    A checkpoint keeps both.
     """
 
     pose: np.ndarray
@@ -55,6 +57,7 @@ class Registered:
     frame_down: np.ndarray
     xyt: np.ndarray | None
     map_refreshed: bool = False
+    guess: np.ndarray | None = None
 
 
 class InlineOdometry:
@@ -73,7 +76,7 @@ class InlineOdometry:
         scan, known = self._pending.popleft()
         pose, frame = self._odometry.register(scan, known)
         return Registered(pose, frame, self._odometry.last_frame_down, self._odometry.last_xyt,
-                          self._odometry.last_map_refreshed)
+                          self._odometry.last_map_refreshed, self._odometry.last_guess)
 
     def checks(self) -> dict:
         """:meth:`Odometry.checks` of the registration so far."""
@@ -125,7 +128,7 @@ def _serve() -> None:
                                                 known)
                 kept = _kept_points(points, frame, odometry.config)
                 _send(outbox, ("ok", (pose, frame if kept is None else kept, odometry.last_frame_down,
-                                      odometry.last_xyt, odometry.last_map_refreshed)))
+                                      odometry.last_xyt, odometry.last_map_refreshed, odometry.last_guess)))
             except Exception as exc:  # noqa: BLE001 - handed to the parent, raised there
                 _send(outbox, ("error", f"{exc.__class__.__name__}: {exc}"))
         _send(outbox, ("end", (_own_peak_kib(), odometry.checks())))
@@ -183,8 +186,8 @@ class OdometryProcess:
         points = self._submitted.popleft()
         if kind == "error":
             raise SubmapSlamError(f"odometry: {value}")
-        pose, frame, frame_down, xyt, map_refreshed = value
-        return Registered(pose, points[frame] if frame.dtype == bool else frame, frame_down, xyt, map_refreshed)
+        pose, frame, frame_down, xyt, map_refreshed, guess = value
+        return Registered(pose, points[frame] if frame.dtype == bool else frame, frame_down, xyt, map_refreshed, guess)
 
     def checks(self) -> dict:
         """:meth:`Odometry.checks` of the child's registration, known once :meth:`close` has

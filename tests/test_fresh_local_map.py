@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from submapslam.checkpoint import Checkpoint
+from submapslam.checkpoint import Checkpoint, KnownScan
 from submapslam.config import OdometryConfig, PipelineConfig
 from submapslam.io.checkpoint import read_checkpoint, write_checkpoint
 from submapslam.mapping.moving_points import MoverFilter
 from submapslam.odometry import FRESH_MAP_RATIO, Odometry
+
+from .conftest import shared_data
 
 
 def _facade(x0: float, x1: float, y: float) -> np.ndarray:
@@ -125,3 +127,33 @@ def test_the_checkpoint_keeps_which_scans_refreshed_the_map(tmp_path):
     assert back.known_pose(4) is None
     old = Checkpoint(timestamps=np.arange(2.0), odometry_poses=np.tile(np.eye(4), (2, 1, 1)), planar_poses=None)
     assert old.known_pose(1)[2] is False
+
+
+def _replayed_then_live(odometry_of, scans, known_until: int) -> tuple[list[np.ndarray], Odometry]:
+    """Register ``scans`` live; then a second odometry replays the first ``known_until`` from the
+    live run's records (as a resumed run does) and registers the rest live. Returns the second's
+    poses and the live odometry."""
+    live, records, poses = odometry_of(), [], []
+    for scan in scans:
+        pose, _ = live.register(scan)
+        records.append(KnownScan(pose, live.last_xyt, live.last_map_refreshed, live.last_guess))
+        poses.append(pose)
+    resumed = odometry_of()
+    again = [resumed.register(scan, records[k] if k < known_until else None)[0] for k, scan in enumerate(scans)]
+    return again, live, poses
+
+
+def test_a_replay_gives_the_adaptive_threshold_the_guesses_the_live_run_kept():
+    """MIT CSAIL's stale wheel poses: where the constant-velocity guess's registration fitted better,
+    the threshold learnt from that guess. A resumed run that took the wheels' guess instead ended
+    1.76 m off in odometry (0.45 m after loop closure) from the run never interrupted."""
+    from itertools import islice
+
+    from submapslam import open_log
+    from submapslam.odometry import resolve_registration
+
+    scans = list(islice(open_log(shared_data("carmen", "mit-csail.clf.bz2")), 700))
+    config = resolve_registration(OdometryConfig(), scans[0])
+    again, live, poses = _replayed_then_live(lambda: Odometry(config, planar=True), scans, known_until=500)
+    assert live.wheel_overruled > 0  # guesses other than the prediction were kept before scan 500
+    np.testing.assert_array_equal(np.asarray(again), np.asarray(poses))

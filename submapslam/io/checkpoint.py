@@ -5,7 +5,9 @@ Files (open formats, no pickles):
 * ``checkpoint.npz`` — ``timestamps (K,)``, ``odometry_poses (K, 4, 4)``, ``planar_poses (K, 3)``
   (empty for 3D), ``information_ids (M,)`` and ``information (M, 6, 6)`` of the odometry edges,
   ``run_frame (4, 4)`` the start's re-base of a planar run (empty: none), ``map_refreshed (K,)``
-  the scans for which the 3D odometry put its waiting scans into its local map early (empty: none);
+  the scans for which the 3D odometry put its waiting scans into its local map early (empty: none),
+  ``guess_ids (G,)`` and ``guesses (G, 4, 4)`` the guesses kept registrations started from where
+  not the prediction;
 * ``loops.json`` — per submap id, the tested hypotheses (every :class:`LoopRecord` field);
 * ``run.json`` — format version, and how the run was started (log, format, hints, options),
   which ``run --resume OUT`` repeats;
@@ -82,7 +84,9 @@ def write_checkpoint(out_dir: str | Path, checkpoint: Checkpoint, config: Pipeli
                                     for k in sorted(checkpoint.odometry_correction)]).reshape(-1, 6),
              run_frame=(checkpoint.run_frame if checkpoint.run_frame is not None else np.zeros((0, 4, 4))),
              map_refreshed=(checkpoint.map_refreshed if checkpoint.map_refreshed is not None
-                            else np.zeros(0, dtype=bool)))
+                            else np.zeros(0, dtype=bool)),
+             guess_ids=np.asarray(sorted(checkpoint.guesses), dtype=np.int64),
+             guesses=np.asarray([checkpoint.guesses[k] for k in sorted(checkpoint.guesses)]).reshape(-1, 4, 4))
     loops = {str(k): [_record_to_json(r) for r in recs] for k, recs in sorted(checkpoint.loop_records.items())}
     (tmp / "loops.json").write_text(json.dumps(loops) + "\n")
     (tmp / "config.yaml").write_text(dump_config(config))
@@ -127,7 +131,8 @@ def read_checkpoint(out_dir: str | Path) -> tuple[Checkpoint, PipelineConfig, di
         loop_records={int(k): [_record_from_json(d) for d in recs] for k, recs in loops.items()},
         source=run.get("source", ""),
         run_frame=arrays["run_frame"] if len(arrays.get("run_frame", ())) else None,
-        map_refreshed=arrays["map_refreshed"] if len(arrays.get("map_refreshed", ())) else None)
+        map_refreshed=arrays["map_refreshed"] if len(arrays.get("map_refreshed", ())) else None,
+        guesses={int(k): g for k, g in zip(arrays.get("guess_ids", ()), arrays.get("guesses", ()))})
     return checkpoint, config, run
 
 
