@@ -332,6 +332,10 @@ class Odometry:
                 self._refiner.add(frame_down[:, :2], xyt)
             new_pose = se2_to_matrix(*xyt)
             self.last_xyt = xyt
+        # row-major, as a resumed run's poses from its checkpoint are: KISS-ICP's results come
+        # column-major (Eigen), and numpy's 4x4 products differ in the last bit by layout, which a
+        # resumed run then carried into every later registration (0.1-4 mm by the end)
+        new_pose = np.ascontiguousarray(new_pose)
         self._threshold.update_model_deviation(inverse(initial_guess) @ new_pose)
         self.last_guess = None if initial_guess is predicted else initial_guess
         if self.movers is None:
@@ -400,6 +404,7 @@ class Odometry:
             new_pose, _ = self._gicp.align(cloud, guesses, search_all=bool(gap_guesses))
             u, _, vt = np.linalg.svd(new_pose[:3, :3])  # exactly a rotation (KISS-ICP's deskew checks it)
             new_pose[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+        new_pose = np.ascontiguousarray(new_pose)  # row-major, as a resumed run's (see register)
         self._gicp.insert(cloud, new_pose)
         self._advance(new_pose)
         self.last_frame_down = frame_down
