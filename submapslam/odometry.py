@@ -332,9 +332,9 @@ class Odometry:
                 self._refiner.add(frame_down[:, :2], xyt)
             new_pose = se2_to_matrix(*xyt)
             self.last_xyt = xyt
-        # row-major, as a resumed run's poses from its checkpoint are: KISS-ICP's results come
-        # column-major (Eigen), and numpy's 4x4 products differ in the last bit by layout, which a
-        # resumed run then carried into every later registration (0.1-4 mm by the end)
+        # row-major, as a resumed run's poses from its checkpoint are (registrations come row-major
+        # from _align): numpy's 4x4 products differ in the last bit by memory layout, and a resumed
+        # run carried the difference into every later registration (0.1-4 mm by the end)
         new_pose = np.ascontiguousarray(new_pose)
         self._threshold.update_model_deviation(inverse(initial_guess) @ new_pose)
         self.last_guess = None if initial_guess is predicted else initial_guess
@@ -601,12 +601,13 @@ class Odometry:
 
     def _align(self, source: np.ndarray, initial_guess: np.ndarray, sigma: float | None = None) -> np.ndarray:
         """KISS-ICP point-to-point registration of ``source (N, 3)`` to the local map from ``initial_guess``,
-        at ``sigma`` [m] (correspondences up to three times it; default: the adaptive threshold)."""
+        at ``sigma`` [m] (correspondences up to three times it; default: the adaptive threshold). Row-major:
+        KISS-ICP's result comes column-major (Eigen), and every pose here is kept row-major (:meth:`register`)."""
         if sigma is None:
             sigma = self._threshold.get_threshold()
-        return self._registration.align_points_to_map(
+        return np.ascontiguousarray(self._registration.align_points_to_map(
             points=source, voxel_map=self._local_map, initial_guess=initial_guess,
-            max_correspondance_distance=3.0 * sigma, kernel=sigma)
+            max_correspondance_distance=3.0 * sigma, kernel=sigma))
 
     def _refine(self, frame_down: np.ndarray, pose: np.ndarray, initial_guess: np.ndarray) -> np.ndarray:
         """Planar ``(x, y, yaw)`` of ``pose``, refined point-to-line when on; degenerate directions
