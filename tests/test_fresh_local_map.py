@@ -3,7 +3,8 @@
 scan's share on the map fell from 0.89 to 0.14 and registration carried the turn on (a 64-ring
 drive ended 89 m off). Such a scan now puts the waiting scans into the map and registers again
 (``Odometry._fresh_map_if_off``); a resumed run repeats the decision from its checkpoint.
-Registration is stood in for: the rule, not KISS-ICP, is under test."""
+In the rule's tests registration is stood in for (the rule, not KISS-ICP, is under test); the last
+two replay real scans, as a resumed run does, and ask for the uninterrupted run's poses bit for bit."""
 
 from __future__ import annotations
 
