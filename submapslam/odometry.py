@@ -205,20 +205,18 @@ class Odometry:
 
             self._refiner = RecentScanMap()
 
-    def register(self, scan: Scan, known: KnownScan | tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def register(self, scan: Scan, known: KnownScan | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Register one scan; return ``(T_odom_base, points_deskewed)``.
 
         ``points_deskewed`` is ``(N, 3)`` in the scan's sensor frame after range filtering and
         motion compensation; :attr:`last_frame_down` is the same thinned to :attr:`frame_voxel`
-        (what registration used). ``known``: how this scan was registered before (a resumed run,
-        :class:`~submapslam.checkpoint.KnownScan` or its leading fields as a tuple): no ICP, the local
-        map, the motion model and the adaptive threshold are updated exactly as they were.
+        (what registration used). ``known``: how this scan was registered before (a resumed run's
+        :class:`~submapslam.checkpoint.KnownScan`): no ICP, the local map, the motion model and the
+        adaptive threshold are updated exactly as they were.
         :attr:`last_xyt` is the planar pose as refined; :attr:`last_guess` the guess the kept
         registration started from where not the prediction, :attr:`last_map_refreshed` whether the
         waiting scans entered the local map early for it.
         """
-        if known is not None and not isinstance(known, KnownScan):
-            known = KnownScan(*known)
         self.last_map_refreshed = False
         self.last_guess = None
         frame = self._crop_and_deskew(scan)
