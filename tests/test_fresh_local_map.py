@@ -12,6 +12,7 @@ import numpy as np
 
 from submapslam.checkpoint import Checkpoint, KnownScan
 from submapslam.config import OdometryConfig, PipelineConfig
+from submapslam.geometry import se2_to_matrix
 from submapslam.io.checkpoint import read_checkpoint, write_checkpoint
 from submapslam.mapping.moving_points import MoverFilter
 from submapslam.odometry import FRESH_MAP_RATIO, Odometry
@@ -54,9 +55,7 @@ def _odometry_at_a_corner() -> tuple[Odometry, np.ndarray]:
 
 
 def _shifted(x_m: float) -> np.ndarray:
-    pose = np.eye(4)
-    pose[0, 3] = x_m
-    return pose
+    return se2_to_matrix(x_m, 0.0, 0.0)  # (4, 4): x_m [m] along x
 
 
 def test_a_scan_off_the_delayed_map_puts_the_waiting_scans_in_and_registers_again():
