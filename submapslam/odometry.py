@@ -466,8 +466,8 @@ class Odometry:
         share = self._map_share(source)
         if share is None:
             return pose
+        fit = share(pose)
         if replayed is None:
-            fit = share(pose)
             refresh = len(self._recent_shares) >= 3 and fit < FRESH_MAP_RATIO * statistics.median(self._recent_shares)
         else:
             refresh = replayed
@@ -477,13 +477,15 @@ class Odometry:
                 self._scans_in_map += 1
             self.last_map_refreshed = True
             share = self._map_share(source)
+            fit = share(pose)
             if replayed is None:
                 self.fresh_map_tried += 1
                 again = self._tight_or_wide(source, initial_guess)
-                if share(again) > share(pose):
-                    pose = again
+                again_fit = share(again)
+                if again_fit > fit:
+                    pose, fit = again, again_fit
                     self.fresh_map_won += 1
-        self._recent_shares.append(share(pose) if refresh or replayed is not None else fit)
+        self._recent_shares.append(fit)  # the kept pose's share on the map it was kept on
         return pose
 
     def _first_step(self, source: np.ndarray, from_rest: np.ndarray) -> np.ndarray:

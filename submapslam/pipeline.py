@@ -17,7 +17,7 @@ from functools import partial
 
 import numpy as np
 
-from .checkpoint import Checkpoint
+from .checkpoint import Checkpoint, KnownScan
 from .config import PipelineConfig, narrow_field
 from .errors import InputError, OptimisationError, SubmapSlamError
 from .geometry import blend_poses_many, inverse
@@ -71,9 +71,9 @@ class SubmapSLAM:
         self._replay = resume_from
         self._observer = observer
         self._records_by_submap: dict[int, list[LoopRecord]] = {}  # loop tests per closing submap
-        # (T_odom_base (4, 4), planar x y yaw (3,) or None) per scan as the odometry registered it, in
-        # its own frame (before a planar start's re-base): what a checkpoint replays
-        self._registered: list[tuple] = []  # per scan taken: (T_odom_base, xyt, map refreshed, guess): the checkpoint's
+        # each scan's registration as the odometry made it, in its own frame (before the start's
+        # re-base): what a checkpoint replays
+        self._registered: list[KnownScan] = []
         self.timer = StageTimer()
         self._t_start = time.perf_counter()
         self._travelled = 0.0  # odometry path length so far [m]
@@ -172,7 +172,7 @@ class SubmapSLAM:
         scan = self._in_flight.popleft()
         with self.timer("odometry"):  # in-process: the registration; a child process: the wait for it
             registered = self._odometry.result()
-        self._registered.append((registered.pose, registered.xyt, registered.map_refreshed, registered.guess))
+        self._registered.append(KnownScan(registered.pose, registered.xyt, registered.map_refreshed, registered.guess))
         if self._observer is None:
             # only an observer reads a scan's raw points once it is registered (``registered.frame``
             # holds them as used): the start frame holds 31 3D scans, ~3 MB each of raw points at 64 rings
@@ -384,10 +384,10 @@ class SubmapSLAM:
         taken = self._registered[:len(self._odom_poses)]  # while the start's scans are passed on: those taken
         return Checkpoint(
             timestamps=np.array(self.timestamps, dtype=np.float64),
-            odometry_poses=np.array([pose for pose, _, _, _ in taken]).reshape(-1, 4, 4),
-            planar_poses=np.array([xyt for _, xyt, _, _ in taken]).reshape(-1, 3) if self.planar else None,
-            map_refreshed=np.array([refreshed for _, _, refreshed, _ in taken], dtype=bool),
-            guesses={k: guess for k, (_, _, _, guess) in enumerate(taken) if guess is not None},
+            odometry_poses=np.array([known.pose for known in taken]).reshape(-1, 4, 4),
+            planar_poses=np.array([known.xyt for known in taken]).reshape(-1, 3) if self.planar else None,
+            map_refreshed=np.array([known.map_refreshed for known in taken], dtype=bool),
+            guesses={k: known.guess for k, known in enumerate(taken) if known.guess is not None},
             run_frame=self._start_frame.correction,
             odometry_information=dict(self._graph_builder.odometry_information) if self._graph_builder else {},
             odometry_correction=dict(self._graph_builder.odometry_correction) if self._graph_builder else {},
