@@ -31,7 +31,7 @@ from .registration.previous_scan import PreviousScan
 from .registration.voxel_gicp import VoxelGicpSettings, VoxelGicpTracker, azimuth_coverage_deg
 from .registration.wall_noise import WallNoise
 from .scan import Scan
-from .scan_intervals import ScanIntervals, gap_steps, most_promising, paced
+from .scan_intervals import ScanIntervals, bent, gap_steps, most_promising, paced, restart_steps
 
 #: [m] the starts tried for a 3D log's second scan, along the sensor's x and y axes, besides no
 #: motion (:meth:`Odometry._first_step`); one wins when it puts a FIRST_STEP_MARGIN larger share
@@ -51,6 +51,10 @@ GAP_GUESS_SPACING = 2.0
 #: turned 18 deg in 2 s of dropped scans; a robot indoors turns a corner in as long)
 GAP_GUESS_TURNS_DEG = (10.0, -10.0, 20.0, -20.0)
 GAP_GUESS_TURNS_PLANAR_DEG = (15.0, -15.0, 30.0, -30.0, 45.0, -45.0, 60.0, -60.0, 90.0, -90.0)
+#: [local-map voxels], [deg] a step shorter than this that turns less than that stood still: the
+#: scan after it in a keyframed log is also guessed at the pace before the stop (:meth:`Odometry._over_the_gap`)
+STOOD_VOXELS = 0.1
+STOOD_DEG = 1.0
 #: [share of the scan's points] the margin by which the best registration from those guesses and the
 #: one-interval guess's must differ in fit for the other to win (:meth:`Odometry._gap_margin`)
 GAP_FIT_MARGIN = 0.05
@@ -65,6 +69,10 @@ TIGHT_AGREES_DEG = 0.2
 #: and registers again (:meth:`Odometry._fresh_map_if_off`)
 FRESH_MAP_RATIO = 0.5
 FRESH_MAP_HISTORY = 10
+#: [deg] turns about the vertical the guess of such a scan is bent by when the map's refresh does
+#: not bring its share back: a drive that stopped turning between keyframes (the prediction
+#: carried 10 deg on where the truth turned 5, and registration kept the 10)
+FRESH_MAP_TURNS_DEG = (-5.0, 5.0, -10.0, 10.0)
 
 
 def resolve_registration(config: OdometryConfig, scan: Scan) -> OdometryConfig:
@@ -162,6 +170,7 @@ class Odometry:
         self._down = voxel_down_sample
         self.last_pose = np.eye(4)
         self.last_delta = np.eye(4)
+        self._last_move: tuple[np.ndarray, float] | None = None  # the last step (4, 4) that did not stand still, its interval [s]
         self._last_wheel: np.ndarray | None = None
         self.n_registered = 0
         self.first_step_moved = False  # 3D: the second scan's registration started from a guessed step
@@ -175,6 +184,7 @@ class Odometry:
         self.tight_won = 0  # ... and of them, those where the tight result was kept
         self.fresh_map_tried = 0  # 3D without wheels: scans registered again once the waiting scans entered the map
         self.fresh_map_won = 0  # ... and of them, those where that registration was kept
+        self.fresh_map_turned = 0  # ... and those where a registration from a turned guess was kept instead
         self.last_map_refreshed = False  # the waiting scans entered the local map early for the last scan
         self.last_guess: np.ndarray | None = None  # (4, 4) the guess the last scan's kept registration started from, if not the prediction
         self._recent_shares: deque[float] = deque(maxlen=FRESH_MAP_HISTORY)  # 3D: the last scans' map shares
@@ -275,7 +285,7 @@ class Odometry:
                 new_pose = self._first_step(source, new_pose)
             elif gap_guesses:
                 new_pose, initial_guess = self._better_over_the_gap(source, new_pose, initial_guess, gap_guesses)
-            new_pose = self._fresh_map_if_off(source, initial_guess, new_pose)
+            new_pose, initial_guess = self._fresh_map_if_off(source, initial_guess, new_pose)
         else:
             new_pose = self._align(source, initial_guess)
         if self.planar and known is None:
@@ -448,12 +458,15 @@ class Odometry:
         return tight
 
     def _fresh_map_if_off(self, source: np.ndarray, initial_guess: np.ndarray, pose: np.ndarray,
-                          replayed: bool | None = None) -> np.ndarray:
-        """A spinning LiDAR without wheels: ``pose`` ``(4, 4)``, the registration of ``source``
-        ``(N, 3)`` from ``initial_guess``, or, when the scan lands on the delayed local map much
-        less than the last scans did (its share, :meth:`_map_share`, below ``FRESH_MAP_RATIO`` of
-        their median), the scans still waiting for the map enter it now and the scan registers
-        again from the same guess; of the two, the one with the larger share on that map.
+                          replayed: bool | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """A spinning LiDAR without wheels: ``(pose, guess)``, ``pose`` ``(4, 4)`` the registration of
+        ``source`` ``(N, 3)`` from ``initial_guess`` as given, or, when the scan lands on the delayed
+        local map much less than the last scans did (its share, :meth:`_map_share`, below
+        ``FRESH_MAP_RATIO`` of their median), the scans still waiting for the map enter it now and
+        the scan registers again from the same guess; of the two, the one with the larger share on
+        that map. If that share is still below the usual, the guess bent by each of
+        ``FRESH_MAP_TURNS_DEG`` is registered too, and the best of those replaces it (with its
+        guess) when it lands on the map as the last scans did, by ``GAP_FIT_MARGIN`` more.
         ``replayed``: a resumed run's decision for this scan (its ``pose`` is the one kept).
 
         Each scan enters the map 0.8 s late (``movers_delay_s``: the odometry drifts less, and
@@ -462,15 +475,13 @@ class Odometry:
         at 4-10 deg a keyframe (a 64-ring drive without wheels ended 89 m off; the waiting
         scans had seen that street). With the wheels' guess the delayed map holds."""
         if self.movers is None or self._wheel_predicted or not self.movers.waiting:
-            return pose
+            return pose, initial_guess
         share = self._map_share(source)
         if share is None:
-            return pose
+            return pose, initial_guess
         fit = share(pose)
-        if replayed is None:
-            refresh = len(self._recent_shares) >= 3 and fit < FRESH_MAP_RATIO * statistics.median(self._recent_shares)
-        else:
-            refresh = replayed
+        usual = FRESH_MAP_RATIO * statistics.median(self._recent_shares) if len(self._recent_shares) >= 3 else 0.0
+        refresh = fit < usual if replayed is None else replayed
         if refresh:
             for points, entered in self.movers.flush():
                 self._local_map.update(points, entered)
@@ -485,8 +496,29 @@ class Odometry:
                 if again_fit > fit:
                     pose, fit = again, again_fit
                     self.fresh_map_won += 1
+                if fit < usual:
+                    pose, initial_guess, fit = self._turned_if_better(source, initial_guess, pose, fit, share, usual)
         self._recent_shares.append(fit)  # the kept pose's share on the map it was kept on
-        return pose
+        return pose, initial_guess
+
+    def _turned_if_better(self, source: np.ndarray, initial_guess: np.ndarray, pose: np.ndarray, fit: float,
+                          share: Callable[..., float], usual: float) -> tuple[np.ndarray, np.ndarray, float]:
+        """``(pose, guess, share)``: ``pose`` (from ``initial_guess``, with ``fit``), or the
+        registration of ``source`` ``(N, 3)`` from ``initial_guess`` bent by one of
+        ``FRESH_MAP_TURNS_DEG`` whose ``share`` is the largest, if that reaches ``usual`` and beats
+        ``fit`` by ``GAP_FIT_MARGIN`` (a scan on new ground fits poorly from every guess)."""
+        step = inverse(self.last_pose) @ initial_guess
+        best, best_guess, best_fit = pose, initial_guess, fit
+        for turn in FRESH_MAP_TURNS_DEG:
+            guess = self.last_pose @ bent(step, np.radians(turn))
+            candidate = self._tight_or_wide(source, guess)
+            candidate_fit = share(candidate)
+            if candidate_fit > best_fit:
+                best, best_guess, best_fit = candidate, guess, candidate_fit
+        if best_fit < usual or best_fit <= fit + GAP_FIT_MARGIN:
+            return pose, initial_guess, fit
+        self.fresh_map_turned += 1
+        return best, best_guess, best_fit
 
     def _first_step(self, source: np.ndarray, from_rest: np.ndarray) -> np.ndarray:
         """The second scan of a 3D log with no motion known yet: ``from_rest`` ``(4, 4)`` (its
@@ -551,7 +583,19 @@ class Odometry:
             return []
         standing = may_stand and not self._intervals.steady()
         self.gap_guesses_tried += 1
-        return [self.last_pose @ step for step in gap_steps(self.last_delta, over, spacing_m, turns_deg, standing)]
+        steps = gap_steps(self.last_delta, over, spacing_m, turns_deg, standing)
+        if over < 1.0 and self._last_move is not None and self._stood(self.last_delta):
+            # the first scan after a stop: the motion before it, at its pace and slower (a keyframed
+            # 128-ring drive went on at 12 m/s after 10 s standing, and registration from no motion
+            # found 1.2 of its 6 m)
+            move, interval = self._last_move
+            steps += restart_steps(move, self._intervals.last / interval, spacing_m, turns_deg)
+        return [self.last_pose @ step for step in steps]
+
+    def _stood(self, step: np.ndarray) -> bool:
+        """Whether ``step`` ``(4, 4)`` stood still (:data:`STOOD_VOXELS`, :data:`STOOD_DEG`)."""
+        return bool(np.linalg.norm(step[:3, 3]) < STOOD_VOXELS * self.voxel_size
+                    and np.degrees(rotation_angle(step)) < STOOD_DEG)
 
     def _better_over_the_gap(self, source: np.ndarray, new_pose: np.ndarray, initial_guess: np.ndarray,
                              gap_guesses: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -657,7 +701,10 @@ class Odometry:
         ``first_step_from_a_guessed_move``, whether the second scan started from a step along the
         sensor's axes (:meth:`_first_step`); ``tight_tried`` scans whose registration at a voxel
         ended apart from the one at the adaptive threshold, ``tight_won`` of those where it was
-        kept (:meth:`_tight_or_wide`). Every kind: ``gap_guesses_tried`` scans that came after a
+        kept (:meth:`_tight_or_wide`); without wheels ``fresh_map_tried`` scans registered again once
+        the waiting scans entered the local map, ``fresh_map_won`` of those where that was kept,
+        ``fresh_map_turned`` those where a registration from a turned guess was
+        (:meth:`_fresh_map_if_off`). Every kind: ``gap_guesses_tried`` scans that came after a
         long interval (``odometry.gap_ratio``) and were also registered from the motion carried over it;
         but with voxel_gicp (whose search takes the best of all its guesses) ``gap_guess_won``, those
         where that registration was kept."""
@@ -671,7 +718,7 @@ class Odometry:
         if not self.planar:
             return {"first_step_from_a_guessed_move": self.first_step_moved, "tight_tried": self.tight_tried,
                     "tight_won": self.tight_won, "fresh_map_tried": self.fresh_map_tried,
-                    "fresh_map_won": self.fresh_map_won, **gap}
+                    "fresh_map_won": self.fresh_map_won, "fresh_map_turned": self.fresh_map_turned, **gap}
         return {"wheel_overruled": self.wheel_overruled, "registration_overruled": self.registration_overruled,
                 "previous_scan_checked": self.previous_scan_checked,
                 "previous_scan_preferred": self.previous_scan_preferred, **gap,
@@ -720,5 +767,7 @@ class Odometry:
 
     def _advance(self, new_pose: np.ndarray) -> None:
         self.last_delta = inverse(self.last_pose) @ new_pose
+        if self._intervals.last is not None and not self._stood(self.last_delta):
+            self._last_move = (self.last_delta, self._intervals.last)
         self.last_pose = new_pose
         self.n_registered += 1

@@ -103,6 +103,18 @@ def gap_steps(step: np.ndarray, over: float, spacing_m: float, turns_deg: tuple[
     return steps + turned + ([np.eye(4)] if standing and over > 1.0 else [])
 
 
+def restart_steps(step: np.ndarray, over: float, spacing_m: float, turns_deg: tuple[float, ...]) -> list[np.ndarray]:
+    """Guesses ``(4, 4)`` for the first scan after a stop: ``step``, the last motion before it,
+    carried on at the paces from its own over this interval (``over`` times the one it spans)
+    down towards none, ``spacing_m`` [m] apart; then the same bent by each of ``turns_deg``
+    (:func:`bent`). A keyframed log pauses while the sensor stands and goes on where it moves
+    again, often at the pace it had."""
+    reach = over * float(np.linalg.norm(step[:3, 3]))
+    paces = np.linspace(over, 0.0, int(np.ceil(reach / spacing_m)) + 1)[:-1]
+    steps = list(blend_poses_many(np.eye(4), step, paces))
+    return steps + [bent(s, np.radians(t)) for t in turns_deg for s in steps]
+
+
 def most_promising(guesses: list[np.ndarray], fit: Callable[[np.ndarray], float], keep: int) -> list[np.ndarray]:
     """The ``keep`` of ``guesses`` with the highest ``fit``, in their order (on a tie the earlier)."""
     fits = [fit(g) for g in guesses]

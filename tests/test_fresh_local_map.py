@@ -62,7 +62,7 @@ def test_a_scan_off_the_delayed_map_puts_the_waiting_scans_in_and_registers_agai
     odometry, scan = _odometry_at_a_corner()
     in_map = len(odometry._local_map.point_cloud())
     odometry._registration = _Registration(np.eye(4))  # from the fuller map: in place
-    pose = odometry._fresh_map_if_off(scan, _shifted(3.0), _shifted(3.0))  # first: 3 m off, beside street A
+    pose, _ = odometry._fresh_map_if_off(scan, _shifted(3.0), _shifted(3.0))  # first: 3 m off, beside street A
     assert np.allclose(pose, np.eye(4))
     assert (odometry.fresh_map_tried, odometry.fresh_map_won) == (1, 1) and odometry.last_map_refreshed
     assert odometry.movers.waiting == 0 and len(odometry._local_map.point_cloud()) > in_map
@@ -73,15 +73,53 @@ def test_the_first_registration_stays_when_the_second_fits_no_better():
     odometry, scan = _odometry_at_a_corner()
     first = _shifted(0.1)
     odometry._registration = _Registration(_shifted(7.0))
-    assert np.allclose(odometry._fresh_map_if_off(scan, first, first), first)
+    assert np.allclose(odometry._fresh_map_if_off(scan, first, first)[0], first)
     assert (odometry.fresh_map_tried, odometry.fresh_map_won) == (1, 0)
+
+
+class _StuckInTurns:
+    """Registration stood in for where it cannot undo a turn: from a guess turned less than
+    ``reach_deg`` about the vertical, the scan's true pose (the origin); from any other, the guess."""
+
+    def __init__(self, reach_deg: float) -> None:
+        self.reach_deg, self.calls = reach_deg, 0
+
+    def align_points_to_map(self, *, points, voxel_map, initial_guess, max_correspondance_distance, kernel):
+        self.calls += 1
+        turn = np.degrees(np.arctan2(initial_guess[1, 0], initial_guess[0, 0]))
+        return np.eye(4) if abs(turn) < self.reach_deg else np.array(initial_guess, dtype=np.float64)
+
+
+def test_a_scan_still_off_the_map_once_it_is_fuller_registers_from_turned_guesses():
+    """The prediction turned 10 deg on where the drive went straight, and registration keeps the
+    turn, on the delayed map and on the fuller one: the guess bent back by 5 deg reaches the scan's
+    pose, which lands on the map as usual and is kept with its guess."""
+    odometry, scan = _odometry_at_a_corner()
+    odometry._registration = _StuckInTurns(reach_deg=6.0)
+    guess = se2_to_matrix(0.0, 0.0, np.radians(10.0))
+    pose, kept_guess = odometry._fresh_map_if_off(scan, guess, guess)
+    assert np.allclose(pose, np.eye(4)) and np.isclose(np.degrees(np.arctan2(kept_guess[1, 0], kept_guess[0, 0])), 5.0)
+    assert (odometry.fresh_map_tried, odometry.fresh_map_won, odometry.fresh_map_turned) == (1, 0, 1)
+    assert odometry._recent_shares[-1] > 0.8
+
+
+def test_turned_guesses_that_land_no_better_leave_the_registration():
+    """A scan on new ground (a street neither the map nor the waiting scan saw): every guess fits
+    poorly, and the registration from the prediction stays."""
+    odometry, _ = _odometry_at_a_corner()
+    scan = np.vstack([_facade(8.0, 40.0, 60.0), _facade(8.0, 40.0, 66.0)])
+    odometry._registration = registration = _StuckInTurns(reach_deg=6.0)
+    guess = se2_to_matrix(0.0, 0.0, np.radians(10.0))
+    pose, kept_guess = odometry._fresh_map_if_off(scan, guess, guess)
+    assert np.allclose(pose, guess) and kept_guess is guess and odometry.fresh_map_turned == 0
+    assert registration.calls == 1 + 4  # again on the fuller map, then the four turned guesses
 
 
 def test_a_scan_that_lands_on_the_map_as_usual_leaves_the_waiting_scans_waiting():
     odometry, _ = _odometry_at_a_corner()
     scan = np.vstack([_facade(-15.0, 15.0, -6.0), _facade(-15.0, 15.0, 6.0)])  # street A
     odometry._registration = registration = _Registration(_shifted(5.0))
-    pose = odometry._fresh_map_if_off(scan, np.eye(4), np.eye(4))
+    pose, _ = odometry._fresh_map_if_off(scan, np.eye(4), np.eye(4))
     assert np.allclose(pose, np.eye(4)) and registration.calls == 0
     assert odometry.movers.waiting == 1 and not odometry.last_map_refreshed
     assert odometry._recent_shares[-1] > FRESH_MAP_RATIO * 0.9
@@ -91,17 +129,17 @@ def test_with_the_wheels_guess_the_delayed_map_holds():
     odometry, scan = _odometry_at_a_corner()
     odometry._wheel_predicted = True
     odometry._registration = registration = _Registration(np.eye(4))
-    assert np.allclose(odometry._fresh_map_if_off(scan, _shifted(3.0), _shifted(3.0)), _shifted(3.0))
+    assert np.allclose(odometry._fresh_map_if_off(scan, _shifted(3.0), _shifted(3.0))[0], _shifted(3.0))
     assert registration.calls == 0 and odometry.movers.waiting == 1
 
 
 def test_a_resumed_run_repeats_the_decision_and_the_map_it_left():
     live, scan = _odometry_at_a_corner()
     live._registration = _Registration(np.eye(4))
-    kept = live._fresh_map_if_off(scan, _shifted(3.0), _shifted(3.0))
+    kept, _ = live._fresh_map_if_off(scan, _shifted(3.0), _shifted(3.0))
     replay, _ = _odometry_at_a_corner()
     replay._registration = registration = _Registration(_shifted(9.0))
-    assert np.allclose(replay._fresh_map_if_off(scan, _shifted(3.0), kept, replayed=True), kept)
+    assert np.allclose(replay._fresh_map_if_off(scan, _shifted(3.0), kept, replayed=True)[0], kept)
     assert registration.calls == 0 and replay.last_map_refreshed
     assert np.array_equal(np.asarray(replay._local_map.point_cloud()), np.asarray(live._local_map.point_cloud()))
     assert list(replay._recent_shares) == list(live._recent_shares)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from submapslam.geometry import se2_to_matrix
-from submapslam.scan_intervals import ScanIntervals, bent, gap_steps, most_promising, paced
+from submapslam.scan_intervals import ScanIntervals, bent, gap_steps, most_promising, paced, restart_steps
 
 
 def _intervals(times) -> ScanIntervals:
@@ -56,6 +56,15 @@ def test_guesses_over_a_gap_span_the_paces_then_turn_and_may_stand():
     assert np.isclose(guesses[0][0, 3], 5.5) and np.isclose(guesses[straight - 1][0, 3], 1.5)
     after = gap_steps(step, 0.1, 1.0, (), standing=True)  # the scan after a gap: the step at its pace, no stop
     assert len(after) == 1 and np.isclose(after[0][0, 3], 0.05)
+
+
+def test_guesses_after_a_stop_go_from_the_pace_before_it_down_towards_none():
+    step = se2_to_matrix(3.6, 0.0, 0.0)  # 3.6 m in 0.3 s before the stop; the scan after it 0.5 s on
+    guesses = restart_steps(step, 0.5 / 0.3, 2.0, (10.0,))
+    assert len(guesses) == 2 * 3  # 6 m, 4 m, 2 m; then each turned
+    assert np.allclose([g[0, 3] for g in guesses[:3]], [6.0, 4.0, 2.0])
+    assert not any(np.allclose(g, np.eye(4)) for g in guesses)  # no motion is the prediction's already
+    assert np.isclose(np.degrees(np.arctan2(guesses[3][1, 0], guesses[3][0, 0])), 10.0)
 
 
 def test_the_most_promising_keep_their_order():
