@@ -5,7 +5,14 @@ from __future__ import annotations
 import numpy as np
 
 from submapslam.geometry import se2_to_matrix
-from submapslam.scan_intervals import ScanIntervals, bent, gap_steps, most_promising, paced, restart_steps
+from submapslam.scan_intervals import (
+    ScanIntervals,
+    bent,
+    gap_steps,
+    most_promising,
+    paced,
+    restart_steps,
+)
 
 
 def _intervals(times) -> ScanIntervals:
