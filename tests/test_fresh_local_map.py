@@ -2,7 +2,9 @@
 (``movers_delay_s``). Where the keyframes turned into a street the delayed map had not seen, a
 scan's share on the map fell from 0.89 to 0.14 and registration carried the turn on (a 64-ring
 drive ended 89 m off). Such a scan now puts the waiting scans into the map and registers again
-(``Odometry._fresh_map_if_off``); a resumed run repeats the decision from its checkpoint.
+(``Odometry._fresh_map_if_off``); if it is still off that map, from its guess turned by up to
+10 deg too (a drive that stopped turning between keyframes). A resumed run repeats the decision
+from its checkpoint.
 In the rule's tests registration is stood in for (the rule, not KISS-ICP, is under test); the last
 two replay real scans, as a resumed run does, and ask for the uninterrupted run's poses bit for bit."""
 
