@@ -107,6 +107,34 @@ def test_a_vehicle_at_keyframes_seen_through_a_narrow_field(tmp_path):
     assert errors[0] <= 0.05 and errors[1] > 0.4, errors
 
 
+def _keyframes_with_a_stop(scans: list, truth: np.ndarray, gaps: np.ndarray, stop: int) -> tuple[list, list]:
+    """Every ``gaps``-th scan in turn (keyframes), and after keyframe ``stop`` three more scans of
+    its pose 3.4 s apart (a stop; the keyframes after it come 10.2 s later): ``(scans, poses (4, 4))``."""
+    kept = [0] + [int(i) for i in np.cumsum(gaps) if i < len(scans)]
+    log, poses = [], []
+    for j, i in enumerate(kept):
+        pause = 3 * 3.4 if j > stop else 0.0  # [s] the stop's three intervals come before
+        log.append(dataclasses.replace(scans[i], timestamp=scans[i].timestamp + pause))
+        poses.append(truth[i])
+        if j == stop:
+            log += [dataclasses.replace(scans[i], timestamp=scans[i].timestamp + 3.4 * r) for r in (1, 2, 3)]
+            poses += [truth[i]] * 3
+    return log, poses
+
+
+def _step_and_end_errors(log: list, poses: list, k: int) -> tuple[float, float, dict]:
+    """The odometry alone over ``log``: ``(error [m] of the step into scan k, of the end relative
+    to the start, the odometry's checks)``."""
+    odometry = Odometry(resolve_registration(OdometryConfig(), log[0]), planar=False)
+    estimate = [odometry.register(scan)[0] for scan in log]
+    step = np.linalg.inv(estimate[k - 1]) @ estimate[k]
+    true_step = np.linalg.inv(poses[k - 1]) @ poses[k]
+    end = np.linalg.inv(estimate[0]) @ estimate[-1]
+    true_end = np.linalg.inv(poses[0]) @ poses[-1]
+    return (float(np.linalg.norm(step[:3, 3] - true_step[:3, 3])),
+            float(np.linalg.norm(end[:3, 3] - true_end[:3, 3])), odometry.checks())
+
+
 def test_a_keyframed_drive_that_stood_still_goes_on_at_its_pace(drive):
     """Keyframes 0.2-0.5 s apart, and halfway a stop: three scans 3.4 s apart where the vehicle
     stood; the next keyframe is 4.3 m on. Registered from no motion (the last step), the scan after
@@ -116,23 +144,24 @@ def test_a_keyframed_drive_that_stood_still_goes_on_at_its_pace(drive):
     scans, _, truth = _without(drive, range(0))
     for draw in (1, 6):
         gaps = np.random.default_rng(draw).integers(2, 6, 60)
-        kept = [0] + [int(i) for i in np.cumsum(gaps) if i < len(scans)]
-        stop = len(kept) // 2
-        log, poses = [], []
-        for j, i in enumerate(kept):
-            pause = 3 * 3.4 if j > stop else 0.0  # [s] the stop's three intervals come before
-            log.append(dataclasses.replace(scans[i], timestamp=scans[i].timestamp + pause))
-            poses.append(truth[i])
-            if j == stop:
-                log += [dataclasses.replace(scans[i], timestamp=scans[i].timestamp + 3.4 * r) for r in (1, 2, 3)]
-                poses += [truth[i]] * 3
-        odometry = Odometry(resolve_registration(OdometryConfig(), log[0]), planar=False)
-        estimate = [odometry.register(scan)[0] for scan in log]
+        stop = (len(np.cumsum(gaps)[np.cumsum(gaps) < len(scans)]) + 1) // 2
+        log, poses = _keyframes_with_a_stop(scans, truth, gaps, stop)
         restart = stop + 4
-        step = np.linalg.inv(estimate[restart - 1]) @ estimate[restart]
-        true_step = np.linalg.inv(poses[restart - 1]) @ poses[restart]
-        assert np.linalg.norm(true_step[:3, 3]) > 4.0  # the world still goes on at speed there
-        end = np.linalg.inv(estimate[0]) @ estimate[-1]
-        true_end = np.linalg.inv(poses[0]) @ poses[-1]
-        assert np.linalg.norm(step[:3, 3] - true_step[:3, 3]) <= 0.2, draw
-        assert np.linalg.norm(end[:3, 3] - true_end[:3, 3]) <= 1.0, draw
+        assert np.linalg.norm((np.linalg.inv(poses[restart - 1]) @ poses[restart])[:3, 3]) > 4.0  # at speed there
+        step, end, _ = _step_and_end_errors(log, poses, restart)
+        assert step <= 0.2 and end <= 1.0, (draw, step, end)
+
+
+def test_a_steady_keyframed_drive_that_stood_still_is_seen_to_stand(drive):
+    """Keyframes every 0.4-0.5 s (a steady rate: a long interval is taken for scans lost while
+    moving) with the same stop: at twelve of twenty places along the street the stop was
+    registered as 3-9 m of driving and the drive ended 28-93 m off. The registration from standing
+    still is tried too, and wins where it puts 5 % more of the scan on the map (19 of 20 places
+    end within 0.5 m). Two of the places that failed: the first still scan within 0.2 m, the end
+    within 1 m (0.03 / 0.40 m and 0.04 / 0.45 m)."""
+    scans, _, truth = _without(drive, range(0))
+    gaps = np.random.default_rng(0).integers(4, 6, 60)
+    for stop in (7, 10):
+        log, poses = _keyframes_with_a_stop(scans, truth, gaps, stop)
+        step, end, checks = _step_and_end_errors(log, poses, stop + 1)
+        assert step <= 0.2 and end <= 1.0 and checks["gap_stood_won"] == 1, (stop, step, end, checks)
