@@ -628,8 +628,8 @@ class Odometry:
         its ``share`` beats ``fit`` by ``GAP_FIT_MARGIN``. A steady log's long interval is taken
         for scans lost while moving, and its guesses leave standing still out; yet a logger may
         pause where the sensor stands (keyframes every 0.4-0.5 s, three of them 3.4 s apart at one
-        pose: twelve of twenty such stops along a street were registered as 3-9 m of driving, at
-        36-43 % of the scan on the map where standing still put 58-70 % there)."""
+        pose: fourteen of twenty such stops along a street were registered as 3-9 m of driving, with
+        37-40 % of the scan on the map where standing still put 58-70 % there)."""
         pace = self._intervals.pace()
         if pace is None or pace < 1.0 or not self._intervals.steady():
             return pose, guess
