@@ -52,7 +52,7 @@ GAP_GUESS_SPACING = 2.0
 GAP_GUESS_TURNS_DEG = (10.0, -10.0, 20.0, -20.0)
 GAP_GUESS_TURNS_PLANAR_DEG = (15.0, -15.0, 30.0, -30.0, 45.0, -45.0, 60.0, -60.0, 90.0, -90.0)
 #: [local-map voxels], [deg] a step shorter than this that turns less than that stood still: the
-#: scan after it in a keyframed log is also guessed at the pace before the stop (:meth:`Odometry._over_the_gap`)
+#: scan after it and a long interval is also guessed at the pace before the stop (:meth:`Odometry._over_the_gap`)
 STOOD_VOXELS = 0.1
 STOOD_DEG = 1.0
 #: [share of the scan's points] the margin by which the best registration from those guesses and the
