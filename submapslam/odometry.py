@@ -726,8 +726,8 @@ class Odometry:
         ``fresh_map_turned`` those where a registration from a turned guess was
         (:meth:`_fresh_map_if_off`); ``gap_stood_won`` scans after a long interval in a steady log
         registered as standing still (:meth:`_stood_if_better`). Every kind: ``gap_guesses_tried``
-        scans that came after a long interval (``odometry.gap_ratio``) and were also registered from the motion carried over it;
-        but with voxel_gicp (whose search takes the best of all its guesses) ``gap_guess_won``, those
+        scans that came after a long interval (``odometry.gap_ratio``) and were also registered
+        from the motion carried over it; but with voxel_gicp (whose search takes the best of all its guesses) ``gap_guess_won``, those
         where that registration was kept."""
         gap = {"gap_guesses_tried": self.gap_guesses_tried}
         if self._gicp is not None:

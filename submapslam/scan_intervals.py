@@ -86,6 +86,20 @@ def bent(step: np.ndarray, turn: float) -> np.ndarray:
     return out
 
 
+def _paces_down(step: np.ndarray, over: float, floor: float, spacing_m: float) -> np.ndarray:
+    """The paces ``(K,)`` from ``over`` down towards ``floor`` (``floor`` left out), times the
+    interval ``step`` spans, that move ``step``'s end ``spacing_m`` [m] apart."""
+    reach = (over - floor) * float(np.linalg.norm(step[:3, 3]))
+    return np.linspace(over, floor, int(np.ceil(reach / spacing_m)) + 1)[:-1]
+
+
+def _paced_and_bent(step: np.ndarray, paces: np.ndarray, turns_deg: tuple[float, ...]) -> list[np.ndarray]:
+    """``step`` ``(4, 4)`` at each of ``paces`` (blended along its geodesic), then the same bent by
+    each of ``turns_deg`` (:func:`bent`)."""
+    steps = list(blend_poses_many(np.eye(4), step, paces))
+    return steps + [bent(s, np.radians(t)) for t in turns_deg for s in steps]
+
+
 def gap_steps(step: np.ndarray, over: float, spacing_m: float, turns_deg: tuple[float, ...],
               standing: bool) -> list[np.ndarray]:
     """Guesses ``(4, 4)`` for a scan ``over`` times the interval ``step`` spans after the last:
@@ -93,14 +107,8 @@ def gap_steps(step: np.ndarray, over: float, spacing_m: float, turns_deg: tuple[
     whole interval's down towards one interval's, ``spacing_m`` [m] apart; then the same bent by
     each of ``turns_deg`` (:func:`bent`); and after a long interval with ``standing``, last, no
     motion (a stop)."""
-    if over < 1.0:
-        paces = np.array([over])
-    else:
-        reach = (over - 1.0) * float(np.linalg.norm(step[:3, 3]))
-        paces = np.linspace(over, 1.0, int(np.ceil(reach / spacing_m)) + 1)[:-1]
-    steps = list(blend_poses_many(np.eye(4), step, paces))
-    turned = [bent(s, np.radians(t)) for t in turns_deg for s in steps]
-    return steps + turned + ([np.eye(4)] if standing and over > 1.0 else [])
+    paces = np.array([over]) if over < 1.0 else _paces_down(step, over, 1.0, spacing_m)
+    return _paced_and_bent(step, paces, turns_deg) + ([np.eye(4)] if standing and over > 1.0 else [])
 
 
 def restart_steps(step: np.ndarray, over: float, spacing_m: float, turns_deg: tuple[float, ...]) -> list[np.ndarray]:
@@ -109,10 +117,7 @@ def restart_steps(step: np.ndarray, over: float, spacing_m: float, turns_deg: tu
     down towards none, ``spacing_m`` [m] apart; then the same bent by each of ``turns_deg``
     (:func:`bent`). A keyframed log pauses while the sensor stands and goes on where it moves
     again, often at the pace it had."""
-    reach = over * float(np.linalg.norm(step[:3, 3]))
-    paces = np.linspace(over, 0.0, int(np.ceil(reach / spacing_m)) + 1)[:-1]
-    steps = list(blend_poses_many(np.eye(4), step, paces))
-    return steps + [bent(s, np.radians(t)) for t in turns_deg for s in steps]
+    return _paced_and_bent(step, _paces_down(step, over, 0.0, spacing_m), turns_deg)
 
 
 def most_promising(guesses: list[np.ndarray], fit: Callable[[np.ndarray], float], keep: int) -> list[np.ndarray]:
